@@ -1,0 +1,171 @@
+"""Shared CLI pieces: option types, error handling, logging, progress display, config resolution.
+
+Only typer and rich are imported at module level, so ``sage --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from pathlib import Path
+from typing import Annotated, Any, Callable, Iterator, Optional
+
+import typer
+from rich.console import Console
+from rich.panel import Panel
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+console = Console(stderr=False, highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+# ---- shared option types -----------------------------------------------------------------
+DeviceOpt = Annotated[str, typer.Option("--device", help="Device: auto, cpu or cuda[:N].")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed of this stage (recorded in the manifest).")]
+PresetOpt = Annotated[str, typer.Option("--preset", help="Settings preset: tiny (CPU, tests, demo) or default (the paper's, GPU).")]
+ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML/JSON config file; overrides the preset, flags override it.", exists=False)]
+ForceOpt = Annotated[bool, typer.Option("--force", help="Redo the stage even if it finished with the same config and inputs.")]
+VerboseOpt = Annotated[bool, typer.Option("--verbose/--quiet", help="Show detailed progress (default) or only errors and the final panel.")]
+SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override any config field: --set key.sub=value (repeatable).")]
+
+
+def parse_sets(values: list[str] | None) -> dict[str, Any]:
+    """``["a.b=1", "c=x"]`` -> ``{"a.b": "1", "c": "x"}`` (types are coerced by the config layer)."""
+    out: dict[str, Any] = {}
+    for v in values or []:
+        if "=" not in v:
+            raise typer.BadParameter(f"--set expects key=value, got {v!r}")
+        k, val = v.split("=", 1)
+        out[k.strip()] = val.strip()
+    return out
+
+
+def resolve_stage_config(stage: str, preset: str, config_file: Path | None, flags: dict[str, Any]) -> Any:
+    """preset < config file < flags, for one stage."""
+    from sage_core.config import load_config_file, resolve_config
+
+    data = load_config_file(config_file) if config_file is not None else None
+    return resolve_config(stage, preset, data, flags, file_label=str(config_file) if config_file else "config file")
+
+
+@contextlib.contextmanager
+def cli_errors() -> Iterator[None]:
+    """Turn engine errors into one red line and the error's exit code; keyboard interrupt -> 130."""
+    from sage_core.errors import SageError
+
+    try:
+        yield
+    except SageError as e:
+        err_console.print(f"[bold red]error:[/] {e}")
+        raise typer.Exit(code=e.exit_code) from None
+    except KeyboardInterrupt:
+        err_console.print("[yellow]interrupted[/]: the stage resumes from its last checkpoint when run again")
+        raise typer.Exit(code=130) from None
+    except MemoryError:
+        err_console.print("[bold red]error:[/] out of memory: lower the image height (--height) or the surfel count, or use --preset tiny")
+        raise typer.Exit(code=5) from None
+    except RuntimeError as e:
+        if "out of memory" in str(e).lower():
+            err_console.print("[bold red]error:[/] the device ran out of memory: lower the image height, the surfel count or the batch/chunk sizes in the config")
+            raise typer.Exit(code=5) from None
+        raise
+
+
+def setup_logging(ws_root: Path | None, stage: str, verbose: bool) -> Path | None:
+    """Log file ``WS/logs/<stage>-<UTC time>.log`` for the ``sage`` logger; returns its path."""
+    logger = logging.getLogger("sage")
+    logger.setLevel(logging.DEBUG)
+    for h in list(logger.handlers):
+        if getattr(h, "_sage_file", False):
+            logger.removeHandler(h)
+            h.close()
+    if ws_root is None:
+        return None
+    logs = ws_root / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    path = logs / f"{stage}-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}.log"
+    fh = logging.FileHandler(path, encoding="utf-8")
+    fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    fh._sage_file = True  # type: ignore[attr-defined]
+    logger.addHandler(fh)
+    return path
+
+
+class ProgressDisplay:
+    """A rich progress bar fed by the engine's ``progress(done, total, message=..., **stats)`` callback."""
+
+    def __init__(self, title: str, enabled: bool = True) -> None:
+        self.title = title
+        self.enabled = enabled
+        self._progress: Progress | None = None
+        self._task: Any = None
+        self._log = logging.getLogger("sage")
+        self._last_log = 0.0
+
+    def __enter__(self) -> "ProgressDisplay":
+        if self.enabled:
+            self._progress = Progress(
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[rate]}"),
+                TimeElapsedColumn(),
+                TimeRemainingColumn(),
+                TextColumn("{task.fields[info]}"),
+                console=console,
+                transient=False,
+            )
+            self._progress.__enter__()
+            self._task = self._progress.add_task(self.title, total=None, info="", rate="")
+        self._t0 = time.time()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._progress is not None:
+            self._progress.__exit__(*exc)
+
+    def __call__(self, done: int, total: int | None = None, message: str = "", **stats: Any) -> None:
+        info = message
+        if stats:
+            info = (message + "  " if message else "") + "  ".join(_fmt_stat(k, v) for k, v in stats.items())
+        elapsed = max(time.time() - self._t0, 1e-9)
+        rate = f"{done / elapsed:.1f} it/s" if done else ""
+        if self._progress is not None:
+            self._progress.update(self._task, completed=done, total=total, info=info, rate=rate)
+        now = time.time()
+        if now - self._last_log > 5.0 or (total is not None and done >= total):
+            self._log.info("%s %s/%s %s", self.title, done, total, info)
+            self._last_log = now
+
+
+def _fmt_stat(k: str, v: Any) -> str:
+    if isinstance(v, float):
+        return f"{k} {v:.4g}"
+    return f"{k} {v}"
+
+
+def summary_panel(title: str, rows: list[tuple[str, Any]], paths: list[tuple[str, Path]] | None = None) -> None:
+    """The panel that ends every command: numbers, then the files written."""
+    t = Table.grid(padding=(0, 2))
+    t.add_column(style="bold cyan")
+    t.add_column()
+    for k, v in rows:
+        t.add_row(k, _fmt_value(v))
+    for k, p in paths or []:
+        t.add_row(k, str(p))
+    console.print(Panel(t, title=title, expand=False))
+
+
+def _fmt_value(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_fmt_value(x) for x in v)
+    return str(v)
+
+
+def run_guarded(fn: Callable[[], None]) -> None:
+    """Run a command body under :func:`cli_errors`."""
+    with cli_errors():
+        fn()

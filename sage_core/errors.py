@@ -1,0 +1,39 @@
+"""Exceptions shared by the engine and mapped to exit codes by the CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class SageError(Exception):
+    """Base class for errors the CLI reports as one clear line and a non-zero exit."""
+
+    exit_code: int = 1
+
+
+class InputError(SageError):
+    """A user-supplied file or folder is missing, unreadable or malformed.
+
+    Attributes:
+        path: the offending file or folder.
+        problem: what is wrong with it, in one sentence.
+    """
+
+    exit_code = 2
+
+    def __init__(self, path: str | Path, problem: str) -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class ConfigError(SageError):
+    """A configuration value or combination of options is invalid."""
+
+    exit_code = 3
+
+
+class StageError(SageError):
+    """A stage cannot run: a missing, failed or stale earlier stage, or a locked workspace."""
+
+    exit_code = 4
