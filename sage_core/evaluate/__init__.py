@@ -1,0 +1,37 @@
+"""Image metrics for evaluation and losses: PSNR, SSIM and LPIPS (AlexNet v0.1)."""
+
+from .lpips import (
+    DEFAULT_CACHE_PATH,
+    ENV_VAR,
+    LPIPS,
+    LPIPS_ALEX_SHA256,
+    find_lpips_weights,
+    load_lpips_or_none,
+    load_lpips_state_dict,
+    lpips_or_none,
+)
+from .metrics import (
+    mean_psnr,
+    psnr,
+    psnr_per_channel_mean,
+    ssim,
+    ssim_map,
+    to_nchw,
+)
+
+__all__ = [
+    "DEFAULT_CACHE_PATH",
+    "ENV_VAR",
+    "LPIPS",
+    "LPIPS_ALEX_SHA256",
+    "find_lpips_weights",
+    "load_lpips_or_none",
+    "load_lpips_state_dict",
+    "lpips_or_none",
+    "mean_psnr",
+    "psnr",
+    "psnr_per_channel_mean",
+    "ssim",
+    "ssim_map",
+    "to_nchw",
+]
