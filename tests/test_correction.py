@@ -1,0 +1,308 @@
+"""Neighbour sets and the stretch/curvature surfel correction."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from sage_core.avatar.correction import SurfelCorrection, affine_frames, principal_stretches
+from sage_core.avatar.neighbours import surfel_neighbours, triangle_centroids, triangle_neighbours
+from sage_core.flame.frames import surfel_frames, triangle_frames
+from sage_core.geometry.rotations import axis_angle_to_matrix, matrix_to_quat, quat_multiply, quat_to_matrix
+
+DT = torch.float64
+
+
+def _grid(n: int = 9, h: float = 0.01):
+    """Planar (z = 0) grid mesh, counter-clockwise seen from +z, centred at the origin."""
+    xs = (torch.arange(n, dtype=DT) - (n - 1) / 2) * h
+    yy, xx = torch.meshgrid(xs, xs, indexing="ij")
+    verts = torch.stack([xx, yy, torch.zeros_like(xx)], -1).reshape(-1, 3)
+    idx = torch.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+    faces = torch.cat([torch.stack([a, b, c], -1).reshape(-1, 3), torch.stack([a, c, d], -1).reshape(-1, 3)])
+    return verts, faces
+
+
+def _interior(verts, faces, margin: float):
+    c = verts[faces].mean(1)
+    lim = verts[:, 0].max() - margin
+    return ((c[:, 0].abs() < lim) & (c[:, 1].abs() < lim)).nonzero().squeeze(-1)
+
+
+def _surfels(verts, faces, binding, spin: torch.Tensor | None = None):
+    """Canonical surfel rotations lying flat on their triangles, optionally turned about the normal."""
+    R, _, _ = surfel_frames(verts, faces)
+    q = matrix_to_quat(R[binding])
+    if spin is not None:
+        dz = torch.stack([torch.cos(spin / 2), 0 * spin, 0 * spin, torch.sin(spin / 2)], -1)
+        q = quat_multiply(q, dz)
+    return q
+
+
+def _setup(canonical, faces, radius=0.025, **kw):
+    corr = SurfelCorrection.from_mesh(canonical, faces, radius=radius, max_neighbours=24, **kw)
+    binding = _interior(canonical, faces, margin=radius + 0.001)
+    return corr, binding
+
+
+# ---------------------------------------------------------------- neighbours
+
+
+def test_triangle_neighbours_match_brute_force():
+    g = np.random.default_rng(0)
+    verts = torch.as_tensor(g.normal(size=(60, 3)) * 0.05)
+    faces = torch.as_tensor(g.integers(0, 60, size=(80, 3)))
+    radius, K = 0.04, 5
+    idx, count = triangle_neighbours(verts, faces, radius, K)
+    assert idx.shape == (80, K) and idx.dtype == torch.long and count.shape == (80,)
+    c = triangle_centroids(verts, faces)
+    D = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    for q in range(80):
+        cand = [j for j in np.argsort(D[q], kind="stable") if j != q and D[q, j] <= radius]
+        n = min(len(cand), K)
+        assert int(count[q]) == n
+        got = idx[q, :n].tolist()
+        assert sorted(got) == sorted(cand[:n]) or np.allclose(sorted(D[q, got]), sorted(D[q, cand[:n]]))
+        assert q not in got
+        assert torch.all(idx[q, n:] == -1)
+        assert np.all(np.diff(D[q, got]) >= -1e-12)  # nearest first
+    assert count.max() == K and count.min() < K
+    binding = torch.tensor([3, 3, 70])
+    s_idx, s_count = surfel_neighbours(idx, count, binding)
+    assert torch.equal(s_idx, idx[binding]) and torch.equal(s_count, count[binding])
+    # more slots than triangles: everything within reach, rest padded
+    idx_all, count_all = triangle_neighbours(verts[:9], torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]]), 10.0, 6)
+    assert idx_all.shape == (3, 6) and torch.all(count_all == 2) and torch.all(idx_all[:, 2:] == -1)
+
+
+# ---------------------------------------------------------------- stretch
+
+
+@pytest.mark.parametrize("s", [0.7, 1.6])
+def test_uniform_scale_gives_isotropic_stretch(s):
+    verts, faces = _grid()
+    corr, binding = _setup(verts, faces)
+    Q = axis_angle_to_matrix(torch.tensor([0.4, -0.3, 0.9], dtype=DT))
+    posed = s * verts @ Q.T + torch.tensor([0.1, 0.2, -0.3], dtype=DT)
+    spin = torch.linspace(-1.0, 1.0, binding.numel(), dtype=DT)
+    rot = _surfels(verts, faces, binding, spin)
+    out = corr(posed, binding, rot, torch.tensor([0.0, 0.0, 1.0], dtype=DT).expand(binding.numel(), 3))
+    assert out.valid.all()
+    assert torch.allclose(out.principal_stretch, torch.full_like(out.principal_stretch, s), atol=1e-9)
+    # the binding already scales by s: nothing is left to correct
+    assert torch.allclose(out.stretch, torch.ones_like(out.stretch), atol=1e-9)
+    assert torch.allclose(out.scale_factor, torch.ones_like(out.scale_factor), atol=1e-9)
+    assert torch.allclose(out.quat, torch.tensor([1.0, 0, 0, 0], dtype=DT).expand_as(out.quat))
+
+
+def test_rigid_motion_changes_nothing_beyond_the_rigid_one():
+    verts, faces = _grid()
+    corr, binding = _setup(verts, faces)
+    N = binding.numel()
+    Q = axis_angle_to_matrix(torch.tensor([-0.7, 0.2, 0.5], dtype=DT))
+    posed = verts @ Q.T + torch.tensor([0.0, 0.05, 0.0], dtype=DT)
+    rot = _surfels(verts, faces, binding)
+    R = quat_to_matrix(rot)
+    # curvature directions along the surfel axes, clearly anisotropic: the surfels are already aligned
+    dirs = torch.stack([R[..., 0], R[..., 1]], -2)
+    kappa = torch.tensor([30.0, 5.0], dtype=DT).expand(N, 2)
+    out = corr(posed, binding, rot, R[..., 2], kappa, dirs)
+    assert torch.allclose(out.principal_stretch, torch.ones_like(out.principal_stretch), atol=1e-9)
+    assert torch.allclose(out.stretch, torch.ones_like(out.stretch), atol=1e-9)
+    assert torch.allclose(out.quat, torch.tensor([1.0, 0, 0, 0], dtype=DT).expand_as(out.quat), atol=1e-12)
+    # posed rotation = rigid rotation ⊗ canonical rotation, unchanged by the correction
+    q_posed = quat_multiply(matrix_to_quat(Q).expand(N, 4), rot)
+    q_new, _ = SurfelCorrection.apply(out, q_posed, torch.ones(N, 2, dtype=DT))
+    assert torch.allclose(quat_to_matrix(q_new), Q @ R, atol=1e-12)
+
+
+@pytest.mark.parametrize("tilt", [False, True])
+def test_anisotropic_stretch_along_a_tangent_axis(tilt):
+    s = 1.5
+    verts, faces = _grid(11)
+    stretch = torch.diag(torch.tensor([s, 1.0, 1.0], dtype=DT))
+    canon, posed = verts, verts @ stretch.T
+    B = torch.eye(3, dtype=DT)
+    if tilt:  # the same experiment on a plane in general position
+        B = axis_angle_to_matrix(torch.tensor([0.5, 0.8, -0.2], dtype=DT))
+        canon, posed = verts @ B.T, posed @ B.T
+    corr, binding = _setup(canon, faces)
+    N = binding.numel()
+    normal = B[:, 2].expand(N, 3)
+    _, _, k_c = triangle_frames(canon, faces)
+    _, _, k_d = triangle_frames(posed, faces)
+    r = (k_d / k_c)[binding].unsqueeze(-1)  # the binding's own uniform scaling of each triangle
+    # surfels whose first axis is the stretch axis ...
+    rot = matrix_to_quat(B).expand(N, 4)
+    out = corr(posed, binding, rot, normal)
+    assert torch.allclose(out.principal_stretch, torch.tensor([s, 1.0], dtype=DT).expand(N, 2), atol=1e-9)
+    assert torch.allclose(out.stretch * r, torch.tensor([s, 1.0], dtype=DT).expand(N, 2), atol=1e-9)
+    assert torch.allclose(out.scale_factor * r, torch.tensor([s, 1.0], dtype=DT).expand(N, 2), atol=1e-9)
+    assert (r - 1).abs().max() > 0.05  # the binding alone would have got it wrong
+    # ... and surfels turned 30° in the plane: same principal stretches, per-axis stretch by the ellipse
+    a = math.radians(30.0)
+    rot30 = quat_multiply(rot, torch.tensor([math.cos(a / 2), 0, 0, math.sin(a / 2)], dtype=DT).expand(N, 4))
+    out30 = corr(posed, binding, rot30, normal)
+    assert torch.allclose(out30.principal_stretch, out.principal_stretch, atol=1e-9)
+    expect = torch.tensor([math.hypot(s * math.cos(a), math.sin(a)), math.hypot(s * math.sin(a), math.cos(a))], dtype=DT)
+    assert torch.allclose(out30.stretch * r, expect.expand(N, 2), atol=1e-9)
+
+
+def test_principal_stretches_closed_form():
+    g = torch.Generator().manual_seed(0)
+    G = torch.randn(20, 2, 2, generator=g, dtype=DT)
+    sigma, dirs = principal_stretches(G)
+    sv = torch.linalg.svdvals(G)
+    assert torch.allclose(sigma, sv, atol=1e-8)
+    stretched = (G @ dirs).norm(dim=-2)
+    assert torch.allclose(stretched, sigma, atol=1e-8)
+
+
+# ---------------------------------------------------------------- rotation and curvature
+
+
+def test_correction_keeps_the_normal_and_aligns_with_principal_directions():
+    verts, faces = _grid()
+    corr, binding = _setup(verts, faces, umbilic_tol=0.0)
+    N = binding.numel()
+    g = torch.Generator().manual_seed(3)
+    spin = (torch.rand(N, generator=g, dtype=DT) - 0.5) * 2 * math.pi
+    rot = _surfels(verts, faces, binding, spin)
+    R = quat_to_matrix(rot)
+    n = R[..., 2]
+    beta = (torch.rand(N, generator=g, dtype=DT) - 0.5) * 2 * math.pi
+    d1 = torch.stack([torch.cos(beta), torch.sin(beta), 0 * beta], -1)
+    d2 = torch.linalg.cross(n, d1, dim=-1)
+    kappa = torch.stack([torch.full((N,), 40.0, dtype=DT), torch.full((N,), -10.0, dtype=DT)], -1)
+    out = corr(verts, binding, rot, n, kappa, torch.stack([d1, d2], -2))
+    assert out.angle.abs().max() <= math.pi / 4 + 1e-12
+    q_new, _ = SurfelCorrection.apply(out, rot, torch.ones(N, 2, dtype=DT))
+    R_new = quat_to_matrix(q_new)
+    assert torch.allclose(R_new[..., 2], R[..., 2], atol=1e-12)
+    t1 = R_new[..., 0]
+    align = torch.maximum((t1 * d1).sum(-1).abs(), (t1 * d2).sum(-1).abs())
+    assert torch.allclose(align, torch.ones_like(align), atol=1e-10)
+    # the axis aligned with d1 gets κ1's damping, the other κ2's (rest pose: stretch 1)
+    on_d1 = (t1 * d1).sum(-1).abs() > 0.5
+    w = corr.w_s
+    a, b = torch.tensor(1 / (1 + w * 40.0), dtype=DT), torch.tensor(1 / (1 + w * 10.0), dtype=DT)
+    f1, f2 = torch.where(on_d1, a, b), torch.where(on_d1, b, a)
+    assert torch.allclose(out.scale_factor, torch.stack([f1, f2], -1), atol=1e-10)
+    # a direction and its opposite give the same correction
+    out_neg = corr(verts, binding, rot, -n, kappa, torch.stack([-d1, d2], -2))
+    assert torch.allclose(out_neg.quat, out.quat, atol=1e-12)
+
+
+def test_curvature_damping():
+    verts, faces = _grid()
+    corr, binding = _setup(verts, faces, w_s=0.002)
+    N = binding.numel()
+    rot = _surfels(verts, faces, binding)
+    R = quat_to_matrix(rot)
+    dirs = torch.stack([R[..., 0], R[..., 1]], -2)
+    flat = corr(verts, binding, rot, R[..., 2], torch.zeros(N, 2, dtype=DT), dirs)
+    assert torch.allclose(flat.scale_factor, torch.ones(N, 2, dtype=DT), atol=1e-12)
+    kappa = torch.tensor([500.0, -200.0], dtype=DT).expand(N, 2)
+    curved = corr(verts, binding, rot, R[..., 2], kappa, dirs)
+    expect = torch.tensor([1 / (1 + 0.002 * 500.0), 1 / (1 + 0.002 * 200.0)], dtype=DT)
+    assert torch.allclose(curved.scale_factor, expect.expand(N, 2), atol=1e-12)
+    _, s_new = SurfelCorrection.apply(curved, rot, torch.full((N, 3), 0.003, dtype=DT))
+    assert torch.allclose(s_new[:, :2], 0.003 * expect.expand(N, 2)) and torch.all(s_new[:, 2] == 0.003)
+
+
+def test_hair_and_isolated_surfels_are_untouched_and_off_switch():
+    verts, faces = _grid()
+    far = torch.tensor([[1.0, 1.0, 0.0], [1.01, 1.0, 0.0], [1.0, 1.01, 0.0]], dtype=DT)
+    verts2 = torch.cat([verts, far])
+    faces2 = torch.cat([faces, torch.tensor([[0, 1, 2]]) + verts.shape[0]])
+    corr, binding = _setup(verts2, faces2)
+    lone = faces2.shape[0] - 1
+    binding = torch.cat([binding[:6], torch.tensor([lone])])
+    N = binding.numel()
+    assert not bool(corr.triangle_valid()[lone])
+    posed = verts2 * torch.tensor([1.4, 1.0, 1.0], dtype=DT)
+    rot = _surfels(verts2, faces2, binding, torch.full((N,), 0.3, dtype=DT))
+    R = quat_to_matrix(rot)
+    d1 = torch.tensor([1.0, 0.0, 0.0], dtype=DT).expand(N, 3)
+    dirs = torch.stack([d1, torch.linalg.cross(R[..., 2], d1, dim=-1)], -2)
+    kappa = torch.tensor([50.0, 0.0], dtype=DT).expand(N, 2)
+    hair = torch.zeros(N, dtype=torch.bool)
+    hair[:3] = True
+    out = corr(posed, binding, rot, R[..., 2], kappa, dirs, hair=hair)
+    untouched = hair.clone()
+    untouched[-1] = True
+    assert torch.equal(out.valid, ~untouched)
+    assert torch.all(out.quat[untouched] == torch.tensor([1.0, 0, 0, 0], dtype=DT))
+    assert torch.all(out.scale_factor[untouched] == 1.0)
+    assert not torch.allclose(out.scale_factor[~untouched], torch.ones(int((~untouched).sum()), 2, dtype=DT))
+    assert not torch.allclose(out.quat[~untouched][:, 0], torch.ones(int((~untouched).sum()), dtype=DT))
+    corr.enabled = False
+    off = corr(posed, binding, rot, R[..., 2], kappa, dirs, hair=hair)
+    assert torch.all(off.quat == torch.tensor([1.0, 0, 0, 0], dtype=DT)) and torch.all(off.scale_factor == 1.0)
+
+
+# ---------------------------------------------------------------- batching and gradients
+
+
+def test_batched_frames_match_single_and_gradients_flow():
+    verts, faces = _grid(7)
+    corr, binding = _setup(verts, faces, radius=0.02)
+    N = binding.numel()
+    g = torch.Generator().manual_seed(5)
+    posed = verts + 0.002 * torch.randn(2, *verts.shape, generator=g, dtype=DT)
+    rot = _surfels(verts, faces, binding, torch.rand(N, generator=g, dtype=DT)).requires_grad_(True)
+    R = quat_to_matrix(rot.detach())
+    beta = torch.rand(N, generator=g, dtype=DT) * 3
+    d1 = torch.stack([torch.cos(beta), torch.sin(beta), 0 * beta], -1)
+    dirs = torch.stack([d1, torch.linalg.cross(R[..., 2], d1, dim=-1)], -2)
+    kappa = torch.tensor([60.0, 10.0], dtype=DT).expand(N, 2)
+    posed.requires_grad_(True)
+    both = corr(posed, binding, rot, R[..., 2], kappa, dirs)
+    assert both.quat.shape == (2, N, 4) and both.scale_factor.shape == (2, N, 2)
+    for b in range(2):
+        one = corr(posed[b], binding, rot, R[..., 2], kappa, dirs)
+        assert torch.allclose(one.scale_factor, both.scale_factor[b]) and torch.allclose(one.quat, both.quat[b])
+    scales = torch.full((2, N, 2), 0.004, dtype=DT, requires_grad=True)
+    q_new, s_new = SurfelCorrection.apply(both, rot.expand(2, N, 4), scales)
+    (q_new[..., 1:].sum() + s_new.sum()).backward()
+    for t in (rot, posed, scales):
+        assert t.grad is not None and torch.isfinite(t.grad).all() and t.grad.abs().sum() > 0
+
+    def factors(p):
+        return corr(p, binding, rot.detach(), R[..., 2], kappa, dirs).scale_factor
+
+    assert torch.autograd.gradcheck(factors, (posed[0].detach().clone().requires_grad_(True),), eps=1e-7, atol=1e-5, fast_mode=True)
+
+
+def test_affine_frames_deformation_gradient_is_exact_for_affine_maps():
+    verts, faces = _grid(5)
+    verts = verts + torch.tensor([0, 0, 0.003], dtype=DT) * torch.sin(verts[:, :1] * 300)  # not planar
+    A = torch.tensor([[1.2, 0.3, 0.1], [-0.2, 0.9, 0.4], [0.05, 0.1, 1.1]], dtype=DT)
+    Ac, _ = affine_frames(verts, faces)
+    Ad, _ = affine_frames(verts @ A.T, faces)
+    F = Ad @ torch.linalg.inv(Ac)
+    e = Ac[..., :2]  # edges
+    assert torch.allclose(F @ e, A @ e, atol=1e-12)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    verts, faces = _grid()
+    corr, binding = _setup(verts, faces)
+    N = binding.numel()
+    posed = verts * torch.tensor([1.3, 0.9, 1.0], dtype=DT)
+    rot = _surfels(verts, faces, binding, torch.linspace(0, 2, N, dtype=DT))
+    R = quat_to_matrix(rot)
+    d1 = torch.tensor([0.6, 0.8, 0.0], dtype=DT).expand(N, 3)
+    dirs = torch.stack([d1, torch.linalg.cross(R[..., 2], d1, dim=-1)], -2)
+    kappa = torch.tensor([80.0, 5.0], dtype=DT).expand(N, 2)
+    args = (posed, binding, rot, R[..., 2], kappa, dirs)
+    cpu = corr(*args)
+    gpu = corr.to("cuda")(*(a.cuda() for a in args))
+    assert torch.allclose(gpu.quat.cpu(), cpu.quat, atol=1e-10)
+    assert torch.allclose(gpu.scale_factor.cpu(), cpu.scale_factor, atol=1e-10)
