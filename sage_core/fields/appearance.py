@@ -1,0 +1,129 @@
+"""Appearance network f_app(x, v, n, z) -> (colour, opacity), conditioned on the SDF."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+_C0 = 0.28209479177387814
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real spherical harmonics (orthonormal on the sphere) of unit directions.
+
+    dirs: (N, 3) unit vectors; degree 0..3 -> (N, (degree + 1)**2).
+    """
+    if not 0 <= degree <= 3:
+        raise ValueError("SH degree must be in 0..3")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, _C0)]
+    if degree >= 1:
+        out += [-_C1 * y, _C1 * z, -_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [
+            _C2[0] * x * y,
+            _C2[1] * y * z,
+            _C2[2] * (2.0 * zz - xx - yy),
+            _C2[3] * x * z,
+            _C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            _C3[0] * y * (3.0 * xx - yy),
+            _C3[1] * x * y * z,
+            _C3[2] * y * (4.0 * zz - xx - yy),
+            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            _C3[4] * x * (4.0 * zz - xx - yy),
+            _C3[5] * z * (xx - yy),
+            _C3[6] * x * (xx - 3.0 * yy),
+        ]
+    return torch.stack(out, -1)
+
+
+class AppearanceNetwork(nn.Module):
+    """Colour and opacity of a surface point: ``c, alpha = f_app(x, v, n, z)`` (paper eq. for c-hat, alpha-hat).
+
+    Inputs of ``forward``:
+        x: (N, 3) canonical world points (normalized with the box given here to [-1, 1]).
+        view_dir: (N, 3) unit viewing directions (camera -> point); ignored when ``view_dependent`` is False
+            (monocular / one-shot regimes) and may then be None.
+        normal: (N, 3) unit SDF normals n = grad f / |grad f|.
+        feature: (N, feature_dim) geometry feature z from the SDF network.
+    Output: rgb (N, 3) in (0, 1) (sigmoid) and opacity (N,) in (0, 1) (sigmoid).
+
+    Args:
+        feature_dim: F_z of the SDF network.
+        bbox_min, bbox_max: (3,) box used to normalize x (the SDF box).
+        hidden: MLP width; n_layers: hidden layers (ReLU).
+        sh_degree: degree (0..3) of the spherical-harmonics view encoding.
+        view_dependent: use the view direction.
+        opacity_bias: initial bias of the opacity logit (sigmoid(2) ~ 0.88 starts surfels mostly opaque).
+
+    Presets: ``tiny`` hidden 32, 2 layers, sh_degree 2; ``default`` hidden 64, 2 layers, sh_degree 3.
+    """
+
+    def __init__(
+        self,
+        feature_dim: int,
+        bbox_min: Sequence[float] | torch.Tensor,
+        bbox_max: Sequence[float] | torch.Tensor,
+        hidden: int = 64,
+        n_layers: int = 2,
+        sh_degree: int = 3,
+        view_dependent: bool = True,
+        opacity_bias: float = 2.0,
+    ) -> None:
+        super().__init__()
+        lo = torch.as_tensor(bbox_min, dtype=torch.float32).reshape(3)
+        hi = torch.as_tensor(bbox_max, dtype=torch.float32).reshape(3)
+        self.register_buffer("center", 0.5 * (lo + hi))
+        self.half_extent = float(0.5 * (hi - lo).max().item())
+        self.feature_dim = int(feature_dim)
+        self.sh_degree = int(sh_degree)
+        self.view_dependent = bool(view_dependent)
+        n_view = (self.sh_degree + 1) ** 2 if self.view_dependent else 0
+        dims = [3 + n_view + 3 + self.feature_dim] + [hidden] * n_layers + [4]
+        layers: list[nn.Module] = []
+        for i in range(len(dims) - 1):
+            layers.append(nn.Linear(dims[i], dims[i + 1]))
+            if i < len(dims) - 2:
+                layers.append(nn.ReLU())
+        self.mlp = nn.Sequential(*layers)
+        with torch.no_grad():
+            last = self.mlp[-1]
+            assert isinstance(last, nn.Linear)
+            last.bias.zero_()
+            last.bias[3] = opacity_bias
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        view_dir: torch.Tensor | None,
+        normal: torch.Tensor,
+        feature: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """See the class docstring: -> rgb (N, 3), opacity (N,)."""
+        xn = (x - self.center.to(x.dtype)) / self.half_extent
+        parts = [xn]
+        if self.view_dependent:
+            if view_dir is None:
+                raise ValueError("view_dir is required when view_dependent is True")
+            d = view_dir / view_dir.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            parts.append(sh_basis(d, self.sh_degree))
+        parts += [normal, feature]
+        out = self.mlp(torch.cat(parts, -1))
+        return torch.sigmoid(out[:, :3]), torch.sigmoid(out[:, 3])
