@@ -57,7 +57,7 @@ def cli_errors() -> Iterator[None]:
     try:
         yield
     except SageError as e:
-        err_console.print(f"[bold red]error:[/] {e}")
+        err_console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
         raise typer.Exit(code=e.exit_code) from None
     except KeyboardInterrupt:
         err_console.print("[yellow]interrupted[/]: the stage resumes from its last checkpoint when run again")

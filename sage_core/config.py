@@ -69,19 +69,25 @@ class SDFNetConfig:
 
     hidden: int = _f(64, "Hidden width of the SDF MLP.")
     n_hidden_layers: int = _f(1, "Number of hidden layers.")
-    feature_dim: int = _f(16, "Size of the latent feature vector z passed to the appearance network.")
+    feature_dim: int = _f(13, "Size of the latent feature vector z passed to the appearance network.")
 
 
 @dataclass
 class PretrainConfig:
-    """SDF pretraining on the canonical FLAME mesh."""
+    """SDF pretraining on the canonical FLAME mesh (rendering.md §8)."""
 
     steps: int = _f(3000, "Optimisation steps.")
-    batch_size: int = _f(16384, "Sample points per step (1/3 surface, 1/3 near, 1/3 uniform).")
+    batch_size: int = _f(8192, "Sample points per step, split evenly over surface / near-surface / uniform samples.")
+    bank_size: int = _f(200000, "Samples precomputed once per kind (surface, near, uniform).")
     lr_grid: float = _f(1e-2, "Adam learning rate of the hash table.")
     lr_mlp: float = _f(1e-3, "Adam learning rate of the MLP.")
-    w_normal: float = _f(0.1, "Weight of the normal term (1 - cos between gradient and mesh normal).")
+    near_sigmas: list[float] = _f([0.005, 0.02], "Near-surface noise std, as fractions of the head size (two values).")
+    truncation: float | None = _f(0.1, "Truncate |d| at this fraction of the head size in the value loss (none: no truncation).")
+    w_value: float = _f(1.0, "Weight of the L1 signed-distance term.")
+    w_normal: float = _f(1.0, "Weight of the normal term (1 - cos between the gradient and the mesh normal) on surface samples.")
     w_eikonal: float = _f(0.1, "Weight of the eikonal term.")
+    confidence_band: float = _f(0.25, "Winding-number band around 0.5 over which a sample's sign weight rises from 0 to 1 (open meshes).")
+    eval_samples: int = _f(20000, "Surface samples per mesh for the Chamfer distance.")
 
 
 @dataclass
@@ -89,7 +95,8 @@ class InitMeshConfig:
     """``sage init-mesh``: canonical mesh, mouth interior, SDF pretrained on the mesh."""
 
     mouth_interior: bool = _f(True, "Add the mouth-interior mesh (cavity and teeth) rigged to the jaw.")
-    bbox_padding: float = _f(0.1, "Padding of the SDF box around the canonical mesh, as a fraction of its size.")
+    bbox_padding: float = _f(0.25, "The SDF box is a cube around the canonical mesh whose half size is the mesh's largest half size times (1 + bbox_padding).")
+    sphere_radius: float = _f(0.8, "Radius of the SDF's initial sphere relative to the box half size.")
     grid: HashGridConfig = _sub(HashGridConfig, "Hash grid of the SDF.")
     sdf: SDFNetConfig = _sub(SDFNetConfig, "SDF network.")
     pretrain: PretrainConfig = _sub(PretrainConfig, "Pretraining schedule.")
@@ -113,9 +120,9 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
             "grid.log2_table": 14,
             "grid.base_res": 16,
             "grid.max_res": 256,
-            "sdf.feature_dim": 8,
-            "pretrain.steps": 400,
+            "pretrain.steps": 600,
             "pretrain.batch_size": 4096,
+            "pretrain.bank_size": 60000,
             "mc_resolution": 128,
             "checkpoint_every": 100,
         },

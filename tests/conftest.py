@@ -23,3 +23,27 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "cuda" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def tiny_capture(tmp_path_factory):
+    """A tiny synthetic multiview capture (built once per test session)."""
+    from sage_core.data.synthetic import make_capture
+    from sage_core.data.synthetic.config import preset
+
+    return make_capture(tmp_path_factory.mktemp("capture") / "cap", preset("tiny"))
+
+
+@pytest.fixture(scope="session")
+def tiny_ws(tiny_capture, tmp_path_factory):
+    """A workspace with the tiny capture ingested (mv-sf), shared read-only by tests."""
+    from typer.testing import CliRunner
+
+    from sage_cli.app import app
+
+    ws = tmp_path_factory.mktemp("ws") / "ws"
+    res = CliRunner().invoke(
+        app, ["ingest", str(tiny_capture), str(ws), "--flame-model", str(tiny_capture.model_path), "--preset", "tiny", "--quiet", "--device", "cpu"]
+    )
+    assert res.exit_code == 0, res.output
+    return ws

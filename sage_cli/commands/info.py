@@ -25,20 +25,34 @@ def _age(iso: str | None) -> str:
     return f"{s:.0f} s ago"
 
 
-def _metrics(m: dict | None) -> str:
+# the metrics ``sage info`` shows first for each stage (others follow until four are shown)
+KEY_METRICS: dict[str, tuple[str, ...]] = {
+    "ingest": ("regime", "train_images", "val_images", "test_images"),
+    "init-mesh": ("chamfer_rel", "mean_abs_sdf_rel", "normal_cos"),
+    "phase1": ("val_psnr", "train_psnr", "chamfer_rel", "iterations_per_s"),
+    "phase2": ("test_psnr",),
+    "eval": ("psnr", "ssim", "lpips"),
+}
+
+
+def _metrics(stage: str, m: dict | None, limit: int = 3) -> str:
     if not m:
         return ""
+    metrics = m.get("metrics") or {}
+    order = [k for k in KEY_METRICS.get(stage, ()) if k in metrics] + sorted(k for k in metrics if k not in KEY_METRICS.get(stage, ()))
     parts = []
-    for k, v in (m.get("metrics") or {}).items():
-        if isinstance(v, (int, float)) and not isinstance(v, bool):
-            parts.append(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}")
-        if len(parts) >= 4:
+    for k in order:
+        v = metrics[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+            continue
+        parts.append(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}")
+        if len(parts) >= limit:
             break
-    return "  ".join(parts)
+    return "\n".join(parts)
 
 
 def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
-    """Show every stage of a workspace: status, age, wall time and key metrics."""
+    """Show every stage of a workspace: status, age, wall time and key metrics (seed and device are in each manifest)."""
     from rich.table import Table
 
     from sage_core.errors import InputError
@@ -49,21 +63,21 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
             raise InputError(ws, "workspace folder not found")
         w = Workspace(ws)
         t = Table(title=f"sage workspace {w.root}")
-        for col in ("stage", "folder", "status", "finished", "wall time", "seed", "device", "key metrics"):
-            t.add_column(col)
+        t.add_column("stage", no_wrap=True)
+        t.add_column("status", min_width=8)
+        t.add_column("finished", min_width=9)
+        t.add_column("wall time", no_wrap=True)
+        t.add_column("key metrics", overflow="fold")
         colours = {"complete": "green", "stale": "yellow", "missing": "dim", "interrupted": "yellow", "failed": "red"}
         for st in w.stages():
             m = st.manifest or {}
             status = st.status + (f" ({st.reason})" if st.reason else "")
             wall = m.get("wall_time_s")
             t.add_row(
-                st.stage,
-                st.folder.name + "/",
+                f"{st.stage} ({st.folder.name}/)",
                 f"[{colours.get(st.status, 'white')}]{status}[/]",
                 _age(m.get("finished_at")),
                 f"{wall:.1f} s" if isinstance(wall, (int, float)) else "",
-                str(m.get("seed", "")),
-                str(m.get("device", "")),
-                _metrics(m),
+                _metrics(st.stage, m),
             )
         console.print(t)

@@ -1,0 +1,54 @@
+"""The ``sage`` command: one sub-command per stage. Heavy imports happen inside the commands."""
+
+from __future__ import annotations
+
+import typer
+
+from sage_core import __version__
+
+app = typer.Typer(
+    name="sage",
+    help=(
+        "SAGE: animatable 2D Gaussian surfel head avatars from a short FLAME-tracked capture.\n\n"
+        "Stages: ingest -> init-mesh -> phase1 -> phase2, then eval / reenact / export. "
+        "Each stage reads earlier stages' outputs from the workspace WS and writes WS/<stage>/."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"sage {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """SAGE avatars from FLAME-tracked captures."""
+
+
+def _register() -> None:
+    from .commands import info, ingest, init_mesh, synth
+
+    app.command("synth")(synth.synth)
+    app.command("ingest")(ingest.ingest)
+    app.command("init-mesh")(init_mesh.init_mesh)
+    app.command("info")(info.info)
+
+
+_register()
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

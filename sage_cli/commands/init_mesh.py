@@ -1,0 +1,75 @@
+"""``sage init-mesh WS``: canonical mesh, mouth interior and the SDF pretrained on it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .._common import (
+    ConfigOpt,
+    DeviceOpt,
+    ForceOpt,
+    PresetOpt,
+    SeedOpt,
+    SetOpt,
+    VerboseOpt,
+    cli_errors,
+    parse_sets,
+    resolve_stage_config,
+    summary_panel,
+)
+from .._stage import StageOptions, execute_stage
+
+
+def init_mesh(
+    ws: Annotated[Path, typer.Argument(help="Workspace folder (after `sage ingest`).")],
+    steps: Annotated[Optional[int], typer.Option("--steps", help="SDF pretraining steps (pretrain.steps).")] = None,
+    mouth_interior: Annotated[Optional[bool], typer.Option("--mouth-interior/--no-mouth-interior", help="Add the mouth-interior mesh rigged to the jaw.")] = None,
+    mc_resolution: Annotated[Optional[int], typer.Option("--mc-resolution", help="Marching-cubes resolution of the extracted SDF mesh.")] = None,
+    preset: PresetOpt = "default",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = "auto",
+    force: ForceOpt = False,
+    verbose: VerboseOpt = True,
+) -> None:
+    """Build the canonical FLAME mesh (+ mouth interior), pretrain the SDF on it, extract its zero level set."""
+    with cli_errors():
+        from sage_core.errors import InputError
+
+        flags = {"pretrain.steps": steps, "mouth_interior": mouth_interior, "mc_resolution": mc_resolution, **parse_sets(set_)}
+        cfg = resolve_stage_config("init-mesh", preset, config, flags)
+        if not ws.is_dir():
+            raise InputError(ws, "workspace folder not found (run `sage ingest` first)")
+
+        def body(run, progress) -> None:
+            from sage_core.data.dataset import IngestedData
+            from sage_core.train.init_mesh import run_init_mesh
+
+            data = IngestedData.open(run.ws.stage_dir("ingest"))
+            metrics = run_init_mesh(
+                data, run.work_dir, cfg, device=run.device, seed=run.seed, checkpoint_dir=run.checkpoint_dir, progress=progress
+            )
+            run.metrics.update(metrics)
+            run.outputs.update({n: str(run.ws.stage_dir("init-mesh") / n) for n in ("canonical_mesh.ply", "sdf_mesh.ply", "sdf.pt")})
+
+        opts = StageOptions(ws, preset, config, seed, device, force, verbose)
+        manifest = execute_stage("init-mesh", opts, cfg, body, requires=("ingest",), title="init-mesh")
+        if manifest is None:
+            return
+        m = manifest["metrics"]
+        out = ws / "init"
+        summary_panel(
+            "sage init-mesh",
+            [
+                ("canonical mesh", f"{m['n_vertices']} vertices, {m['n_faces']} faces ({m['n_mouth_faces']} mouth interior)"),
+                ("mean |SDF| at vertices", f"{m['mean_abs_sdf_vertices_m'] * 1000:.3f} mm ({m['mean_abs_sdf_rel'] * 100:.3f} % of the head diagonal)"),
+                ("normal agreement (mean cos)", m["normal_cos"]),
+                ("Chamfer to the mesh", f"{m['chamfer_m'] * 1000:.3f} mm ({m['chamfer_rel'] * 100:.3f} %)"),
+                ("wall time", f"{manifest['wall_time_s']:.1f} s"),
+            ],
+            [("canonical mesh", out / "canonical_mesh.ply"), ("SDF mesh", out / "sdf_mesh.ply"), ("SDF", out / "sdf.pt")],
+        )
