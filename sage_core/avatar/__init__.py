@@ -1,0 +1,41 @@
+"""Surfels bound to FLAME triangles: binding maths, initialization, rebinding, surfel correction."""
+
+from .binding import local_to_world, nearest_triangles, point_triangle_distance, world_to_local
+from .correction import CorrectionResult, SurfelCorrection
+from .init import (
+    REGION_EYES,
+    REGION_FACE,
+    REGION_HAIR,
+    REGION_MOUTH,
+    REGION_NAMES,
+    REGION_NECK,
+    REGION_OTHER,
+    SurfelInit,
+    face_region_labels,
+    init_surfels,
+)
+from .neighbours import surfel_neighbours, triangle_neighbours
+from .surfels import SurfelSet, replace_optimizer_param
+
+__all__ = [
+    "CorrectionResult",
+    "REGION_EYES",
+    "REGION_FACE",
+    "REGION_HAIR",
+    "REGION_MOUTH",
+    "REGION_NAMES",
+    "REGION_NECK",
+    "REGION_OTHER",
+    "SurfelCorrection",
+    "SurfelInit",
+    "SurfelSet",
+    "face_region_labels",
+    "init_surfels",
+    "local_to_world",
+    "nearest_triangles",
+    "point_triangle_distance",
+    "replace_optimizer_param",
+    "surfel_neighbours",
+    "triangle_neighbours",
+    "world_to_local",
+]
