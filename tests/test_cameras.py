@@ -47,3 +47,12 @@ def test_look_at_centre_and_dict_round_trip():
     uv, z = cam.project(np.array([[0.0, 0.02, 0.0]]))
     assert z[0] > 0 and np.allclose(uv[0], cam.K[:2, 2])
     assert np.allclose(Camera.from_dict(cam.to_dict()).w2c, cam.w2c)
+
+
+def test_look_at_keeps_world_up_up_and_right_right():
+    w2c = look_at(np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    cam = Camera(np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]]), w2c, 100, 100)
+    uv, _ = cam.project(np.array([[0.0, 0.0, 0.0], [0.0, 0.1, 0.0], [0.1, 0.0, 0.0]]))
+    assert uv[1, 1] < uv[0, 1]  # +y (up) is higher in the image
+    assert uv[2, 0] > uv[0, 0]  # +x is to the right for a camera on +z
+    assert np.isclose(np.linalg.det(w2c[:3, :3]), 1.0)

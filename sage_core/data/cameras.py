@@ -148,7 +148,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     """
     z = np.asarray(target, float) - np.asarray(eye, float)
     z /= np.linalg.norm(z)
-    x = np.cross(z, -np.asarray(up, float))
+    x = np.cross(-np.asarray(up, float), z)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z], 0)  # rows: camera axes in world

@@ -1,0 +1,342 @@
+"""Write a synthetic capture in the VHAP / GaussianAvatars layout (formats.md §1–2) plus ground truth.
+
+Layout of ``OUT``::
+
+    images/{ti:05d}_{ci:02d}.png      RGB on white, below the neck line blanked
+    fg_masks/{ti:05d}_{ci:02d}.png    L uint8 = coverage × neck-line mask
+    flame_param/{ti:05d}.npz          per-timestep FLAME parameters (formats.md §1.3)
+    canonical_flame_param.npz
+    transforms.json, transforms_{train,val,test}.json
+    model/   synth_flame.pkl (official pickle layout), synth_flame.npz, FLAME_masks.pkl
+    gt/      canonical.ply, meshes/{ti:05d}.ply, info.json, [novel/ held-out views and expressions]
+    [preview.png]
+
+Everything is deterministic in the config (same seed ⇒ same bytes). The capture is assembled in
+a temporary sibling folder and moved into place at the end, so a failure leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import ConfigError
+from ..cameras import Camera, camera_to_nerf_frame
+from ..imageio import write_image
+from ._files import write_json, write_npz, write_ply
+from .appearance import Appearance, crease_weights, render_head, sample_appearance
+from .config import SynthConfig
+from .head import EXPRESSION_NAMES, IDENTITY_NAMES, HeadModel, build_head
+from .model_files import MASKS_NAME, NPZ_NAME, PICKLE_NAME, flame_model_data, write_model_files
+from .motion import (
+    Frame,
+    arc_cameras,
+    monocular_camera,
+    monocular_frames,
+    multiview_frames,
+    novel_frames,
+    sample_identity,
+    shift_camera,
+)
+
+Progress = Callable[[int, int, str], None]
+TRAIN_RATIO = 0.7
+
+
+@dataclass
+class _Subject:
+    head: HeadModel
+    shape: np.ndarray
+    static_offset: np.ndarray
+    app: Appearance
+
+
+@dataclass
+class _Posed:
+    vertices: np.ndarray  # (T, V, 3)
+    crease: np.ndarray  # (T, V)
+
+
+def _pose(subject: _Subject, frames: list[Frame]) -> _Posed:
+    """Posed vertices (T, V, 3) through ``sage_core.flame.FlameModel`` (float64) and crease weights."""
+    import torch
+
+    from ...flame import FlameModel
+
+    model = FlameModel(flame_model_data(subject.head)).double()
+    st = lambda a: torch.as_tensor(np.stack(a), dtype=torch.float64)  # noqa: E731
+    shape = torch.as_tensor(subject.shape, dtype=torch.float64)
+    off = torch.as_tensor(subject.static_offset, dtype=torch.float64)
+    with torch.no_grad():
+        out = model(
+            shape=shape,
+            expr=st([f.expr for f in frames]),
+            rotation=st([f.rotation for f in frames]),
+            neck_pose=st([f.neck_pose for f in frames]),
+            jaw_pose=st([f.jaw_pose for f in frames]),
+            eyes_pose=st([f.eyes_pose for f in frames]),
+            translation=st([f.translation for f in frames]),
+            static_offset=off,
+        )
+        neutral = model(shape=shape, static_offset=off).v_shaped[0].numpy()
+    verts = out.vertices.numpy()
+    vs = out.v_shaped.numpy()
+    crease = np.stack([crease_weights(vs[t], neutral, subject.head.faces) for t in range(len(frames))])
+    return _Posed(verts, crease)
+
+
+def canonical_vertices(subject: _Subject) -> np.ndarray:
+    """(V, 3) identity mesh at zero pose and expression (the ground-truth canonical surface)."""
+    return subject.head.v_template + subject.head.shapedirs[:, :, :300] @ subject.shape + subject.static_offset
+
+
+def neck_line_mask(head: HeadModel, vertices: np.ndarray, camera: Camera) -> np.ndarray:
+    """(H, W) float mask in [0, 1] keeping what is above the neck line (formats.md §1.1), blurred."""
+    import cv2
+
+    ids = list(head.neck_line)
+    uv, _ = camera.project(vertices[ids])
+    (xl, yl), (xr, yr), (xa, ya) = uv
+    k = (yr - yl) / (xr - xl) if abs(xr - xl) > 1e-6 else 0.0
+    b = ya - k * xa
+    W, H = camera.width, camera.height
+    xs = np.arange(W) + 0.5
+    ys = np.arange(H) + 0.5
+    mask = ((k * xs[None, :] + b - ys[:, None]) > 0).astype(np.float32)
+    ks = int(0.03 * W) // 2 * 2 + 1
+    return cv2.GaussianBlur(mask, (ks, ks), ks)
+
+
+def _frame_npz(subject: _Subject, f: Frame) -> dict[str, np.ndarray]:
+    f32 = np.float32
+    return {
+        "translation": f.translation.reshape(1, 3).astype(f32),
+        "rotation": f.rotation.reshape(1, 3).astype(f32),
+        "neck_pose": f.neck_pose.reshape(1, 3).astype(f32),
+        "jaw_pose": f.jaw_pose.reshape(1, 3).astype(f32),
+        "eyes_pose": f.eyes_pose.reshape(1, 6).astype(f32),
+        "shape": subject.shape.reshape(300).astype(f32),
+        "expr": f.expr.reshape(1, 100).astype(f32),
+        "static_offset": subject.static_offset[None].astype(f32),
+    }
+
+
+def _canonical_npz(subject: _Subject) -> dict[str, np.ndarray]:
+    f = Frame()
+    f.jaw_pose = np.array([0.3, 0.0, 0.0])
+    return _frame_npz(subject, f)
+
+
+def _nerf_frame(cam: Camera, ti: int, rel: str = "") -> dict:
+    d = camera_to_nerf_frame(cam)
+    name = f"{ti:05d}_{cam.index:02d}"
+    return {
+        "timestep_index": ti,
+        "timestep_index_original": ti,
+        "timestep_id": f"frame_{ti:05d}",
+        "camera_index": cam.index,
+        "camera_id": cam.name,
+        **d,
+        "file_path": f"{rel}images/{name}.png",
+        "fg_mask_path": f"{rel}fg_masks/{name}.png",
+        "flame_param_path": f"{rel}flame_param/{ti:05d}.npz",
+    }
+
+
+def _transforms(frames: list[dict]) -> dict:
+    out: dict = {"frames": frames}
+    out["timestep_indices"] = sorted({f["timestep_index"] for f in frames})
+    out["camera_indices"] = sorted({f["camera_index"] for f in frames})
+    if frames:
+        last = frames[-1]
+        for k in ("cx", "cy", "fl_x", "fl_y", "h", "w", "camera_angle_x", "camera_angle_y"):
+            out[k] = last[k]
+    return out
+
+
+def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras: list[Camera],
+                    splits: dict[str, list[tuple[int, int]]], cfg: SynthConfig, tick: Callable[[str], None]) -> np.ndarray:
+    """Render and write images, masks, FLAME params and transforms; returns posed vertices (T, V, 3)."""
+    posed = _pose(subject, frames)
+    for ti, f in enumerate(frames):
+        write_npz(root / "flame_param" / f"{ti:05d}.npz", _frame_npz(subject, f))
+    by_index = {c.index: c for c in cameras}
+    pairs = sorted({p for ps in splits.values() for p in ps})
+    for ti, ci in pairs:
+        cam = by_index[ci]
+        v = posed.vertices[ti]
+        r = render_head(subject.head, v, cam, subject.app, posed.crease[ti], supersample=cfg.supersample)
+        neck = neck_line_mask(subject.head, v, cam)
+        img = r.rgb * neck[..., None] + (1.0 - neck[..., None])
+        write_image(root / "images" / f"{ti:05d}_{ci:02d}.png", img)
+        write_image(root / "fg_masks" / f"{ti:05d}_{ci:02d}.png", r.alpha * neck)
+        tick(f"t{ti:03d} cam {ci:02d}")
+    all_frames = []
+    for split, ps in splits.items():
+        fr = [_nerf_frame(by_index[ci], ti) for ti, ci in sorted(ps)]
+        write_json(root / f"transforms_{split}.json", _transforms(fr))
+        all_frames += fr
+    all_frames.sort(key=lambda d: (d["timestep_index"], d["camera_index"]))
+    write_json(root / "transforms.json", _transforms(all_frames))
+    write_npz(root / "canonical_flame_param.npz", _canonical_npz(subject))
+    return posed.vertices
+
+
+def _write_meshes(folder: Path, head: HeadModel, verts: np.ndarray) -> list[str]:
+    names = []
+    for ti in range(verts.shape[0]):
+        write_ply(folder / f"{ti:05d}.ply", verts[ti], head.faces)
+        names.append(f"{ti:05d}.ply")
+    return names
+
+
+def _preview(path: Path, subject: _Subject, frames: list[Frame], cameras: list[Camera], cfg: SynthConfig) -> None:
+    """Contact sheet: rows = up to 4 timesteps (first training, then held-out), cols = up to 3 views."""
+    yaws = []
+    for c in cameras:
+        d = c.c2w[:3, 2]
+        yaws.append(math.degrees(math.atan2(-d[0], -d[2])))
+    cols = sorted({int(np.argmin([abs(y - t) for y in yaws])) for t in (-45.0, 0.0, 45.0)}, key=lambda i: yaws[i])
+    n = len(frames)
+    rows = sorted({0, *range(n - 1, max(n - 4, 0), -1)})[:4]
+    posed = _pose(subject, [frames[i] for i in rows])
+    tiles = []
+    for r in range(len(rows)):
+        tiles.append(np.concatenate([render_head(subject.head, posed.vertices[r], cameras[c], subject.app, posed.crease[r],
+                                                 supersample=cfg.supersample).rgb for c in cols], 1))
+    write_image(path, np.concatenate(tiles, 0))
+
+
+def make_subject(cfg: SynthConfig) -> _Subject:
+    """The head model, identity and appearance determined by the config (resolution + seed)."""
+    head = build_head(cfg.head_rows, cfg.head_cols, cfg.eye_rows, cfg.eye_cols)
+    rng = np.random.default_rng([cfg.seed, 1])
+    shape, static_offset = sample_identity(head, rng)
+    app = sample_appearance(rng)
+    return _Subject(head, shape, static_offset, app)
+
+
+def write_capture(out_dir: str | Path, cfg: SynthConfig, progress: Progress | None = None,
+                  preview: bool = False, force: bool = False) -> Path:
+    """Generate and write a synthetic capture into ``out_dir``; returns the folder.
+
+    Raises ConfigError when ``out_dir`` exists and is not empty (unless ``force``) or the config is
+    invalid. progress(done, total, what) is called after every written image.
+    """
+    cfg.validate()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise ConfigError(f"{out} is not empty; pass --force to replace it")
+    tmp = out.with_name(f".{out.name}.synth-tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    try:
+        _generate(tmp, cfg, progress, preview)
+        if out.exists():
+            old = out.with_name(f".{out.name}.synth-old")
+            if old.exists():
+                shutil.rmtree(old)
+            out.rename(old)
+            tmp.rename(out)
+            shutil.rmtree(old)
+        else:
+            tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: bool) -> None:
+    subject = make_subject(cfg)
+    head = subject.head
+    rng = np.random.default_rng([cfg.seed, 2])
+    if cfg.regime == "multiview":
+        frames = multiview_frames(rng, cfg.train_timesteps, cfg.test_timesteps)
+        cameras = arc_cameras(rng, cfg.n_cameras, cfg.width, cfg.height, cfg.camera_distance, cfg.view_height_m)
+    elif cfg.regime == "monocular":
+        frames = monocular_frames(rng, cfg.train_timesteps, cfg.test_timesteps)
+        cameras = [monocular_camera(cfg.width, cfg.height, cfg.mono_focal)]
+    else:
+        frames = [Frame(label="train: neutral, frontal")]
+        cameras = [monocular_camera(cfg.width, cfg.height, cfg.mono_focal)]
+    # world re-centring (formats.md §1.5): mean translation 0, cameras moved along
+    t_mean = np.mean([f.translation for f in frames], axis=0)
+    for f in frames:
+        f.translation = f.translation - t_mean
+    cameras = [shift_camera(c, -t_mean) for c in cameras]
+
+    n_train = cfg.train_timesteps if cfg.regime != "oneshot" else 1
+    train_ts = list(range(n_train))
+    test_ts = list(range(n_train, len(frames)))
+    cam_ids = [c.index for c in cameras]
+    val_cam = (8 if 8 in cam_ids else cam_ids[-1]) if len(cameras) > 1 else None
+    splits = {
+        "train": [(t, c) for t in train_ts for c in cam_ids if c != val_cam],
+        "val": [(t, val_cam) for t in train_ts] if val_cam is not None else [],
+        "test": [(t, c) for t in test_ts for c in cam_ids],
+    }
+    novel_cams: list[Camera] = []
+    novel: list[Frame] = []
+    if cfg.regime != "multiview":
+        novel_cams = arc_cameras(np.random.default_rng([cfg.seed, 3]), cfg.novel_views, cfg.width, cfg.height,
+                                 cfg.camera_distance, cfg.view_height_m, yaw_span_deg=120.0, frontal=cfg.novel_views // 2)
+        novel = novel_frames(rng, cfg.novel_expressions)
+    n_images = sum(len(v) for v in splits.values()) + len(novel) * len(novel_cams)
+    done = [0]
+
+    def tick(what: str) -> None:
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], n_images, what)
+
+    model_paths = write_model_files(head, root / "model")
+    verts = _write_sequence(root, subject, frames, cameras, splits, cfg, tick)
+    canon = canonical_vertices(subject)
+    write_ply(root / "gt" / "canonical.ply", canon, head.faces)
+    mesh_names = _write_meshes(root / "gt" / "meshes", head, verts)
+    info: dict = {
+        "generator": "sage synth",
+        "regime": cfg.regime,
+        "config": cfg.to_dict(),
+        "counts": {"vertices": head.n_vertices, "faces": int(head.faces.shape[0]), "timesteps": len(frames),
+                   "cameras": len(cameras), **{f"{k}_images": len(v) for k, v in splits.items()}},
+        "model": {"pickle": f"model/{PICKLE_NAME}", "npz": f"model/{NPZ_NAME}", "masks": f"model/{MASKS_NAME}",
+                  "face_table": "sage-synthetic-v1", "identity_components": list(IDENTITY_NAMES),
+                  "expression_components": list(EXPRESSION_NAMES),
+                  "neck_line_vertices": {"left": head.neck_line[0], "right": head.neck_line[1], "front_bottom": head.neck_line[2]}},
+        "identity": {"shape": [round(float(x), 6) for x in subject.shape[: len(IDENTITY_NAMES)]],
+                     "hair_offset": "static_offset thickens the scalp along its normal", "appearance": subject.app.to_dict()},
+        "canonical_mesh": "gt/canonical.ply (identity shape + static offset, zero pose and expression)",
+        "meshes": {"folder": "gt/meshes", "files": mesh_names, "space": "capture world (re-centred), posed, per timestep_index"},
+        "timesteps": [{"timestep_index": i, "split": "train" if i < n_train else "test", "description": f.label} for i, f in enumerate(frames)],
+        "world_recentring_offset": [float(x) for x in -t_mean],
+    }
+    if novel:
+        nroot = root / "gt" / "novel"
+        nsplits = {
+            "val": [(0, c.index) for c in novel_cams],
+            "test": [(t, c.index) for t in range(1, len(novel)) for c in novel_cams],
+        }
+        nverts = _write_sequence(nroot, subject, novel, novel_cams, nsplits, cfg, tick)
+        _write_meshes(nroot / "meshes", head, nverts)
+        info["novel"] = {
+            "folder": "gt/novel",
+            "description": "held-out ground truth in the same VHAP layout and world frame: transforms_val.json = "
+                           "neutral face from novel views, transforms_test.json = novel expressions from all novel views",
+            "cameras": len(novel_cams),
+            "timesteps": [{"timestep_index": i, "description": f.label} for i, f in enumerate(novel)],
+        }
+    if preview:
+        _preview(root / "preview.png", subject, frames if cfg.regime != "oneshot" else novel or frames,
+                 cameras if len(cameras) > 1 else novel_cams, cfg)
+    info["files"] = {k: str(Path(v).relative_to(root)) for k, v in model_paths.items()}
+    write_json(root / "gt" / "info.json", info)

@@ -1,0 +1,140 @@
+"""Configuration of a synthetic capture: resolution of the procedural head, cameras, timesteps."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+from ...errors import ConfigError
+
+REGIMES = ("multiview", "monocular", "oneshot")
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Everything that determines a synthetic capture (same config ⇒ byte-identical files).
+
+    Attributes:
+        regime: "multiview" (16 cameras, train/val/test like a NeRSemble export), "monocular"
+            (one fixed camera, head turns, neutral expression) or "oneshot" (one frontal image).
+        seed: identity, texture and expression sampling.
+        width, height: image size in pixels (NeRSemble exports are 550×802).
+        n_cameras: cameras on the arc in front of the head (multiview; camera 8 is frontal).
+        train_timesteps: timesteps with mild expressions (train/val); monocular: head-turn
+            frames of the training part of the clip; oneshot: exactly 1.
+        test_timesteps: held-out timesteps after the training ones: novel (also strong)
+            expressions on all cameras; monocular: later frames with novel yaw/pitch; oneshot: 0
+            (its held-out views and expressions go to gt/novel/).
+        head_rows, head_cols: grid resolution of the head surface (rows top→neck, columns around);
+            tiny (56×72) gives ≈ 4.3k vertices, default (80×104) ≈ 8.9k.
+        eye_rows, eye_cols: grid resolution of each eyeball.
+        supersample: per-axis supersampling of the ground-truth renderer (anti-aliased edges and a
+            fractional matte); 1 disables it.
+        camera_distance: metres from the head centre to every multiview camera.
+        view_height_m: vertical extent (metres) seen at the head centre by the multiview cameras.
+        mono_focal: normalised monocular focal length (fl = mono_focal·max(w, h), formats.md §1.8).
+        novel_views: cameras of the held-out ground truth written to gt/ (monocular, oneshot).
+        novel_expressions: held-out expressions of that ground truth (monocular, oneshot).
+    """
+
+    regime: str = "multiview"
+    seed: int = 0
+    width: int = 550
+    height: int = 802
+    n_cameras: int = 16
+    train_timesteps: int = 6
+    test_timesteps: int = 8
+    head_rows: int = 80
+    head_cols: int = 104
+    eye_rows: int = 12
+    eye_cols: int = 20
+    supersample: int = 2
+    camera_distance: float = 1.0
+    view_height_m: float = 0.42
+    mono_focal: float = 2.6
+    novel_views: int = 8
+    novel_expressions: int = 4
+
+    def validate(self) -> "SynthConfig":
+        """Raise ConfigError for impossible values; returns self."""
+        if self.regime not in REGIMES:
+            raise ConfigError(f"regime must be one of {', '.join(REGIMES)}, got '{self.regime}'")
+        if self.width < 16 or self.height < 16:
+            raise ConfigError(f"image size {self.width}x{self.height} is too small (at least 16x16)")
+        if self.regime == "multiview" and not 1 <= self.n_cameras <= 64:
+            raise ConfigError(f"cameras must be 1..64, got {self.n_cameras}")
+        if self.train_timesteps < 1:
+            raise ConfigError(f"train timesteps must be at least 1, got {self.train_timesteps}")
+        if self.test_timesteps < 0:
+            raise ConfigError(f"test timesteps must be >= 0, got {self.test_timesteps}")
+        if self.regime == "oneshot" and (self.train_timesteps != 1 or self.test_timesteps != 0):
+            raise ConfigError("the oneshot regime has exactly one training image (train 1, test 0)")
+        if self.regime == "monocular" and self.train_timesteps < 2:
+            raise ConfigError("the monocular regime needs at least 2 timesteps")
+        if self.head_rows < 24 or self.head_cols < 32:
+            raise ConfigError("head grid too coarse: need head_rows >= 24 and head_cols >= 32")
+        if self.eye_rows < 4 or self.eye_cols < 6:
+            raise ConfigError("eyeball grid too coarse: need eye_rows >= 4 and eye_cols >= 6")
+        if not 1 <= self.supersample <= 4:
+            raise ConfigError(f"supersample must be 1..4, got {self.supersample}")
+        if self.camera_distance <= 0.3 or self.view_height_m <= 0.05 or self.mono_focal <= 0:
+            raise ConfigError("camera_distance, view_height_m and mono_focal must be positive and sensible")
+        if self.novel_views < 1 or self.novel_expressions < 1:
+            raise ConfigError("novel_views and novel_expressions must be at least 1")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (JSON-safe)."""
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "SynthConfig":
+        """Inverse of :meth:`to_dict`; unknown keys raise ConfigError."""
+        names = {f.name for f in fields(SynthConfig)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ConfigError(f"unknown synth config key(s): {', '.join(unknown)}")
+        return SynthConfig(**d).validate()
+
+    def with_overrides(self, **kw: Any) -> "SynthConfig":
+        """A copy with the given fields replaced (None values are ignored), validated."""
+        kw = {k: v for k, v in kw.items() if v is not None}
+        return replace(self, **kw).validate()
+
+
+PRESETS: dict[str, SynthConfig] = {
+    "tiny": SynthConfig(
+        width=128,
+        height=186,
+        n_cameras=16,
+        train_timesteps=2,
+        test_timesteps=4,
+        head_rows=56,
+        head_cols=72,
+        eye_rows=8,
+        eye_cols=12,
+        supersample=2,
+        novel_views=6,
+        novel_expressions=3,
+    ),
+    "default": SynthConfig(),
+}
+
+
+# Clip lengths that make sense per regime (applied before explicit overrides).
+_REGIME_DEFAULTS: dict[tuple[str, str], dict[str, int]] = {
+    ("tiny", "monocular"): {"train_timesteps": 8, "test_timesteps": 3},
+    ("default", "monocular"): {"train_timesteps": 42, "test_timesteps": 18},
+    ("tiny", "oneshot"): {"train_timesteps": 1, "test_timesteps": 0},
+    ("default", "oneshot"): {"train_timesteps": 1, "test_timesteps": 0},
+}
+
+
+def preset(name: str, regime: str = "multiview", **overrides: Any) -> SynthConfig:
+    """A named preset ("tiny" or "default") for a regime, with optional field overrides (None ignored)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown synth preset '{name}' (choose from {', '.join(PRESETS)})")
+    if regime not in REGIMES:
+        raise ConfigError(f"regime must be one of {', '.join(REGIMES)}, got '{regime}'")
+    base = replace(PRESETS[name], regime=regime, **_REGIME_DEFAULTS.get((name, regime), {}))
+    return base.with_overrides(**overrides)
