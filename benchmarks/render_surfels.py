@@ -1,0 +1,181 @@
+"""Speed and memory of the packed torch surfel rasterizer (forward + backward) on the CPU.
+
+Usage: python benchmarks/render_surfels.py [--quick] [--out docs/benchmarks] [--device cpu]
+
+Scene (rendering.md §3.5): N random surfels filling the view at depth 3 ± 0.3, scales 0.005–0.025,
+opacity 0.1–0.9, RGB features, focal length 1.2·S for an S×S image. The loss touches every output
+(colour, depth, median, normals, depth-normal, distortion) so the backward is the full one.
+Each case runs in a fresh subprocess; its peak memory is the VmHWM (peak resident set) that
+process reached minus its resident set just before the first render.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+GRID_N = (5_000, 20_000, 80_000)
+GRID_S = (128, 256, 512)
+
+
+def _vm(key: str) -> int:
+    """A /proc/self/status entry in bytes (0 where unavailable)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0) -> dict:
+    """Render one scene ``repeats`` times (after one warm-up) and time forward and backward."""
+    import torch
+
+    from sage_core.render import RenderCamera, rasterize_surfels
+
+    g = torch.Generator().manual_seed(seed)
+    f = 1.2 * size
+    z = 3.0 + 0.6 * (torch.rand(n, generator=g) - 0.5)
+    half = (size / 2) / f * z
+    xy = (torch.rand(n, 2, generator=g) * 2 - 1) * half[:, None]
+    params = [
+        torch.cat([xy, z[:, None]], 1),
+        torch.randn(n, 4, generator=g),
+        0.005 + 0.02 * torch.rand(n, 2, generator=g),
+        0.1 + 0.8 * torch.rand(n, generator=g),
+        torch.rand(n, 3, generator=g),
+    ]
+    params = [p.to(device).requires_grad_(True) for p in params]
+    K = torch.tensor([[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]])
+    cam = RenderCamera(K, torch.eye(4), size, size).to(device)
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    rss0 = _vm("VmRSS")
+    load0 = os.getloadavg()[0]
+
+    fwd, bwd, pairs = [], [], 0
+    for it in range(repeats + 1):
+        for p in params:
+            p.grad = None
+        sync()
+        t0 = time.perf_counter()
+        out = rasterize_surfels(*params, cam, background=1.0)
+        sync()
+        t1 = time.perf_counter()
+        loss = (
+            out.color.sum()
+            + out.depth.sum()
+            + out.median_depth.sum()
+            + out.normal_cam.sum()
+            + out.surf_normal_cam.sum()
+            + out.distortion.sum()
+        )
+        loss.backward()
+        sync()
+        t2 = time.perf_counter()
+        pairs = int(out.num_pairs)
+        del out, loss
+        if it > 0:
+            fwd.append(t1 - t0)
+            bwd.append(t2 - t1)
+    total = [a + b for a, b in zip(fwd, bwd)]
+    res = {
+        "n": n,
+        "size": size,
+        "load_1min_at_start": round(load0, 2),
+        "device": device,
+        "repeats": repeats,
+        "pairs": pairs,
+        "forward_s": statistics.median(fwd),
+        "backward_s": statistics.median(bwd),
+        "total_s": statistics.median(total),
+        "total_min_s": min(total),
+        "peak_rss_bytes": _vm("VmHWM"),
+        "peak_delta_bytes": max(0, _vm("VmHWM") - rss0),
+    }
+    if device.startswith("cuda"):
+        res["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated())
+    return res
+
+
+def _markdown(meta: dict, rows: list[dict]) -> str:
+    lines = [
+        "# Surfel rasterizer benchmark (packed torch backend)",
+        "",
+        f"Machine: {meta['cpu_count']} CPUs, torch {meta['torch']} ({meta['threads']} threads), device {meta['device']}, "
+        f"load average before/after {meta['load_before']} / {meta['load_after']} (the machine was shared).",
+        "Scene: rendering.md §3.5 (depth 3 ± 0.3, scales 0.005–0.025, opacity 0.1–0.9, f = 1.2·S); forward + full "
+        f"backward over every output; median of {meta['repeats']} runs after one warm-up.",
+        "Peak memory: peak resident set of a fresh process per case minus its resident set before rendering.",
+        "Forward, backward and total are medians taken separately; best total is the fastest run.",
+        "",
+        "| N | image | pairs | forward (s) | backward (s) | total (s) | best total (s) | peak Δ RSS (GB) | load (1 min) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['n']:,} | {r['size']}² | {r['pairs']:,} | {r['forward_s']:.2f} | {r['backward_s']:.2f} | "
+            f"{r['total_s']:.2f} | {r['total_min_s']:.2f} | {r['peak_delta_bytes'] / 1e9:.2f} | {r['load_1min_at_start']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="N = 5k, 20k at 128² and 256², 2 repeats")
+    ap.add_argument("--out", default="docs/benchmarks", help="folder for render_surfels.json / .md")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--case", nargs=2, type=int, metavar=("N", "S"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+
+    if args.case:
+        print(json.dumps(run_case(args.case[0], args.case[1], args.repeats or 3, args.device)))
+        return
+
+    import torch
+
+    grid = [(n, s) for n in GRID_N[:2] for s in GRID_S[:2]] if args.quick else [(n, s) for n in GRID_N for s in GRID_S]
+    repeats = args.repeats or (2 if args.quick else 3)
+    load_before = [round(x, 2) for x in os.getloadavg()]
+    rows = []
+    for n, s in grid:
+        cmd = [sys.executable, __file__, "--case", str(n), str(s), "--repeats", str(repeats), "--device", args.device]
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(f"N={n:>6} {s}²: total {row['total_s']:.2f} s (fwd {row['forward_s']:.2f}, bwd {row['backward_s']:.2f}), "
+              f"peak Δ {row['peak_delta_bytes'] / 1e9:.2f} GB, pairs {row['pairs']:,}", flush=True)
+    meta = {
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "device": args.device,
+        "repeats": repeats,
+        "load_before": load_before,
+        "load_after": [round(x, 2) for x in os.getloadavg()],
+        "date_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_atomic(out / "render_surfels.json", json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
+    _write_atomic(out / "render_surfels.md", _markdown(meta, rows))
+
+
+if __name__ == "__main__":
+    main()
