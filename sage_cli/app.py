@@ -34,12 +34,13 @@ def _root(
 
 
 def _register() -> None:
-    from .commands import info, ingest, init_mesh, synth
+    from .commands import config_cmd, info, ingest, init_mesh, synth
 
     app.command("synth")(synth.synth)
     app.command("ingest")(ingest.ingest)
     app.command("init-mesh")(init_mesh.init_mesh)
     app.command("info")(info.info)
+    app.command("config")(config_cmd.config)
 
 
 _register()

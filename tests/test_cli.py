@@ -105,3 +105,17 @@ def test_bad_device(tiny_capture, tmp_path, device):
         pytest.skip("machine has that device")
     res = _ingest(tiny_capture, tmp_path / "ws", "--device", device)
     assert res.exit_code == 3 and "--device" in res.output
+
+
+def test_config_command_prints_a_reusable_config(tmp_path):
+    from sage_core.config import config_hash, load_config_file, resolve_config
+
+    res = runner.invoke(app, ["config", "init-mesh", "--preset", "tiny", "--set", "pretrain.steps=77"])
+    assert res.exit_code == 0, res.output
+    f = tmp_path / "c.yaml"
+    f.write_text(res.output)
+    again = resolve_config("init-mesh", "default", load_config_file(f))
+    assert again.pretrain.steps == 77
+    assert config_hash(again) == config_hash(resolve_config("init-mesh", "tiny", None, {"pretrain.steps": 77}))
+    res = runner.invoke(app, ["config", "nope"])
+    assert res.exit_code == 3

@@ -1,4 +1,4 @@
-"""Image metrics for evaluation and losses: PSNR, SSIM and LPIPS (AlexNet v0.1)."""
+"""Image metrics (PSNR, SSIM, LPIPS AlexNet v0.1) and the evaluation protocol."""
 
 from .lpips import (
     DEFAULT_CACHE_PATH,
@@ -10,6 +10,7 @@ from .lpips import (
     load_lpips_state_dict,
     lpips_or_none,
 )
+from .protocol import EvalReport, ImageMetrics, MetricMeans, evaluate_frames
 from .metrics import (
     mean_psnr,
     psnr,
@@ -21,6 +22,10 @@ from .metrics import (
 
 __all__ = [
     "DEFAULT_CACHE_PATH",
+    "EvalReport",
+    "ImageMetrics",
+    "MetricMeans",
+    "evaluate_frames",
     "ENV_VAR",
     "LPIPS",
     "LPIPS_ALEX_SHA256",

@@ -1,4 +1,4 @@
-"""Export formats: world-space 3DGS PLY (and ``.splat``) for viewers, MP4 video."""
+"""Export: world-space 3DGS PLY (and ``.splat``) for viewers, MP4 video, driving motions and reenactment."""
 
 from .ply import (
     decode_ply,
@@ -9,10 +9,17 @@ from .ply import (
     read_ply,
     write_ply,
 )
+from .motion import Motion, load_motion, orbit_cameras
+from .reenact import ReenactReport, reenact
 from .video import VideoWriter
 
 __all__ = [
+    "Motion",
+    "ReenactReport",
     "VideoWriter",
+    "load_motion",
+    "orbit_cameras",
+    "reenact",
     "decode_ply",
     "decode_ply_properties",
     "encode_ply",

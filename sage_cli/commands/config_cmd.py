@@ -1,0 +1,44 @@
+"""``sage config STAGE``: print a stage's resolved configuration (preset < file < --set) with help."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .._common import ConfigOpt, PresetOpt, SetOpt, cli_errors, console, parse_sets, resolve_stage_config
+
+
+def config(
+    stage: Annotated[str, typer.Argument(help="Stage name: ingest, init-mesh, phase1, ...")],
+    preset: PresetOpt = "default",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    explain: Annotated[bool, typer.Option("--explain", help="List every field with its help text instead of YAML.")] = False,
+) -> None:
+    """Print the configuration a stage would run with, as YAML (usable as a --config file)."""
+    with cli_errors():
+        import yaml
+
+        from sage_core.config import STAGE_CONFIGS, describe, section_name, to_dict
+        from sage_core.errors import ConfigError
+
+        if stage not in STAGE_CONFIGS:
+            raise ConfigError(f"unknown stage '{stage}' (stages with a config: {', '.join(STAGE_CONFIGS)})")
+        cfg = resolve_stage_config(stage, preset, config, parse_sets(set_))
+        if explain:
+            from rich.table import Table
+
+            t = Table(title=f"{stage} ({preset} preset)")
+            t.add_column("option", no_wrap=True)
+            t.add_column("value")
+            t.add_column("meaning")
+            for name, help_text, _ in describe(type(cfg)):
+                obj = cfg
+                for part in name.split("."):
+                    obj = getattr(obj, part)
+                t.add_row(name, str(obj), help_text)
+            console.print(t)
+            return
+        typer.echo(yaml.safe_dump({section_name(stage): to_dict(cfg)}, sort_keys=False).rstrip())
