@@ -7,51 +7,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-_C0 = 0.28209479177387814
-_C1 = 0.4886025119029199
-_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
-
-
-def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
-    """Real spherical harmonics (orthonormal on the sphere) of unit directions.
-
-    dirs: (N, 3) unit vectors; degree 0..3 -> (N, (degree + 1)**2).
-    """
-    if not 0 <= degree <= 3:
-        raise ValueError("SH degree must be in 0..3")
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, _C0)]
-    if degree >= 1:
-        out += [-_C1 * y, _C1 * z, -_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [
-            _C2[0] * x * y,
-            _C2[1] * y * z,
-            _C2[2] * (2.0 * zz - xx - yy),
-            _C2[3] * x * z,
-            _C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        out += [
-            _C3[0] * y * (3.0 * xx - yy),
-            _C3[1] * x * y * z,
-            _C3[2] * y * (4.0 * zz - xx - yy),
-            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            _C3[4] * x * (4.0 * zz - xx - yy),
-            _C3[5] * z * (xx - yy),
-            _C3[6] * x * (xx - 3.0 * yy),
-        ]
-    return torch.stack(out, -1)
+from ..geometry.sh import sh_basis
 
 
 class AppearanceNetwork(nn.Module):
