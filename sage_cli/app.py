@@ -34,11 +34,12 @@ def _root(
 
 
 def _register() -> None:
-    from .commands import config_cmd, info, ingest, init_mesh, synth
+    from .commands import config_cmd, info, ingest, init_mesh, phase1, synth
 
     app.command("synth")(synth.synth)
     app.command("ingest")(ingest.ingest)
     app.command("init-mesh")(init_mesh.init_mesh)
+    app.command("phase1")(phase1.phase1)
     app.command("info")(info.info)
     app.command("config")(config_cmd.config)
 

@@ -104,9 +104,69 @@ class InitMeshConfig:
     checkpoint_every: int = _f(500, "Checkpoint interval in steps.")
 
 
+@dataclass
+class Phase1Config:
+    """``sage phase1``: joint optimisation of the surfels, the canonical SDF and the attribute networks."""
+
+    attributes: str = _f("mlp", "Surfel attributes: mlp (appearance and shape networks, SAGE) or free (per-surfel colour, opacity, rotation, scale).")
+    iterations: int = _f(30000, "Optimisation steps.")
+    n_surfels: int = _f(150000, "Number of surfels spread over the canonical mesh (no densification).")
+    sh_degree: int = _f(0, "SH degree of the free per-surfel colour (attributes=free).")
+    init_opacity: float = _f(0.5, "Initial opacity of free surfels.")
+    init_scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.")
+    face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.")
+    mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.")
+    hair_weight: float = _f(0.5, "Surfel density multiplier on the hair.")
+    neck_weight: float = _f(0.5, "Surfel density multiplier on the neck.")
+    camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera.")
+    app_hidden: int = _f(64, "Appearance network width.")
+    app_layers: int = _f(2, "Appearance network hidden layers.")
+    app_sh_degree: int = _f(3, "SH degree of the appearance network's view-direction encoding.")
+    shape_hidden: int = _f(64, "Shape network width.")
+    shape_layers: int = _f(2, "Shape network hidden layers.")
+    lr_sdf: float = _f(1e-4, "Adam learning rate of the SDF MLP (paper: 1e-4).")
+    lr_grid: float = _f(1e-4, "Adam learning rate of the hash grid (paper: 1e-4).")
+    lr_networks: float = _f(1e-4, "Adam learning rate of the appearance and shape networks (paper: 1e-4).")
+    lr_variance: float = _f(1e-3, "Adam learning rate of the NeuS s-variance.")
+    lr_position: float = _f(5e-3, "Initial learning rate of the surfel offsets mu_loc (k-normalised triangle units), decayed exponentially to lr_position_final.")
+    lr_position_final: float = _f(5e-5, "Final learning rate of mu_loc.")
+    lr_color: float = _f(2.5e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).")
+    lr_opacity: float = _f(5e-2, "Learning rate of free opacity logits.")
+    lr_scale: float = _f(1.7e-2, "Learning rate of free log scales s_loc.")
+    lr_rotation: float = _f(1e-3, "Learning rate of free rotations q_loc.")
+    ssim_weight: float = _f(0.2, "L_rgb = (1 - w) L1 + w (1 - SSIM).")
+    w_pt: float = _f(1.0, "lambda_pt: mean |f(x_G)| at canonical surfel centres, in units of the SDF box half extent.")
+    w_align: float = _f(0.1, "lambda_align: mean |1 - |t3 . n(x_G)||.")
+    w_depth: float = _f(0.1, "lambda_D: L1 between NeuS and surfel depth along canonical rays, in units of the SDF box half extent (MonoSDF depth weight).")
+    w_normal: float = _f(0.05, "lambda_N: MonoSDF normal loss (L1 + angular) between NeuS and surfel normals (MonoSDF weight).")
+    w_eikonal: float = _f(0.1, "Eikonal weight on NeuS samples and surfel centres.")
+    w_smooth: float = _f(0.005, "SDF normal smoothness ||n(x) - n(x + delta)|| (MonoSDF).")
+    smooth_points: int = _f(1024, "Surfel centres per step for the smoothness term.")
+    smooth_delta: float = _f(0.005, "Half width of the smoothness offset delta, relative to the SDF box half extent.")
+    w_neus_rgb: float = _f(1.0, "L1 of the NeuS rendering of sampled rays against the image.")
+    w_normal_consistency: float = _f(0.05, "2DGS normal consistency lambda_n.")
+    normal_consistency_from: int = _f(7000, "First step of the normal-consistency loss.")
+    w_distortion: float = _f(100.0, "2DGS depth distortion weight (on the normalised depth of near/far).")
+    distortion_from: int = _f(3000, "First step of the distortion loss.")
+    near: float = _f(0.2, "Near plane (m): culls surfels and sets the distortion's normalised depth.")
+    far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth (heads at about 1 m).")
+    sdf_from: int = _f(0, "First step of the SDF terms (L_pt, L_align, L_D, L_N, NeuS).")
+    rays_per_step: int = _f(1024, "Foreground rays per step for NeuS.")
+    neus_samples: int = _f(32, "Stratified NeuS samples per ray.")
+    neus_importance: int = _f(32, "NeuS importance samples per ray.")
+    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.")
+    neus_variance: float = _f(0.4, "Initial NeuS s-variance (inv_s = exp(10 var) per box half extent).")
+    rebind_every: int = _f(1000, "Rebind surfels to their nearest canonical triangle every K steps (0: never).")
+    background: float = _f(1.0, "Background grey level of the renders (the ingested images are on white).")
+    eval_every: int = _f(1000, "Validation PSNR every N steps for the progress display (0: only at the end).")
+    mc_resolution: int = _f(256, "Marching-cubes resolution of the extracted SDF mesh.")
+    checkpoint_every: int = _f(1000, "Checkpoint interval in steps.")
+
+
 STAGE_CONFIGS: dict[str, type] = {
     "ingest": IngestConfig,
     "init-mesh": InitMeshConfig,
+    "phase1": Phase1Config,
 }
 
 # Preset overrides per stage, as dotted-key mappings applied over the dataclass defaults
@@ -125,6 +185,27 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
             "pretrain.bank_size": 60000,
             "mc_resolution": 128,
             "checkpoint_every": 100,
+        },
+        "phase1": {
+            "iterations": 1500,
+            "n_surfels": 6000,
+            "app_hidden": 32,
+            "app_sh_degree": 2,
+            "shape_hidden": 32,
+            "lr_sdf": 1e-3,
+            "lr_grid": 1e-3,
+            "lr_networks": 1e-3,
+            "lr_color": 1e-2,
+            "normal_consistency_from": 300,
+            "distortion_from": 300,
+            "rays_per_step": 256,
+            "smooth_points": 256,
+            "neus_samples": 24,
+            "neus_importance": 16,
+            "rebind_every": 250,
+            "eval_every": 250,
+            "mc_resolution": 128,
+            "checkpoint_every": 250,
         },
     },
 }
@@ -333,3 +414,76 @@ def describe(cls: type, prefix: str = "") -> list[tuple[str, str, Any]]:
         else:
             rows.append((f"{prefix}{f.name}", f.metadata.get("help", ""), val))
     return rows
+
+
+@dataclass
+class EvalConfig:
+    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (formats.md §8)."""
+
+    stage: str = _f("auto", "Avatar to evaluate: auto (the latest finished of phase2, phase1), phase1 or phase2.")
+    split: str = _f("test", "Split: test (self-reenactment), val (novel view) or all (both).")
+    samples: int = _f(8, "Sample strips (GT | render | error) written per split.")
+    psnr_cap: float | None = _f(None, "Cap every per-image PSNR at this value before averaging (none: identical images give inf).")
+
+
+@dataclass
+class ExportConfig:
+    """``sage export``: world-space 3DGS PLY, meshes and the avatar bundle."""
+
+    stage: str = _f("auto", "Avatar to export: auto (the latest finished of phase2, phase1), phase1 or phase2.")
+    mc_resolution: int = _f(256, "Marching-cubes resolution of the SDF mesh.")
+    color_camera: int | None = _f(None, "Bake the view-dependent colours as seen from this camera of the capture (none: each surfel seen along its normal).")
+    up_axis: str = _f("y", "Vertical axis written in the PLY comment (VHAP worlds are roughly y-up).")
+
+
+STAGE_CONFIGS.update({"eval": EvalConfig, "export": ExportConfig})
+PRESET_OVERRIDES["tiny"].update({"eval": {}, "export": {"mc_resolution": 128}})
+
+
+@dataclass
+class Phase2Config:
+    """``sage phase2``: self-supervised fine-tuning under sampled expressions, SDF and hash grid frozen."""
+
+    iterations: int = _f(5000, "Optimisation steps.")
+    correction: bool = _f(True, "Surfel correction from stretch and curvature while posing (SAGE §3).")
+    correction_radius_edges: float = _f(2.0, "Ball-query radius of the correction's triangle neighbours, in median canonical edge lengths.")
+    correction_max_neighbours: int = _f(16, "Neighbours kept per triangle.")
+    correction_w_s: float = _f(1e-3, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|).")
+    correction_umbilic_tol: float = _f(1.0, "|k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.")
+    lr_position: float = _f(5e-5, "Learning rate of the surfel offsets mu_loc.")
+    lr_networks: float = _f(1e-4, "Learning rate of the appearance and shape networks (mlp attributes).")
+    lr_color: float = _f(1e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).")
+    lr_opacity: float = _f(1e-2, "Learning rate of free opacity logits.")
+    lr_scale: float = _f(5e-3, "Learning rate of free log scales.")
+    lr_rotation: float = _f(5e-4, "Learning rate of free rotations.")
+    w_normal_consistency: float = _f(0.05, "lambda_n: 2DGS normal consistency under deformation.")
+    w_distortion: float = _f(100.0, "lambda_d: 2DGS depth distortion under deformation.")
+    w_appearance: float = _f(1.0, "lambda_a: squared error between the surfel colour and the canonical NeuS teacher on sampled pixels.")
+    w_photometric: float = _f(0.0, "Weight of an optional L_rgb term on a captured training frame (0: phase 2 uses no images).")
+    photometric_every: int = _f(1, "Add the photometric term every N steps (when w_photometric > 0).")
+    rays_per_step: int = _f(1024, "Pixels per step for the appearance term.")
+    error_floor: float = _f(0.5, "Pixel sampling weight = e_n/mean(e_n) + e_d/mean(e_d) + error_floor (errors of the posed render).")
+    neus_samples: int = _f(32, "Stratified NeuS samples per ray of the teacher.")
+    neus_importance: int = _f(32, "NeuS importance samples per ray.")
+    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.")
+    expr_target: float = _f(0.01, "Sampled expression component std: a 1-sigma coefficient moves its most-affected vertex by this many metres.")
+    expr_active: int = _f(8, "A synthetic expression activates between 1 and this many components.")
+    expr_clip_sigma: float = _f(2.5, "Synthetic coefficients and jitters are clipped at this many std.")
+    jaw_max: float = _f(0.4, "Largest sampled jaw opening (rad).")
+    eye_range: float = _f(0.2, "Largest sampled gaze angle (rad).")
+    neck_std: float = _f(0.05, "Neck pose jitter std (rad).")
+    rotation_std: float = _f(0.05, "Global rotation jitter std (rad), composed with the training frame's.")
+    translation_std: float = _f(0.005, "Global translation jitter std (m).")
+    observed_weight: float = _f(0.3, "Probability of starting from one of the capture's training expressions.")
+    observed_noise: float = _f(0.2, "Noise on observed expressions, relative to the component std.")
+    near: float = _f(0.2, "Near plane (m) of the surfel renders.")
+    far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth.")
+    background: float = _f(1.0, "Background grey level.")
+    curve_steps: int = _f(100, "Steps of the distortion curve written to distortion_curve.json.")
+    eval_phase1: bool = _f(True, "Also evaluate the phase-1 avatar (no correction) on the test split, for comparison.")
+    eval_frames: int = _f(0, "Evaluate at most this many evenly spaced frames per split (0: all).")
+    checkpoint_every: int = _f(500, "Checkpoint interval in steps.")
+
+
+STAGE_CONFIGS["phase2"] = Phase2Config
+PRESET_OVERRIDES["tiny"]["phase2"] = {"iterations": 300, "rays_per_step": 256, "neus_samples": 24, "neus_importance": 16, "lr_networks": 5e-4, "checkpoint_every": 100}

@@ -14,10 +14,14 @@ from .init import (
     face_region_labels,
     init_surfels,
 )
+from .model import Avatar, CanonicalSurfels, PosedSurfels
 from .neighbours import surfel_neighbours, triangle_neighbours
 from .surfels import SurfelSet, replace_optimizer_param
 
 __all__ = [
+    "Avatar",
+    "CanonicalSurfels",
+    "PosedSurfels",
     "CorrectionResult",
     "REGION_EYES",
     "REGION_FACE",

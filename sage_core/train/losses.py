@@ -1,0 +1,92 @@
+"""Phase-1 losses (SAGE §1–2, 2DGS, NeuS / MonoSDF regularisers). Each returns a 0-d tensor.
+
+Images are channels-last ``(H, W, C)``; per-ray quantities are ``(R, ...)``.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ..evaluate.metrics import ssim
+
+
+def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    if mask is None:
+        return x.mean()
+    m = mask.to(x.dtype)
+    while m.dim() < x.dim():
+        m = m.unsqueeze(-1)
+    m = m.expand_as(x)
+    return (x * m).sum() / m.sum().clamp_min(1.0)
+
+
+def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    """L_rgb = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS / 2DGS). pred, gt: (H, W, 3)."""
+    l1 = (pred - gt).abs().mean()
+    if ssim_weight == 0:
+        return l1
+    s = ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]).mean()
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - s)
+
+
+def point_sdf_loss(sdf: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """L_pt = mean |f(x_G)| / scale. sdf: (N,) SDF values at the canonical surfel centres."""
+    return sdf.abs().mean() / scale
+
+
+def align_loss(surfel_normals: torch.Tensor, sdf_grad: torch.Tensor) -> torch.Tensor:
+    """L_align = mean |1 − |t3ᵀ n̂||, n̂ = ∇f/‖∇f‖. surfel_normals: (N, 3) unit t3; sdf_grad: (N, 3)."""
+    n = sdf_grad / sdf_grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return (1.0 - (surfel_normals * n).sum(-1).abs()).abs().mean()
+
+
+def depth_loss(sdf_depth: torch.Tensor, surfel_depth: torch.Tensor, mask: torch.Tensor | None = None, scale: float = 1.0) -> torch.Tensor:
+    """L_D: mean |t_sdf − t_surfel| / scale over the mask.
+
+    Both are distances along the same canonical rays (R,). The surfel depth is metric in the same
+    space as the SDF, so no MonoSDF scale/shift fit is needed. The caller decides what is
+    detached; phase 1 detaches the surfel side so the surfels' depth supervises the SDF.
+    """
+    return _masked_mean((sdf_depth - surfel_depth).abs(), mask) / scale
+
+
+def normal_loss(sdf_normal: torch.Tensor, surfel_normal: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """L_N (MonoSDF): mean ‖n̂ − n̄‖₁ + mean (1 − n̂·n̄), both normalised. (R, 3) each, canonical space."""
+    a = F.normalize(sdf_normal, dim=-1, eps=1e-12)
+    b = F.normalize(surfel_normal, dim=-1, eps=1e-12)
+    l1 = (a - b).abs().sum(-1)
+    ang = 1.0 - (a * b).sum(-1)
+    return _masked_mean(l1, mask) + _masked_mean(ang, mask)
+
+
+def eikonal_loss(grad: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """mean (‖∇f‖ − 1)². grad: (M, 3) (or (R, S, 3) with mask (R, S))."""
+    return _masked_mean((grad.norm(dim=-1) - 1.0) ** 2, mask)
+
+
+def normal_smoothness_loss(normal_a: torch.Tensor, normal_b: torch.Tensor) -> torch.Tensor:
+    """MonoSDF smoothness mean ‖n(x) − n(x + δ)‖ of unit SDF normals (M, 3) at x and x + δ."""
+    a = F.normalize(normal_a, dim=-1, eps=1e-12)
+    b = F.normalize(normal_b, dim=-1, eps=1e-12)
+    return (a - b).norm(dim=-1).mean()
+
+
+def normal_consistency_loss(render_normal: torch.Tensor, surf_normal: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """2DGS L_n = mean_pix (1 − Σ_ch N_r·N_s).
+
+    render_normal: (H, W, 3) Σ w·n (unnormalised, as rasterized); surf_normal: (H, W, 3) normal from
+    the rendered depth, already multiplied by A.detach() (``SurfelRender.surf_normal_*``). Both in
+    the same frame.
+    """
+    return _masked_mean(1.0 - (render_normal * surf_normal).sum(-1), mask)
+
+
+def distortion_loss(distortion: torch.Tensor) -> torch.Tensor:
+    """2DGS depth distortion: mean of the per-pixel Σ_i w_i Σ_{j<i} w_j (m_i − m_j)². (H, W)."""
+    return distortion.mean()
+
+
+def neus_rgb_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """L1 between the NeuS colours of sampled rays and the image. (R, 3) each."""
+    return (pred - gt).abs().mean()

@@ -1,0 +1,136 @@
+"""Phase 1 on the tiny synthetic workspace: the loss falls, exact resume, the command's outputs."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+import typer
+from typer.testing import CliRunner
+
+from sage_cli.app import app as main_app
+from sage_cli.commands.phase1 import phase1
+from sage_core.config import resolve_config
+from sage_core.data.dataset import IngestedData
+from sage_core.train.phase1 import Phase1Trainer, build_avatar
+
+_SMALL = {
+    "n_surfels": 1500,
+    "rays_per_step": 64,
+    "neus_samples": 8,
+    "neus_importance": 8,
+    "neus_up_steps": 1,
+    "app_hidden": 16,
+    "shape_hidden": 16,
+    "mc_resolution": 40,
+    "normal_consistency_from": 2,
+    "distortion_from": 2,
+    "eval_every": 0,
+}
+
+
+@pytest.fixture
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def init_ws(tiny_ws, tmp_path_factory):
+    """A workspace with init-mesh done (few pretraining steps)."""
+    ws = tmp_path_factory.mktemp("p1") / "ws"
+    shutil.copytree(tiny_ws, ws)
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    res = CliRunner().invoke(
+        main_app,
+        ["init-mesh", str(ws), "--preset", "tiny", "--steps", "40", "--mc-resolution", "32", "--set", "pretrain.bank_size=4000",
+         "--set", "pretrain.batch_size=1024", "--set", "pretrain.eval_samples=2000", "--quiet", "--device", "cpu"],
+    )  # fmt: skip
+    torch.set_num_threads(n)
+    assert res.exit_code == 0, res.output
+    return ws
+
+
+def _trainer(ws, mode, **over):
+    data = IngestedData.open(ws / "data")
+    cfg = resolve_config("phase1", "tiny", None, {**_SMALL, "attributes": mode, **over})
+    g = torch.Generator().manual_seed(3)
+    torch.manual_seed(3)
+    av = build_avatar(data, ws / "init", cfg, "cpu", g)
+    return Phase1Trainer(av, data, cfg, "cpu", g)
+
+
+@pytest.mark.parametrize("mode", ["mlp", "free"])
+def test_steps_lower_the_loss(init_ws, mode, one_thread):
+    tr = _trainer(init_ws, mode, iterations=40)
+    before = tr.evaluate("train", max_frames=3)["psnr"]
+    hist = [tr.step() for _ in range(40)]
+    after = tr.evaluate("train", max_frames=3)["psnr"]
+    first = np.mean([h["rgb"] for h in hist[:5]])
+    last = np.mean([h["rgb"] for h in hist[-5:]])
+    assert last < first
+    assert after > before + 0.5
+    for key in ("pt", "align", "depth", "normal", "neus_rgb", "eikonal", "smooth", "normal_consistency", "distortion"):
+        assert np.isfinite(hist[-1][key]), key
+
+
+def test_resume_repeats_the_loss_curve(init_ws, one_thread):
+    n = 6
+    over = {"iterations": n, "rebind_every": 2}
+    ref = _trainer(init_ws, "mlp", **over)
+    straight = [ref.step() for _ in range(n)]
+
+    first = _trainer(init_ws, "mlp", **over)
+    part = [first.step() for _ in range(n // 2)]
+    buf = io.BytesIO()
+    torch.save(first.state_dict(), buf)
+    del first
+    second = _trainer(init_ws, "mlp", **over)
+    buf.seek(0)
+    second.load_state_dict(torch.load(buf, weights_only=False))
+    part += [second.step() for _ in range(n - n // 2)]
+    for a, b in zip(straight, part):
+        for k in a:
+            assert b[k] == pytest.approx(a[k], rel=1e-6, abs=1e-7), k
+    assert torch.equal(ref.avatar.surfels.binding, second.avatar.surfels.binding)
+
+
+def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
+    ws = tmp_path / "ws"
+    shutil.copytree(init_ws, ws)
+    app = typer.Typer()
+    app.command("phase1")(phase1)
+    app.command("other")(lambda: None)
+    args = ["phase1", str(ws), "--preset", "tiny", "--attributes", "free", "--iterations", "8", "--surfels", "1200", "--quiet", "--device", "cpu"]
+    for k, v in _SMALL.items():
+        if k != "n_surfels":
+            args += ["--set", f"{k}={v}"]
+    res = CliRunner().invoke(app, args + ["--set", "checkpoint_every=4"])
+    assert res.exit_code == 0, res.output
+    out = ws / "phase1"
+    for name in ("avatar.pt", "sdf_mesh.ply", "metrics.json", "manifest.json", "config.json"):
+        assert (out / name).is_file(), name
+    renders = list((out / "renders").glob("val_*.png"))
+    assert len(renders) == 1
+    m = json.loads((out / "manifest.json").read_text())
+    met = m["metrics"]
+    assert met["attributes"] == "free" and met["n_surfels"] == 1200 and met["iterations"] == 8
+    for key in ("val_psnr", "val_ssim", "train_psnr", "chamfer_m", "chamfer_rel", "iterations_per_s"):
+        assert np.isfinite(met[key]), key
+    assert met["val_psnr"] > 10 and met["chamfer_rel"] < 0.1
+    assert not (ws / ".work" / "phase1" / "checkpoints").exists()
+    from sage_core.avatar.model import Avatar
+
+    av = Avatar.load(out / "avatar.pt")
+    assert av.attributes == "free" and len(av.surfels) == 1200
+    res = CliRunner().invoke(app, args + ["--set", "checkpoint_every=4"])
+    assert res.exit_code == 0 and "skipping" in res.output
+    bad = CliRunner().invoke(app, ["phase1", str(ws), "--attributes", "nope", "--quiet"])
+    assert bad.exit_code != 0
