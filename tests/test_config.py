@@ -88,6 +88,12 @@ def test_plain_data_round_trip_and_hash():
     assert config_hash(cfg2) != config_hash(cfg)
 
 
-def test_every_field_is_documented():
-    for name, help_text, _ in describe(InitMeshConfig):
-        assert help_text, f"{name} has no help text"
+def test_every_field_of_every_stage_is_documented_and_presets_resolve():
+    from sage_core.config import PRESETS, STAGE_CONFIGS
+
+    for stage, cls in STAGE_CONFIGS.items():
+        for name, help_text, _ in describe(cls):
+            assert help_text, f"{stage}: {name} has no help text"
+        for preset in PRESETS:
+            cfg = resolve_config(stage, preset)
+            assert from_dict(cls, to_dict(cfg)) == cfg
