@@ -34,12 +34,17 @@ def _root(
 
 
 def _register() -> None:
-    from .commands import config_cmd, info, ingest, init_mesh, phase1, synth
+    from .commands import config_cmd, demo_cmd, eval_cmd, export_cmd, info, ingest, init_mesh, phase1, reenact_cmd, run_cmd, synth
 
     app.command("synth")(synth.synth)
     app.command("ingest")(ingest.ingest)
     app.command("init-mesh")(init_mesh.init_mesh)
     app.command("phase1")(phase1.phase1)
+    app.command("eval")(eval_cmd.eval_)
+    app.command("reenact")(reenact_cmd.reenact)
+    app.command("export")(export_cmd.export)
+    app.command("run")(run_cmd.run)
+    app.command("demo")(demo_cmd.demo)
     app.command("info")(info.info)
     app.command("config")(config_cmd.config)
 

@@ -1,0 +1,84 @@
+"""World-space 3DGS PLY of a posed avatar, and the inverse: PLY rows back to rasterizer inputs.
+
+The avatar's colours come from its appearance network (or per-surfel SH) evaluated for one view
+direction (the caller poses the surfels, e.g. ``AvatarRenderer.posed``), so a viewer PLY stores them
+as SH degree 0: ``f_dc = (rgb − 0.5) / C0`` with
+C0 = 0.28209479 (formats.md §7.1), which a viewer turns back into ``rgb = 0.5 + C0·f_dc``. Which view
+the colours are baked for is the caller's choice when posing: a camera centre, or None for each
+surfel seen along its own normal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+import torch
+
+from .ply import SH_C0, encode_ply
+from ..workspace import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from ..avatar.model import PosedSurfels
+
+
+@dataclass
+class PlyExport:
+    """One written PLY: its path, rows written and rows dropped (non-finite or opacity < 1/255)."""
+
+    path: Path
+    n_rows: int
+    n_dropped: int
+
+
+def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
+    """(N, 3) colours in [0, 1] -> (N, 3) SH DC coefficients ``(rgb − 0.5) / C0``."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh_dc_to_rgb(sh_dc: torch.Tensor) -> torch.Tensor:
+    """(N, 3) SH DC -> (N, 3) colours ``0.5 + C0·f_dc`` clamped at 0 (as 3DGS viewers evaluate them)."""
+    return (0.5 + SH_C0 * sh_dc).clamp_min(0.0)
+
+
+def encode_posed_ply(
+    posed: PosedSurfels, comments: Sequence[str] | None = None, up_axis: str | None = "y"
+) -> tuple[bytes, int]:
+    """PLY bytes of posed surfels (means (N, 3), quats (N, 4), scales (N, 2), opacities (N,),
+    colours (N, 3)); returns (bytes, rows dropped)."""
+    return encode_ply(
+        posed.means, posed.quats, posed.scales, posed.opacities, rgb_to_sh_dc(posed.colors.clamp(0.0, 1.0)),
+        None, comments=comments, up_axis=up_axis,
+    )  # fmt: skip
+
+
+def write_posed_ply(
+    path: str | Path,
+    posed: PosedSurfels,
+    comments: Sequence[str] | None = None,
+    up_axis: str | None = "y",
+) -> PlyExport:
+    """Encode posed surfels as a viewer PLY and write it atomically."""
+    data, dropped = encode_posed_ply(posed, comments, up_axis)
+    atomic_write_bytes(path, data)
+    n = int(posed.means.shape[0])
+    return PlyExport(Path(path), n - dropped, dropped)
+
+
+def ply_render_inputs(
+    ply: dict[str, np.ndarray], device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rasterizer inputs from :func:`sage_core.export.ply.read_ply` output.
+
+    Returns means (N, 3), quats (N, 4), scales (N, 2) (the two in-plane axes; the thin third one is
+    dropped), opacities (N,) and colours (N, 3) from the SH DC (higher SH terms, if any, ignored).
+    """
+    def t(a: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(a), device=device).to(dtype)
+
+    scales = ply["scales"]
+    if scales.shape[1] == 3:
+        scales = scales[:, :2]
+    return t(ply["means"]), t(ply["quats"]), t(scales), t(ply["opacities"]), sh_dc_to_rgb(t(ply["sh_dc"]))

@@ -1,0 +1,206 @@
+"""`sage export`: viewer PLY (round trip, header order, render equivalence), meshes, bundle."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from test_cmd_eval import avatar_workspace, invoke
+
+# A PLY stores float32 positions, log scales, logit opacities, normalised quaternions and SH DC;
+# decoding them and rasterizing again reproduces the avatar's own render up to float32 rounding
+# of those conversions and the rows dropped for opacity < 1/255.
+RENDER_TOL = 1e-4
+
+
+@pytest.fixture(scope="module")
+def base_ws(tiny_ws, tmp_path_factory):
+    return avatar_workspace(tiny_ws, tmp_path_factory)
+
+
+@pytest.fixture
+def ws(base_ws, tmp_path):
+    dst = tmp_path / "ws"
+    shutil.copytree(base_ws, dst)
+    return dst
+
+
+def _loaded(ws):
+    from sage_core.data.dataset import IngestedData
+    from sage_core.train.pipeline import AvatarRenderer, load_stage_avatar
+    from sage_core.workspace import Workspace
+
+    data = IngestedData.open(ws / "data")
+    loaded = load_stage_avatar(Workspace(ws), "phase1", data)
+    return data, loaded, AvatarRenderer(loaded.avatar, loaded.render)
+
+
+def _header(path):
+    raw = path.read_bytes()
+    head = raw[: raw.index(b"end_header")].decode("ascii").splitlines()
+    return [ln.split()[-1] for ln in head if ln.startswith("property")], [ln for ln in head if ln.startswith("comment")]
+
+
+def test_canonical_ply_round_trip_and_header(ws):
+    from sage_core.export.avatar_ply import sh_dc_to_rgb
+    from sage_core.export.ply import MIN_OPACITY, property_names, read_ply
+    from sage_core.flame.canonical import canonical_inputs
+
+    res = invoke(["export", ws, "--ply", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    path = ws / "export" / "ply" / "canonical.ply"
+    props, comments = _header(path)
+    assert props == property_names(0)  # INRIA order, SH degree 0, no binding_0
+    assert any("Vertical Axis: y" in c for c in comments)
+    assert "rows dropped" in res.output
+    data, loaded, renderer = _loaded(ws)
+    av = loaded.avatar
+    posed = renderer.posed(canonical_inputs(av.params, av.canonical_timestep), None)
+    keep = (posed.opacities >= MIN_OPACITY).numpy()
+    ply = read_ply(path)
+    n = int(keep.sum())
+    assert ply["means"].shape == (n, 3)
+    entry = json.loads((ws / "export" / "results.json").read_text())["ply:canonical"]
+    assert entry["rows"] == n and entry["rows_dropped"] == len(keep) - n
+    assert np.allclose(ply["means"], posed.means.numpy()[keep], atol=1e-6)
+    q_ref = posed.quats.numpy()[keep]
+    q_ref = q_ref / np.linalg.norm(q_ref, axis=1, keepdims=True)
+    assert np.allclose(ply["quats"], q_ref, atol=1e-5)
+    assert np.allclose(ply["scales"][:, :2], posed.scales.numpy()[keep], rtol=1e-5)
+    assert np.allclose(ply["scales"][:, 2], 1e-3 * posed.scales.numpy()[keep].min(1), rtol=1e-4)
+    assert np.allclose(ply["opacities"], posed.opacities.numpy()[keep], atol=1e-5)
+    rgb = sh_dc_to_rgb(torch.as_tensor(ply["sh_dc"])).numpy()
+    assert np.allclose(rgb, posed.colors.clamp(0, 1).numpy()[keep], atol=1e-5)
+    # canonical pose: zero global rotation and translation -> the canonical surfel centres
+    with torch.no_grad():
+        canon = av.canonical_state(with_sdf=False)
+    assert np.allclose(posed.means.numpy(), canon.means.numpy(), atol=1e-5)
+
+
+def test_ply_rendered_back_matches_the_avatar_render(ws):
+    from sage_core.export.avatar_ply import ply_render_inputs
+    from sage_core.export.ply import read_ply
+    from sage_core.render import RenderCamera, rasterize_surfels
+
+    data, loaded, renderer = _loaded(ws)
+    fr = data.val[0]
+    res = invoke(["export", ws, "--ply", "--frame", fr.timestep, "--color-camera", fr.camera_index, "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    ply = read_ply(ws / "export" / "ply" / f"frame_{fr.timestep:05d}.ply")
+    cam = RenderCamera.from_camera(fr.camera)
+    s = loaded.render
+    with torch.no_grad():
+        img = rasterize_surfels(*ply_render_inputs(ply), cam, s.background, near=s.near, far=s.far, return_statistics=False).color
+        ref, _ = loaded.avatar.render(cam, loaded.avatar.frame_inputs(fr.timestep), s.background, near=s.near, far=s.far,
+                                      return_statistics=False)  # fmt: skip
+    err = (img - ref.color).abs().max().item()
+    assert err < RENDER_TOL, err
+    assert float((ref.color < 0.99).float().mean()) > 0.02  # not an empty image
+    # another pose gives another image (the PLY really is posed at that timestep)
+    other = data.test[0].timestep
+    with torch.no_grad():
+        ref2, _ = loaded.avatar.render(cam, loaded.avatar.frame_inputs(other), s.background, near=s.near, far=s.far, return_statistics=False)
+    assert (img - ref2.color).abs().max().item() > 10 * RENDER_TOL
+
+
+def test_export_meshes(ws):
+    from sage_core.flame.canonical import canonical_inputs
+
+    res = invoke(["export", ws, "--mesh", "--mc-resolution", "32", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    out = ws / "export" / "mesh"
+    data, loaded, _ = _loaded(ws)
+    av = loaded.avatar
+    with torch.no_grad():
+        verts = av.pose_mesh(canonical_inputs(av.params, av.canonical_timestep)).numpy()
+    for ext in ("ply", "obj"):
+        m = trimesh.load(out / f"flame_canonical.{ext}", process=False)
+        assert np.array_equal(np.asarray(m.faces), av.faces.numpy())
+        assert np.allclose(np.asarray(m.vertices), verts, atol=1e-5)
+        sdf_m = trimesh.load(out / f"sdf_mesh.{ext}", process=False)
+        assert len(sdf_m.faces) > 100
+    sdf_m = trimesh.load(out / "sdf_mesh.ply", process=False)
+    v = torch.as_tensor(np.asarray(sdf_m.vertices), dtype=torch.float32)
+    with torch.no_grad():
+        d = av.sdf.sdf(v).abs()
+    cell = float((av.sdf.bbox_max - av.sdf.bbox_min).max()) / 31
+    assert float(d.mean()) < 0.5 * cell  # the vertices lie on the zero level set
+    # the PLY of an earlier export is kept beside the meshes
+    res = invoke(["export", ws, "--ply", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert (out / "sdf_mesh.obj").is_file() and (ws / "export" / "ply" / "canonical.ply").is_file()
+    res = invoke(["export", ws, "--ply", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0 and "skipping" in res.output
+
+
+def test_bundle_loads_without_the_workspace_and_renders_the_same(ws, tmp_path):
+    from sage_core.export.bundle import FRAME_CONVENTION, load_bundle
+
+    res = invoke(["export", ws, "--bundle", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    data, loaded, renderer = _loaded(ws)
+    fr = data.val[0]
+    inputs = loaded.avatar.frame_inputs(fr.timestep)
+    ref = renderer.render(fr.camera, inputs)
+    moved = tmp_path / "elsewhere" / "bundle"
+    shutil.copytree(ws / "export" / "bundle", moved)
+    shutil.rmtree(ws)  # nothing of the workspace is left
+    meta = json.loads((moved / "bundle.json").read_text())
+    assert meta["surfels"]["frame_convention"] == FRAME_CONVENTION == "surfel-flat [a0,-a2,a1]"
+    assert meta["surfels"]["dimensions"] == 2 and meta["up_axis"] == "y"
+    assert meta["flame"]["n_vertices"] == loaded.avatar.model_data.v_template.shape[0]
+    assert meta["flame"]["n_faces"] == loaded.avatar.faces.shape[0]
+    assert [e["timestep"] for e in meta["timestep_map"]] == [int(t) for t in loaded.avatar.params.timesteps]
+    with np.load(moved / "flame_param.npz") as z:
+        assert z["shape"].ndim == 1 and z["expr"].shape[0] == len(meta["timestep_map"])
+    b = load_bundle(moved)
+    assert b.reference_camera is not None and b.reference_camera.index == fr.camera_index
+    from sage_core.train.pipeline import AvatarRenderer
+
+    img = AvatarRenderer(b.avatar, b.render).render(b.reference_camera, b.avatar.frame_inputs(fr.timestep))
+    assert torch.equal(img, ref)
+    # a tampered face table is refused
+    meta["flame"]["faces_sha256"] = "0" * 64
+    (moved / "bundle.json").write_text(json.dumps(meta))
+    from sage_core.errors import InputError
+
+    with pytest.raises(InputError, match="faces_sha256"):
+        load_bundle(moved)
+
+
+def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture):
+    res = invoke(["export", ws, "--bundle", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    moved = tmp_path / "b"
+    shutil.copytree(ws / "export" / "bundle", moved)
+    shutil.rmtree(ws)
+    out = tmp_path / "orbit"
+    res = invoke(["reenact", "--bundle", moved, "--flame-seq", tiny_capture, "--orbit", "--max-frames", "3",
+                  "--out", out, "--device", "cpu", "--quiet"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    frames = sorted((out / "frames").glob("*.png"))
+    assert len(frames) == 3 and (out / "video.mp4").stat().st_size > 0
+    from sage_core.data.imageio import read_image
+
+    a, b = read_image(frames[0]), read_image(frames[1])
+    assert np.abs(a - b).max() > 0.1  # the camera moved
+    rec = json.loads((out / "reenact.json").read_text())
+    assert rec["report"]["n_frames"] == 3 and "orbit" in rec["cameras"]
+
+
+def test_export_sequence_writes_one_ply_per_frame(ws, tiny_capture):
+    from sage_core.export.ply import read_ply
+
+    res = invoke(["export", ws, "--ply", "--flame-seq", tiny_capture, "--max-frames", "3", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    files = sorted((ws / "export" / "ply").glob("0*.ply"))
+    assert [f.name for f in files] == ["00000.ply", "00001.ply", "00002.ply"]
+    a, b = read_ply(files[0]), read_ply(files[2])
+    assert a["means"].shape[1] == 3 and not np.allclose(a["means"][:10], b["means"][:10])
+    res = invoke(["export", ws, "--frame", 999, "--quiet"])
+    assert res.exit_code == 2 and "999" in res.output
