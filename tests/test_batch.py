@@ -1,0 +1,248 @@
+"""`sage batch`: SUBJECTS parsing, the local engine (with a broken subject), resume after a kill,
+the Ray engine in local mode, and the live status files."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+FAST = [
+    "init_mesh.pretrain.steps=5", "init_mesh.pretrain.bank_size=2000", "init_mesh.pretrain.batch_size=512",
+    "init_mesh.pretrain.eval_samples=500", "init_mesh.mc_resolution=24", "phase1.iterations=2", "phase1.n_surfels=300",
+    "phase1.eval_every=0", "phase1.mc_resolution=24", "phase1.rays_per_step=64", "phase1.neus_samples=8",
+    "phase1.neus_importance=8", "eval.samples=2",
+]  # fmt: skip
+STAGES = ["ingest", "init-mesh", "phase1", "eval", "export"]
+
+
+def _app() -> typer.Typer:
+    from sage_cli.commands.batch_cmd import batch
+
+    app = typer.Typer(add_completion=False)
+    app.command()(batch)
+    return app
+
+
+def _args(subjects: Path, root: Path, *extra: str) -> list[str]:
+    args = [str(subjects), str(root), "--preset", "tiny", "--skip-phase2", "--device", "cpu", "--quiet", *extra]
+    for s in FAST:
+        args += ["--set", s]
+    return args
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory):
+    """Two tiny captures (copies of one) and a broken one (truncated transforms_train.json)."""
+    from sage_core.data.synthetic import make_capture, preset
+
+    base = tmp_path_factory.mktemp("batch_caps")
+    cfg = preset("tiny", n_cameras=4, width=48, height=70, train_timesteps=1, test_timesteps=1)
+    a = Path(make_capture(base / "a", cfg))
+    shutil.copytree(a, base / "b")
+    shutil.copytree(a, base / "bad")
+    (base / "bad" / "transforms_train.json").write_text('{"frames": [\n')
+    return base
+
+
+def _csv(path: Path, caps: Path, ids: list[str]) -> Path:
+    rows = ["id,capture,flame_model"] + [f"{i},{caps / i},{caps / i / 'model' / 'synth_flame.npz'}" for i in ids]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _summary(root: Path) -> dict[str, dict]:
+    doc = json.loads((root / "batch_summary.json").read_text())
+    return {s["id"]: s for s in doc["subjects"]}
+
+
+def _finished_at(ws: Path) -> dict[str, str]:
+    from sage_core.workspace import Workspace
+
+    w = Workspace(ws)
+    return {s: (w.manifest(s) or {}).get("finished_at") for s in STAGES}
+
+
+# ---- SUBJECTS --------------------------------------------------------------------------------
+
+
+def test_load_subjects_forms_and_errors(tmp_path):
+    from sage_core.batch import load_subjects
+    from sage_core.errors import InputError
+
+    for d in ("capA", "capB/x"):
+        (tmp_path / d).mkdir(parents=True)
+    (tmp_path / "capA" / "transforms.json").write_text("{}")
+    (tmp_path / "model.npz").write_bytes(b"x")
+    csv = tmp_path / "s.csv"
+    csv.write_text("# subjects\nid,capture,regime,timestep,set\ns1,capA,mv-sf,3,phase1.iterations=5;eval.samples=2\ns2,capB,,,\n")
+    subs = load_subjects(csv)
+    assert [s.id for s in subs] == ["s1", "s2"]
+    assert subs[0].capture == (tmp_path / "capA").resolve() and subs[0].regime == "mv-sf" and subs[0].timestep == 3
+    assert subs[0].sets == ("phase1.iterations=5", "eval.samples=2") and subs[1].regime is None and subs[1].sets == ()
+
+    y = tmp_path / "s.yaml"
+    y.write_text("defaults: {regime: sv-hr, flame_model: model.npz}\nsubjects:\n  - {id: a, capture: capA, camera: 2}\n"
+                 "  - {id: b, capture: capB, regime: mv-mf, set: [phase1.iterations=3]}\n")  # fmt: skip
+    subs = load_subjects(y)
+    assert [(s.id, s.regime, s.camera) for s in subs] == [("a", "sv-hr", 2), ("b", "mv-mf", None)]
+    assert subs[0].flame_model == (tmp_path / "model.npz").resolve() and subs[1].sets == ("phase1.iterations=3",)
+
+    folder = load_subjects(tmp_path)  # only capA holds a transforms*.json
+    assert [s.id for s in folder] == ["capA"]
+
+    bad = {
+        "id,capture\ns1,capA\ns1,capB\n": "line 3: id 's1' repeats",
+        "id,capture\ns1,missing\n": "line 2: capture",
+        "id,capture,regime\ns1,capA,mono\n": "unknown regime",
+        "id,capture,timestep\ns1,capA,x\n": "timestep must be an integer",
+        "id,capture,colour\ns1,capA,red\n": "unknown field(s) colour",
+        "id,capture\nbad id,capA\n": "id 'bad id'",
+        "id,capture\ns1\n": "1 cells",
+        "id,capture,set\ns1,capA,iterations\n": "stage.key=value",
+    }
+    for text, needle in bad.items():
+        csv.write_text(text)
+        with pytest.raises(InputError) as e:
+            load_subjects(csv)
+        assert e.value.path == csv and needle in e.value.problem, (text, e.value.problem)
+    y.write_text("subjects:\n  - {id: a}\n")
+    with pytest.raises(InputError, match="entry 1: 'capture' is missing"):
+        load_subjects(y)
+    with pytest.raises(InputError, match="no capture subfolders"):
+        load_subjects(tmp_path / "capB")
+
+
+def test_status_handler_and_missing_ray(tmp_path, monkeypatch):
+    from sage_cli.commands.batch_cmd import _StatusHandler
+    from sage_core.batch import read_status, run_ray
+    from sage_core.errors import ConfigError
+
+    h = _StatusHandler(tmp_path, min_interval=0.0)
+    log = logging.getLogger("sage.test_batch")
+    log.addHandler(h)
+    log.setLevel(logging.INFO)
+    try:
+        log.info("stage %s started: config %s, seed %s, device %s, resumed %s", "phase1", "abc", 0, "cpu", False)
+        log.info("%s %s/%s %s", "phase 1", 7, 20, "phase 1  val_psnr nan  loss 0.5  psnr 21.5")
+    finally:
+        log.removeHandler(h)
+    st = read_status(tmp_path)
+    assert st["stage"] == "phase1" and st["done"] == 7 and st["total"] == 20 and st["psnr"] == pytest.approx(21.5)
+
+    monkeypatch.setitem(sys.modules, "ray", None)
+    with pytest.raises(ConfigError, match="pip install 'ray>=2.9'"):
+        run_ray([])
+
+
+# ---- local engine ------------------------------------------------------------------------------
+
+
+def test_run_local_placeholders_results_and_error_lines(tmp_path):
+    from sage_core.batch import Job, run_local
+
+    code = (
+        "import os, sys; print('dev', sys.argv[1], 'cpus', sys.argv[2], 'omp', os.environ['OMP_NUM_THREADS']); "
+        "rc = int(sys.argv[3]); print('error: subject broke', file=sys.stderr) if rc else None; sys.exit(rc)"
+    )
+    jobs = [Job(f"j{i}", tmp_path / f"j{i}", ["{python}", "-c", code, "{device}", "{cpus}", str(rc)], tmp_path / f"j{i}" / "logs" / "b.log")
+            for i, rc in enumerate((0, 3, 0))]  # fmt: skip
+    seen, polls = [], []
+    results = run_local(jobs, max_parallel=2, cpus_per_subject=3, on_result=seen.append, on_poll=lambda: polls.append(1), poll_interval=0.05)
+    by = {r.id: r for r in results}
+    assert sorted(by) == ["j0", "j1", "j2"] and len(seen) == 3 and polls
+    assert by["j0"].ok and by["j0"].device == "cpu" and by["j0"].error is None
+    assert by["j1"].returncode == 3 and by["j1"].error == "error: subject broke"
+    assert "dev cpu cpus 3 omp 3" in (tmp_path / "j2" / "logs" / "b.log").read_text()
+
+
+
+def test_local_batch_with_a_broken_subject_then_rerun(captures, tmp_path):
+    subjects = _csv(tmp_path / "subjects.csv", captures, ["a", "b", "bad"])
+    root = tmp_path / "root"
+    runner = CliRunner()
+    res = runner.invoke(_app(), _args(subjects, root, "--max-parallel", "2", "--cpus-per-subject", "1"))
+    assert res.exit_code == 1, res.output  # one subject failed; the others finished
+    s = _summary(root)
+    assert s["a"]["status"] == "finished" and s["b"]["status"] == "finished"
+    assert s["bad"]["status"] == "failed" and "transforms_train.json" in s["bad"]["error"] and s["bad"]["returncode"] == 2
+    for sid in ("a", "b"):
+        assert s[sid]["metrics"]["val_psnr"] > 5 and s[sid]["wall_time_s"] > 0
+        assert json.loads((root / sid / ".batch_status.json").read_text())["state"] == "finished"
+        assert all(_finished_at(root / sid).values())
+        assert list((root / sid / "logs").glob("batch-*.log"))
+    md = (root / "batch_summary.md").read_text()
+    assert "| a | finished |" in md and "| bad | failed |" in md
+    assert not (root / "bad" / "data").exists()
+
+    before = {sid: _finished_at(root / sid) for sid in ("a", "b")}
+    logs_before = len(list((root / "a" / "logs").glob("batch-*.log")))
+    res = runner.invoke(_app(), _args(subjects, root, "--max-parallel", "2", "--cpus-per-subject", "1"))
+    assert res.exit_code == 1, res.output
+    s = _summary(root)
+    assert s["a"]["status"] == "skipped" and s["b"]["status"] == "skipped" and s["bad"]["status"] == "failed"
+    assert s["a"]["metrics"]["val_psnr"] > 5
+    assert {sid: _finished_at(root / sid) for sid in ("a", "b")} == before
+    assert len(list((root / "a" / "logs").glob("batch-*.log"))) == logs_before  # no process started
+
+
+def test_resume_after_killing_the_batch(captures, tmp_path):
+    from sage_core.batch import read_status
+
+    subjects = _csv(tmp_path / "subjects.csv", captures, ["a", "b"])
+    root = tmp_path / "root"
+    code = "import sys, typer; from sage_cli.commands.batch_cmd import batch; typer.run(batch)"
+    cmd = [sys.executable, "-c", code, *_args(subjects, root, "--max-parallel", "1", "--cpus-per-subject", "1")]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and p.poll() is None:
+            if read_status(root / "a").get("state") == "finished":
+                break
+            time.sleep(0.1)
+        assert read_status(root / "a").get("state") == "finished", "subject a did not finish in time"
+        os.killpg(p.pid, signal.SIGKILL)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+    assert read_status(root / "b").get("state") != "finished"  # killed midway
+    a_before = _finished_at(root / "a")
+    assert all(a_before.values())
+
+    res = CliRunner().invoke(_app(), _args(subjects, root, "--max-parallel", "1", "--cpus-per-subject", "1"))
+    assert res.exit_code == 0, res.output
+    s = _summary(root)
+    assert s["a"]["status"] == "skipped" and s["b"]["status"] == "finished"
+    assert _finished_at(root / "a") == a_before
+    assert all(_finished_at(root / "b").values())
+
+
+# ---- Ray engine ------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_ray_engine_local_mode(captures, tmp_path):
+    ray = pytest.importorskip("ray")
+    subjects = _csv(tmp_path / "subjects.csv", captures, ["a", "b"])
+    root = tmp_path / "root"
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        res = CliRunner().invoke(_app(), _args(subjects, root, "--engine", "ray", "--cpus-per-subject", "1"))
+    finally:
+        ray.shutdown()
+    assert res.exit_code == 0, res.output
+    s = _summary(root)
+    assert [s[i]["status"] for i in ("a", "b")] == ["finished", "finished"]
+    assert all(s[i]["device"] == "cpu" and s[i]["metrics"]["test_psnr"] > 5 for i in ("a", "b"))
+    assert json.loads((root / "batch_summary.json").read_text())["engine"] == "ray"
