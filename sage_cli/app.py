@@ -34,12 +34,13 @@ def _root(
 
 
 def _register() -> None:
-    from .commands import batch_cmd, config_cmd, demo_cmd, eval_cmd, export_cmd, info, ingest, init_mesh, phase1, reenact_cmd, run_cmd, synth
+    from .commands import batch_cmd, config_cmd, demo_cmd, eval_cmd, export_cmd, info, ingest, init_mesh, phase1, phase2, reenact_cmd, run_cmd, synth
 
     app.command("synth")(synth.synth)
     app.command("ingest")(ingest.ingest)
     app.command("init-mesh")(init_mesh.init_mesh)
     app.command("phase1")(phase1.phase1)
+    app.command("phase2")(phase2.phase2)
     app.command("eval")(eval_cmd.eval_)
     app.command("reenact")(reenact_cmd.reenact)
     app.command("export")(export_cmd.export)

@@ -159,3 +159,16 @@ def test_curvature_of_network_fitted_to_sphere(one_thread):
     assert float((normal * radial).sum(-1).mean()) > 0.98
     s, n = net.sdf_and_normal(pts)
     torch.testing.assert_close(n, normal)
+
+
+def test_sdf_and_feature_stay_differentiable_after_a_detached_gradient():
+    import torch
+
+    from sage_core.fields.sdf import SDFNetwork
+
+    net = SDFNetwork([-1.0] * 3, [1.0] * 3, n_levels=4, log2_table=10, max_res=64, hidden=16, feature_dim=4)
+    x = torch.rand(32, 3) * 1.2 - 0.6
+    sdf, grad, feature = net.gradient(x, create_graph=False)
+    assert not grad.requires_grad
+    (sdf.abs().sum() + feature.sum()).backward()
+    assert all(p.grad is not None for p in net.mlp_parameters())

@@ -187,12 +187,14 @@ class SDFNetwork(nn.Module):
         """Analytic gradient by autograd.
 
         x: (N, 3) -> sdf (N,), grad (N, 3), feature (N, F_z). With ``create_graph`` the gradient is
-        differentiable (eikonal loss); otherwise it is detached from the parameters' graph.
+        differentiable (eikonal loss); otherwise it is detached from the parameters' graph, while
+        ``sdf`` and ``feature`` keep theirs (the graph is retained so they can still be
+        back-propagated).
         """
         with torch.enable_grad():
             xg = x if (x.requires_grad and create_graph) else x.detach().requires_grad_(True)
             sdf, feature = self.forward(xg)
-            (grad,) = torch.autograd.grad(sdf.sum(), xg, create_graph=create_graph)
+            (grad,) = torch.autograd.grad(sdf.sum(), xg, create_graph=create_graph, retain_graph=True)
         return sdf, grad, feature
 
     def sdf_and_normal(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

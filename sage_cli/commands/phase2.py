@@ -1,0 +1,109 @@
+"""``sage phase2 WS``: self-supervised fine-tuning under sampled expressions, SDF frozen."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+
+from .._common import (
+    ConfigOpt,
+    DeviceOpt,
+    ForceOpt,
+    PresetOpt,
+    SeedOpt,
+    SetOpt,
+    VerboseOpt,
+    cli_errors,
+    parse_sets,
+    resolve_stage_config,
+    summary_panel,
+)
+from .._stage import StageOptions, execute_stage
+
+
+def _fmt_means(m: dict[str, Any] | None) -> str:
+    if not m:
+        return "n/a"
+
+    def num(v: Any, digits: int) -> str:
+        return f"{v:.{digits}f}" if isinstance(v, (int, float)) else str(v)
+
+    lp = m.get("lpips")
+    return f"{num(m.get('psnr'), 2)} dB / {num(m.get('ssim'), 4)} / LPIPS {num(lp, 4) if lp is not None else 'n/a'}"
+
+
+def phase2(
+    ws: Annotated[Path, typer.Argument(help="Workspace folder (after `sage phase1`).")],
+    correction: Annotated[Optional[str], typer.Option("--correction", help="Surfel correction from stretch and curvature: on or off.")] = None,
+    iterations: Annotated[Optional[int], typer.Option("--iterations", help="Optimisation steps.")] = None,
+    lpips_weights: Annotated[Optional[Path], typer.Option("--lpips-weights", help="LPIPS AlexNet v0.1 weights for the evaluation (default: $SAGE_LPIPS_WEIGHTS or the cache).")] = None,
+    preset: PresetOpt = "default",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    seed: SeedOpt = 0,
+    device: DeviceOpt = "auto",
+    force: ForceOpt = False,
+    verbose: VerboseOpt = True,
+) -> None:
+    """Self-supervised phase 2: sampled expressions, normal consistency, distortion and appearance
+    consistency with the canonical volume rendering; the SDF and hash grid stay frozen."""
+    with cli_errors():
+        from sage_core.errors import ConfigError, InputError
+
+        corr: bool | None = None
+        if correction is not None:
+            if correction.lower() not in ("on", "off"):
+                raise ConfigError(f"--correction must be on or off, got {correction!r}")
+            corr = correction.lower() == "on"
+        flags = {"correction": corr, "iterations": iterations, **parse_sets(set_)}
+        cfg = resolve_stage_config("phase2", preset, config, flags)
+        if not ws.is_dir():
+            raise InputError(ws, "workspace folder not found (run `sage ingest`, `sage init-mesh` and `sage phase1` first)")
+        if lpips_weights is not None and not lpips_weights.is_file():
+            raise InputError(lpips_weights, "LPIPS weights file not found")
+        external = None
+        if lpips_weights is not None:
+            from sage_core.workspace import file_fingerprint
+
+            external = {"lpips_weights": file_fingerprint(lpips_weights)}
+
+        def body(run, progress) -> None:
+            from sage_core.data.dataset import IngestedData
+            from sage_core.train.phase2 import run_phase2
+
+            data = IngestedData.open(run.ws.stage_dir("ingest"))
+            metrics = run_phase2(
+                data, run.ws.stage_dir("phase1"), run.ws.stage_dir("init-mesh"), run.work_dir, cfg, device=run.device,
+                seed=run.seed, checkpoint_dir=run.checkpoint_dir, progress=progress, lpips_weights=lpips_weights,
+            )  # fmt: skip
+            run.metrics.update({k: v for k, v in metrics.items() if k != "final_losses"})
+            out = run.ws.stage_dir("phase2")
+            run.outputs.update({n: str(out / n) for n in ("avatar.pt", "metrics.json", "distortion_curve.json", "eval_test", "eval_val")})
+
+        opts = StageOptions(ws, preset, config, seed, device, force, verbose)
+        manifest = execute_stage("phase2", opts, cfg, body, requires=("phase1",), external_inputs=external, title="phase 2")
+        if manifest is None:
+            return
+        m = manifest["metrics"]
+        out = ws / "phase2"
+        test = m.get("test") or {}
+        rows = [
+            ("correction / surfels", f"{'on' if m['correction'] else 'off'} / {m['n_surfels']}"),
+            ("self-reenactment (test, all cams)", _fmt_means(test.get("overall"))),
+            ("self-reenactment (test, frontal)", _fmt_means(test.get("frontal"))),
+            ("novel view (val)", _fmt_means((m.get("val") or {}).get("overall"))),
+        ]
+        if m.get("phase1_test"):
+            rows.append(("phase 1 alone (test, all cams)", _fmt_means(m["phase1_test"].get("overall"))))
+        rows += [
+            ("distortion, first 100 steps", f"{m['distortion_first100_mean']:.3e}"),
+            ("speed", f"{m['iterations_per_s']:.2f} it/s"),
+            ("wall time", f"{manifest['wall_time_s']:.1f} s"),
+        ]
+        summary_panel(
+            "sage phase2", rows,
+            [("avatar", out / "avatar.pt"), ("metrics", out / "metrics.json"), ("distortion curve", out / "distortion_curve.json"),
+             ("evaluation", out / "eval_test")],
+        )  # fmt: skip

@@ -1,0 +1,443 @@
+"""Phase 2: self-supervised fine-tuning for deformation robustness (SAGE §4).
+
+Starting from the phase-1 avatar, the SDF and its hash grid are frozen (``requires_grad`` False, not
+in the optimizer) and the surfel offsets and attribute heads (appearance and shape networks, or the
+free per-surfel attributes) are fine-tuned. Each step:
+
+1. samples an expression and pose: :class:`ExpressionSampler` with per-component ranges from the
+   model's expression blendshapes (:func:`component_ranges_from_dirs`), a jaw range, gaze, and a
+   mixture with the capture's own *training* expressions; the neck pose, global rotation and
+   translation of a random training frame are jittered (the rotation jitter is composed on the left);
+2. picks that training frame's camera, poses the surfels (with the surfel correction when enabled,
+   :class:`~sage_core.avatar.corrected.CorrectedPosing`) and rasterizes them;
+3. L_n (2DGS normal consistency) and L_d (depth distortion) of this deformed render;
+4. appearance consistency: ``rays_per_step`` pixels are drawn without replacement with probability
+   ∝ e_n/mean(e_n) + e_d/mean(e_d) + ``error_floor`` (e_n = 1 − N_r·N_s and e_d the per-pixel
+   distortion of the render, means over the candidates), among pixels whose ray hits the posed mesh
+   on a non-hair triangle. Each ray is warped into canonical space through the triangle it hits
+   (:mod:`sage_core.train.warp`) and volume-rendered (NeuS) through the frozen SDF with a frozen copy
+   of the phase-1 appearance network and s-variance, under ``no_grad``: the teacher Ĉ never moves.
+   L_a = mean |Ĉ − I|² with I the rasterized surfel colour at those pixels;
+5. optionally (``w_photometric`` > 0) L_rgb of a captured training frame rendered at its own FLAME
+   parameters; off by default, so phase 2 uses no images.
+
+Total: λ_n L_n + λ_d L_d + λ_a L_a (+ λ_rgb L_rgb). Every random draw uses the trainer's CPU
+generator; :meth:`Phase2Trainer.state_dict` holds the parameters, the teacher, the optimizer, the
+generator and the global RNG states, so a resumed run repeats the uninterrupted loss curve.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from ..avatar.corrected import CorrectedPosing
+from ..avatar.init import REGION_HAIR, face_region_labels
+from ..avatar.model import Avatar
+from ..config import Phase2Config
+from ..data.dataset import IngestedData, IngestedFrame
+from ..errors import InputError
+from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from ..render import RenderCamera, rasterize_surfels
+from ..render.mesh_raster import rasterize_mesh
+from ..render.volume import render_neus
+from ..workspace import rng_state, set_rng_state
+from . import losses as L
+from .expressions import ExpressionSampler, component_ranges_from_dirs
+from .warp import warp_pixels_to_canonical
+
+Progress = Callable[..., None]
+STATE_FORMAT = 1
+
+
+def hair_face_mask(avatar: Avatar, init_dir: str | Path | None = None) -> torch.Tensor:
+    """(F,) bool hair triangles: from ``init_dir/regions.json`` when present, else the triangles that
+    hair-region surfels are bound to."""
+    F = int(avatar.faces.shape[0])
+    if init_dir is not None:
+        path = Path(init_dir) / "regions.json"
+        if path.is_file():
+            from ..flame.regions import Regions
+
+            try:
+                regions = Regions.from_dict(json.loads(path.read_text()))
+                labels = face_region_labels(regions, F)
+            except (ValueError, KeyError, TypeError) as e:
+                raise InputError(path, f"malformed regions: {e}") from None
+            return torch.as_tensor(labels == REGION_HAIR, device=avatar.device)
+    mask = torch.zeros(F, dtype=torch.bool, device=avatar.device)
+    s = avatar.surfels
+    mask[s.binding[s.hair_mask()]] = True
+    return mask
+
+
+def build_sampler(avatar: Avatar, data: IngestedData, cfg: Phase2Config, seed: int = 0) -> ExpressionSampler:
+    """The expression sampler of phase 2: ranges from the model's expression blendshapes, the capture's
+    training expressions (training timesteps only) as the observed mixture."""
+    flame = avatar.flame
+    E = int(flame.n_expr)
+    V = int(avatar.canonical_vertices.shape[0])
+    dirs = flame.exprdirs.detach().reshape(V, 3, E) if E else torch.zeros(V, 3, 0)
+    std = component_ranges_from_dirs(dirs, cfg.expr_target)
+    rows = sorted({data.params.row_of(fr.timestep) for fr in data.train})
+    obs_expr = np.asarray(data.params.expr)[rows] if rows else None
+    obs_jaw = np.asarray(data.params.jaw_pose)[rows] if rows else None
+    if obs_expr is not None and obs_expr.shape[1] == 0:
+        obs_expr = obs_jaw = None
+    return ExpressionSampler(
+        E, std, clip_sigma=cfg.expr_clip_sigma, n_active=cfg.expr_active, jaw_range=(0.0, cfg.jaw_max),
+        eye_range=cfg.eye_range, neck_std=cfg.neck_std, rotation_std=cfg.rotation_std,
+        translation_std=cfg.translation_std, observed_expr=obs_expr, observed_jaw=obs_jaw,
+        observed_weight=cfg.observed_weight if obs_expr is not None else 0.0, observed_noise=cfg.observed_noise,
+        seed=seed, device=avatar.device,
+    )  # fmt: skip
+
+
+def compose_inputs(base: dict[str, torch.Tensor], sample: dict[str, torch.Tensor], i: int = 0) -> dict[str, torch.Tensor]:
+    """FLAME kwargs (batch 1) of sample ``i`` applied to a frame's ``base`` kwargs: expression, jaw and
+    gaze replaced, neck and translation jittered additively, rotation R = R_jitter·R_base."""
+    out = {k: v for k, v in base.items() if k != "dynamic_offset"}
+    ref = base["rotation"]
+    out["expr"] = sample["expr"][i : i + 1].to(ref)
+    out["jaw_pose"] = sample["jaw_pose"][i : i + 1].to(ref)
+    out["eyes_pose"] = sample["eyes_pose"][i : i + 1].to(ref)
+    out["neck_pose"] = base["neck_pose"] + sample["neck_pose"][i : i + 1].to(ref)
+    Rj = axis_angle_to_matrix(sample["rotation"][i : i + 1].to(ref))
+    Rb = axis_angle_to_matrix(base["rotation"].reshape(1, 3))
+    out["rotation"] = matrix_to_axis_angle(Rj @ Rb).reshape(1, 3)
+    out["translation"] = base["translation"] + sample["translation"][i : i + 1].to(ref)
+    return out
+
+
+def sample_pixels(
+    score: torch.Tensor, candidates: torch.Tensor, n: int, floor: float, generator: torch.Generator
+) -> torch.Tensor:
+    """Draw up to n flat pixel ids without replacement among ``candidates`` (R,) with weights from the
+    per-candidate error scores (R, k): Σ_j score_j / mean(score_j) + floor."""
+    if candidates.numel() == 0 or n <= 0:
+        return candidates[:0]
+    s = score.detach().to(torch.float64).clamp_min(0)
+    s = s / s.mean(0, keepdim=True).clamp_min(1e-12)
+    w = (s.sum(-1) + floor).cpu()
+    if not bool(torch.isfinite(w).all()) or float(w.sum()) <= 0:
+        w = torch.ones_like(w)
+    k = min(n, candidates.numel())
+    pick = torch.multinomial(w, k, replacement=False, generator=generator)
+    return candidates[pick.to(candidates.device)]
+
+
+class Phase2Trainer:
+    """Phase-2 optimisation (see the module doc).
+
+    avatar: the phase-1 :class:`Avatar` (modified in place); data: the ingested capture (training
+    cameras and frames); cfg: the stage config; generator: CPU generator for every random draw;
+    init_dir: the init-mesh folder (hair triangles from its ``regions.json``; optional).
+    """
+
+    def __init__(
+        self,
+        avatar: Avatar,
+        data: IngestedData,
+        cfg: Phase2Config,
+        device: str | torch.device = "cpu",
+        generator: torch.Generator | None = None,
+        init_dir: str | Path | None = None,
+    ) -> None:
+        self.avatar = avatar
+        self.data = data
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.step_count = 0
+        self.frames: list[IngestedFrame] = list(data.train)
+        if not self.frames:
+            raise ValueError("no training frames")
+        for p in avatar.sdf.parameters():
+            p.requires_grad_(False)
+        for p in avatar.variance.parameters():
+            p.requires_grad_(False)
+        self.teacher_app = copy.deepcopy(avatar.appearance).requires_grad_(False)
+        self.teacher_variance = copy.deepcopy(avatar.variance).requires_grad_(False)
+        self.posing = CorrectedPosing(
+            avatar, cfg.correction, radius_edges=cfg.correction_radius_edges, max_neighbours=cfg.correction_max_neighbours,
+            w_s=cfg.correction_w_s, umbilic_tol=cfg.correction_umbilic_tol,
+        )  # fmt: skip
+        self.hair_faces = hair_face_mask(avatar, init_dir)
+        self.sampler = build_sampler(avatar, data, cfg)
+        self.length_unit = float(avatar.sdf.half_extent)
+        self._inputs: dict[int, dict[str, torch.Tensor]] = {}
+        self._images: dict[tuple[int, int], torch.Tensor] = {}
+        self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
+        self.distortion_curve: list[float] = []
+
+    # ------------------------------------------------------------------ setup
+    def _param_groups(self) -> list[dict[str, Any]]:
+        av, c = self.avatar, self.cfg
+        groups: list[dict[str, Any]] = [
+            {"name": "mu_loc", "params": [av.surfels.mu_loc], "lr": c.lr_position},
+            {"name": "appearance", "params": list(av.appearance.parameters()), "lr": c.lr_networks},
+        ]
+        if av.shape is not None:
+            groups.append({"name": "shape", "params": list(av.shape.parameters()), "lr": c.lr_networks})
+        else:
+            s = av.surfels
+            groups += [
+                {"name": "q_loc", "params": [s.q_loc], "lr": c.lr_rotation},
+                {"name": "s_loc", "params": [s.s_loc], "lr": c.lr_scale},
+                {"name": "sh_dc", "params": [s.sh_dc], "lr": c.lr_color},
+                {"name": "opacity", "params": [s.opacity], "lr": c.lr_opacity},
+            ]
+            if hasattr(s, "sh_rest"):
+                groups.append({"name": "sh_rest", "params": [s.sh_rest], "lr": c.lr_color / 20.0})
+        return groups
+
+    def trainable_parameters(self) -> list[torch.nn.Parameter]:
+        """Every parameter the optimizer updates."""
+        return [p for g in self.optimizer.param_groups for p in g["params"]]
+
+    def inputs(self, timestep: int) -> dict[str, torch.Tensor]:
+        """Cached FLAME kwargs of a dataset timestep."""
+        if timestep not in self._inputs:
+            self._inputs[timestep] = self.avatar.frame_inputs(timestep)
+        return self._inputs[timestep]
+
+    def _randint(self, n: int) -> int:
+        return int(torch.randint(n, (1,), generator=self.generator)[0])
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, camera: RenderCamera, flame_inputs: dict[str, torch.Tensor]) -> tuple[Any, Any]:
+        """Pose (with correction when enabled) and rasterize. Returns (SurfelRender, PosedSurfels)."""
+        c, av = self.cfg, self.avatar
+        w2c = camera.w2c.to(av.canonical_vertices)
+        centre = -(w2c[:3, :3].T @ w2c[:3, 3])
+        p, _ = self.posing.posed(flame_inputs, centre)
+        img = rasterize_surfels(p.means, p.quats, p.scales, p.opacities, p.colors, camera, c.background,
+                                near=c.near, far=c.far, return_statistics=False)  # fmt: skip
+        return img, p
+
+    @torch.no_grad()
+    def teacher(self, posed_vertices: torch.Tensor, camera: RenderCamera, pix: torch.Tensor, raster: Any = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Canonical NeuS colours of the pixels ``pix`` (R,) of a deformed frame, detached.
+
+        Returns colours (R, 3) and a validity mask (R,) (rays that hit the posed mesh)."""
+        c, av = self.cfg, self.avatar
+        rays = warp_pixels_to_canonical(posed_vertices, av.faces, (av.R_c, av.T_c, av.k_c), camera.K, camera.w2c,
+                                        camera.width, camera.height, pix, raster=raster)  # fmt: skip
+        out = render_neus(
+            av.sdf, self.teacher_app, rays.origins, rays.dirs, self.teacher_variance, c.neus_samples, c.neus_importance,
+            c.neus_up_steps, 1.0, c.background, length_unit=self.length_unit, perturb=True, generator=self.generator,
+        )  # fmt: skip
+        return out.color.detach(), rays.valid
+
+    # ------------------------------------------------------------------ one step
+    def step(self) -> dict[str, float]:
+        """One optimisation step; returns the loss terms as floats."""
+        c, av = self.cfg, self.avatar
+        fr = self.frames[self._randint(len(self.frames))]
+        cam = RenderCamera.from_camera(fr.camera, self.device)
+        sample = self.sampler.sample(1, generator=self.generator)
+        inputs = compose_inputs(self.inputs(fr.timestep), sample)
+        render, posed = self.render(cam, inputs)
+
+        terms: dict[str, torch.Tensor] = {}
+        total = render.color.new_zeros(())
+        e_n = 1.0 - (render.normal_world * render.surf_normal_world).sum(-1)
+        terms["normal_consistency"] = e_n.mean()
+        terms["distortion"] = L.distortion_loss(render.distortion)
+        total = total + c.w_normal_consistency * terms["normal_consistency"] + c.w_distortion * terms["distortion"]
+
+        if c.w_appearance > 0 and c.rays_per_step > 0:
+            with torch.no_grad():
+                verts = posed.vertices.detach()
+                raster = rasterize_mesh(verts, av.faces, cam.K, cam.w2c, cam.width, cam.height)
+                fid = raster.face_id.reshape(-1)
+                ok = fid >= 0
+                ok &= ~self.hair_faces[fid.clamp_min(0)]
+                cand = ok.nonzero().squeeze(-1)
+                score = torch.stack([e_n.detach().reshape(-1)[cand], render.distortion.detach().reshape(-1)[cand]], -1)
+            pix = sample_pixels(score, cand, c.rays_per_step, c.error_floor, self.generator)
+            if pix.numel() > 0:
+                target, valid = self.teacher(verts, cam, pix, raster)
+                pred = render.color.reshape(-1, 3)[pix]
+                terms["appearance"] = ((pred - target) ** 2).sum(-1)[valid].mean()
+                total = total + c.w_appearance * terms["appearance"]
+
+        if c.w_photometric > 0 and c.photometric_every > 0 and self.step_count % c.photometric_every == 0:
+            fr2 = self.frames[self._randint(len(self.frames))]
+            cam2 = RenderCamera.from_camera(fr2.camera, self.device)
+            img2, _ = self.render(cam2, self.inputs(fr2.timestep))
+            gt = self._image(fr2)
+            terms["rgb"] = L.rgb_loss(img2.color, gt)
+            total = total + c.w_photometric * terms["rgb"]
+
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        self.optimizer.step()
+        self.step_count += 1
+        out = {k: float(v.detach()) for k, v in terms.items()}
+        out["loss"] = float(total.detach())
+        if len(self.distortion_curve) < c.curve_steps and self.step_count == len(self.distortion_curve) + 1:
+            self.distortion_curve.append(out["distortion"])
+        return out
+
+    def _image(self, fr: IngestedFrame) -> torch.Tensor:
+        key = (fr.timestep, fr.camera_index)
+        if key not in self._images:
+            self._images[key] = torch.as_tensor(self.data.load_image(fr), device=self.device)
+        return self._images[key]
+
+    # ------------------------------------------------------------------ evaluation
+    @torch.no_grad()
+    def render_frame(self, fr: IngestedFrame) -> torch.Tensor:
+        """(H, W, 3) render of an ingested frame at its FLAME parameters, clamped to [0, 1]."""
+        cam = RenderCamera.from_camera(fr.camera, self.device)
+        img, _ = self.render(cam, self.inputs(fr.timestep))
+        return img.color.clamp(0, 1)
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume exactly: avatar, teacher, optimizer, RNGs, step, curve."""
+        return {
+            "format": STATE_FORMAT,
+            "step": self.step_count,
+            "avatar": {k: v.detach().clone() for k, v in self.avatar.state_dict().items() if not k.startswith("flame.")},
+            "teacher_app": {k: v.detach().clone() for k, v in self.teacher_app.state_dict().items()},
+            "teacher_variance": {k: v.detach().clone() for k, v in self.teacher_variance.state_dict().items()},
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "rng": rng_state(),
+            "distortion_curve": list(self.distortion_curve),
+            "curvature_cache": self.posing.cache_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` (same surfel count)."""
+        self.avatar.load_state_dict(state["avatar"], strict=False)
+        self.teacher_app.load_state_dict(state["teacher_app"])
+        self.teacher_variance.load_state_dict(state["teacher_variance"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+        set_rng_state(state["rng"])
+        self.step_count = int(state["step"])
+        self.distortion_curve = list(state.get("distortion_curve", []))
+        self.posing.load_cache_state(state.get("curvature_cache"))
+
+
+def _subset(frames: list[IngestedFrame], n: int) -> list[IngestedFrame]:
+    """At most n evenly spaced frames (all when n <= 0)."""
+    if n <= 0 or n >= len(frames):
+        return frames
+    from ..evaluate.protocol import sample_indices
+
+    return [frames[i] for i in sample_indices(len(frames), n)]
+
+
+def _report_dict(report: Any) -> dict[str, Any]:
+    d = report.to_dict()
+    return {"overall": d["overall"], "frontal": d["frontal"], "counts": d["counts"], "lpips_available": d["lpips_available"]}
+
+
+def run_phase2(
+    data: IngestedData,
+    phase1_dir: str | Path,
+    init_dir: str | Path | None,
+    out_dir: str | Path,
+    cfg: Phase2Config,
+    *,
+    device: str = "cpu",
+    seed: int = 0,
+    checkpoint_dir: str | Path | None = None,
+    progress: Progress | None = None,
+    lpips_weights: str | Path | None = None,
+) -> dict[str, Any]:
+    """Run phase 2 from ``phase1_dir/avatar.pt``; write ``avatar.pt``, ``metrics.json``,
+    ``distortion_curve.json`` and evaluation folders (``eval_test/``, ``eval_val/``) into
+    ``out_dir``; resume from the newest checkpoint in ``checkpoint_dir``. Returns the metrics.
+
+    Evaluation (formats.md §8 via :func:`evaluate_frames`): self-reenactment on the test split (all
+    cameras and the frontal camera) and novel views on the val split, rendered with the correction
+    when it is enabled. With ``cfg.eval_phase1`` the phase-1 avatar is evaluated on the test split too.
+    LPIPS uses ``lpips_weights`` (or ``$SAGE_LPIPS_WEIGHTS`` / the cache), else it is unavailable.
+    """
+    from ..evaluate.lpips import load_lpips_or_none
+    from ..evaluate.protocol import evaluate_frames
+    from ..workspace import atomic_write_json, latest_checkpoint, load_checkpoint, save_checkpoint
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    avatar_path = Path(phase1_dir) / "avatar.pt"
+    if not avatar_path.is_file():
+        raise InputError(avatar_path, "missing (run `sage phase1` first)")
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    avatar = Avatar.load(avatar_path, device)
+    lpips = load_lpips_or_none(lpips_weights, device=device)
+    test_frames, val_frames = _subset(list(data.test), cfg.eval_frames), _subset(list(data.val), cfg.eval_frames)
+
+    metrics: dict[str, Any] = {"correction": cfg.correction, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
+                               "iterations": cfg.iterations}  # fmt: skip
+    trainer = Phase2Trainer(avatar, data, cfg, device, gen, init_dir)
+    resumed = False
+    if checkpoint_dir is not None:
+        ck = latest_checkpoint(checkpoint_dir)
+        if ck is not None:
+            trainer.load_state_dict(load_checkpoint(ck, map_location=device)["state"]["trainer"])
+            resumed = True
+    if cfg.eval_phase1 and test_frames and not resumed:
+        if progress is not None:
+            progress(0, cfg.iterations, "evaluating phase 1")
+        with torch.no_grad():
+            def render_p1(fr: IngestedFrame) -> torch.Tensor:
+                cam = RenderCamera.from_camera(fr.camera, device)
+                img, _ = avatar.render(cam, trainer.inputs(fr.timestep), cfg.background, near=cfg.near, far=cfg.far,
+                                       return_statistics=False)  # fmt: skip
+                return img.color.clamp(0, 1)
+
+            rep = evaluate_frames(render_p1, data, test_frames, lpips=lpips, out_dir=out_dir / "eval_phase1_test")
+        metrics["phase1_test"] = _report_dict(rep)
+    elif checkpoint_dir is not None and (Path(out_dir) / "eval_phase1_test" / "metrics.json").is_file():
+        d = json.loads((Path(out_dir) / "eval_phase1_test" / "metrics.json").read_text())
+        metrics["phase1_test"] = {"overall": d["overall"], "frontal": d["frontal"], "counts": d["counts"],
+                                  "lpips_available": d["lpips_available"]}  # fmt: skip
+
+    total = cfg.iterations
+    start = trainer.step_count
+    t0 = time.perf_counter()
+    last: dict[str, float] = {}
+    while trainer.step_count < total:
+        last = trainer.step()
+        step = trainer.step_count
+        if progress is not None:
+            stats = {k: v for k, v in last.items() if k in ("loss", "normal_consistency", "distortion", "appearance", "rgb")}
+            progress(step, total, "phase 2", **stats)
+        if checkpoint_dir is not None and cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0 and step < total:
+            save_checkpoint(checkpoint_dir, step, {"trainer": trainer.state_dict()})
+    train_time = time.perf_counter() - t0
+    steps_run = trainer.step_count - start
+
+    if progress is not None:
+        progress(total, total, "evaluating")
+    if test_frames:
+        rep = evaluate_frames(trainer.render_frame, data, test_frames, lpips=lpips, out_dir=out_dir / "eval_test")
+        metrics["test"] = _report_dict(rep)
+    if val_frames:
+        rep = evaluate_frames(trainer.render_frame, data, val_frames, lpips=lpips, out_dir=out_dir / "eval_val")
+        metrics["val"] = _report_dict(rep)
+    avatar.save(out_dir / "avatar.pt")
+    curve = trainer.distortion_curve
+    atomic_write_json(out_dir / "distortion_curve.json", {"correction": cfg.correction, "steps": list(range(1, len(curve) + 1)),
+                                                           "distortion": curve})  # fmt: skip
+    metrics.update({
+        "distortion_first100_mean": float(np.mean(curve)) if curve else float("nan"),
+        "iterations_per_s": steps_run / train_time if train_time > 0 and steps_run > 0 else float("nan"),
+        "train_time_s": train_time,
+        "final_losses": last,
+    })  # fmt: skip
+    atomic_write_json(out_dir / "metrics.json", metrics)
+    return metrics
