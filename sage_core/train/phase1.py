@@ -40,6 +40,7 @@ from ..render.mesh_raster import points_on_mesh, ray_directions, rasterize_mesh,
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
+from ._groups import surfel_param_groups
 
 Progress = Callable[..., None]
 STATE_FORMAT = 1
@@ -138,26 +139,19 @@ class Phase1Trainer:
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
         av, c = self.avatar, self.cfg
-        groups = [
+        return [
             {"name": "sdf_mlp", "params": av.sdf.mlp_parameters(), "lr": c.lr_sdf},
             {"name": "grid", "params": av.sdf.grid_parameters(), "lr": c.lr_grid},
-            {"name": "appearance", "params": list(av.appearance.parameters()), "lr": c.lr_networks},
             {"name": "variance", "params": list(av.variance.parameters()), "lr": c.lr_variance},
-            {"name": "mu_loc", "params": [av.surfels.mu_loc], "lr": c.lr_position},
-        ]
-        if av.shape is not None:
-            groups.append({"name": "shape", "params": list(av.shape.parameters()), "lr": c.lr_networks})
-        else:
-            s = av.surfels
-            groups += [
-                {"name": "q_loc", "params": [s.q_loc], "lr": c.lr_rotation},
-                {"name": "s_loc", "params": [s.s_loc], "lr": c.lr_scale},
-                {"name": "sh_dc", "params": [s.sh_dc], "lr": c.lr_color},
-                {"name": "opacity", "params": [s.opacity], "lr": c.lr_opacity},
-            ]
-            if hasattr(s, "sh_rest"):
-                groups.append({"name": "sh_rest", "params": [s.sh_rest], "lr": c.lr_color / 20.0})
-        return groups
+        ] + surfel_param_groups(
+            av,
+            lr_position=c.lr_position,
+            lr_networks=c.lr_networks,
+            lr_rotation=c.lr_rotation,
+            lr_scale=c.lr_scale,
+            lr_color=c.lr_color,
+            lr_opacity=c.lr_opacity,
+        )
 
     def _set_lrs(self) -> None:
         c = self.cfg

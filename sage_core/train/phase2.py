@@ -49,6 +49,7 @@ from ..render.mesh_raster import rasterize_mesh
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
+from ._groups import surfel_param_groups
 from .expressions import ExpressionSampler, component_ranges_from_dirs
 from .warp import warp_pixels_to_canonical
 
@@ -178,24 +179,16 @@ class Phase2Trainer:
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
-        av, c = self.avatar, self.cfg
-        groups: list[dict[str, Any]] = [
-            {"name": "mu_loc", "params": [av.surfels.mu_loc], "lr": c.lr_position},
-            {"name": "appearance", "params": list(av.appearance.parameters()), "lr": c.lr_networks},
-        ]
-        if av.shape is not None:
-            groups.append({"name": "shape", "params": list(av.shape.parameters()), "lr": c.lr_networks})
-        else:
-            s = av.surfels
-            groups += [
-                {"name": "q_loc", "params": [s.q_loc], "lr": c.lr_rotation},
-                {"name": "s_loc", "params": [s.s_loc], "lr": c.lr_scale},
-                {"name": "sh_dc", "params": [s.sh_dc], "lr": c.lr_color},
-                {"name": "opacity", "params": [s.opacity], "lr": c.lr_opacity},
-            ]
-            if hasattr(s, "sh_rest"):
-                groups.append({"name": "sh_rest", "params": [s.sh_rest], "lr": c.lr_color / 20.0})
-        return groups
+        c = self.cfg
+        return surfel_param_groups(
+            self.avatar,
+            lr_position=c.lr_position,
+            lr_networks=c.lr_networks,
+            lr_rotation=c.lr_rotation,
+            lr_scale=c.lr_scale,
+            lr_color=c.lr_color,
+            lr_opacity=c.lr_opacity,
+        )
 
     def trainable_parameters(self) -> list[torch.nn.Parameter]:
         """Every parameter the optimizer updates."""

@@ -1,0 +1,42 @@
+"""Optimizer parameter groups shared by the training phases."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..avatar.model import Avatar
+
+
+def surfel_param_groups(
+    avatar: Avatar,
+    *,
+    lr_position: float,
+    lr_networks: float,
+    lr_rotation: float,
+    lr_scale: float,
+    lr_color: float,
+    lr_opacity: float,
+) -> list[dict[str, Any]]:
+    """Named Adam groups of the surfels and their attribute heads.
+
+    Always: the local offsets ``mu_loc`` and the appearance network. With attribute networks
+    (``mlp``) the shape network; with free attributes the per-surfel rotation, scale, SH colour
+    (the higher bands at 1/20 of the DC rate) and opacity.
+    """
+    groups: list[dict[str, Any]] = [
+        {"name": "mu_loc", "params": [avatar.surfels.mu_loc], "lr": lr_position},
+        {"name": "appearance", "params": list(avatar.appearance.parameters()), "lr": lr_networks},
+    ]
+    if avatar.shape is not None:
+        groups.append({"name": "shape", "params": list(avatar.shape.parameters()), "lr": lr_networks})
+        return groups
+    s = avatar.surfels
+    groups += [
+        {"name": "q_loc", "params": [s.q_loc], "lr": lr_rotation},
+        {"name": "s_loc", "params": [s.s_loc], "lr": lr_scale},
+        {"name": "sh_dc", "params": [s.sh_dc], "lr": lr_color},
+        {"name": "opacity", "params": [s.opacity], "lr": lr_opacity},
+    ]
+    if hasattr(s, "sh_rest"):
+        groups.append({"name": "sh_rest", "params": [s.sh_rest], "lr": lr_color / 20.0})
+    return groups
