@@ -21,6 +21,7 @@ def synth(
     seed: Annotated[int, typer.Option("--seed", help="Identity, texture and expression seed; the same seed writes identical files.")] = 0,
     preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a grid of views x expressions.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace OUT if it already holds files.")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose/--quiet", help="Show the progress bar (default) or only errors and the final panel.")] = True,
 ) -> None:
     """Write a synthetic head capture: images, masks, FLAME parameters, cameras, the FLAME-format model and ground-truth meshes."""
     from .._common import ProgressDisplay, cli_errors, summary_panel
@@ -40,7 +41,7 @@ def synth(
             test_timesteps=test_timesteps,
         )
         t0 = time.time()
-        with ProgressDisplay("synth") as progress:
+        with ProgressDisplay("synth", enabled=verbose) as progress:
             path = write_capture(out, cfg, progress=progress, preview=preview, force=force)
         elapsed = time.time() - t0
 
