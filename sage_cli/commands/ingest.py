@@ -101,7 +101,7 @@ def ingest(
                 progress=progress,
             )
             summary_holder["s"] = s
-            run.metrics.update(s.metrics() if hasattr(s, "metrics") else {})
+            run.metrics.update(s.metrics())
             run.outputs.update({"data": str(run.ws.stage_dir("ingest"))})
 
         opts = StageOptions(ws, preset, config, seed, device, force, verbose)
@@ -118,5 +118,4 @@ def ingest(
         if manifest is None:
             return
         s = summary_holder["s"]
-        rows = [(k, v) for k, v in s.rows()] if hasattr(s, "rows") else list(manifest["metrics"].items())
-        summary_panel("sage ingest", rows + [("wall time", f"{manifest['wall_time_s']:.1f} s")], [("data", ws / "data")])
+        summary_panel("sage ingest", list(s.rows()) + [("wall time", f"{manifest['wall_time_s']:.1f} s")], [("data", ws / "data")])

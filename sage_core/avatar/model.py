@@ -47,7 +47,7 @@ from ..flame.model_io import FlameModelData
 from ..flame.params import FlameParams
 from ..geometry.rotations import matrix_to_quat, quat_conjugate, quat_multiply, quat_normalize, quat_to_matrix
 from ..render import RenderCamera, SurfelRender, rasterize_surfels
-from ..render._sh import eval_sh_colors
+from ..geometry.sh import eval_sh_colors
 from ..render.volume import SVariance
 from .correction import SurfelCorrection
 from .init import init_surfels

@@ -4,7 +4,7 @@ barycentrics, ray warping to canonical space) and the NeuS volume renderer."""
 from __future__ import annotations
 
 from ._camera import RenderCamera
-from ._sh import eval_sh_colors, num_sh_coeffs, sh_basis
+from ..geometry.sh import eval_sh_colors, num_sh_coeffs, sh_basis
 from .mesh_raster import (
     MeshRaster,
     points_on_mesh,

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from ._camera import RenderCamera
 from ._packed import composite_packed
 from ._project import candidate_pixel_boxes, project_surfels
-from ._sh import eval_sh_colors
+from ..geometry.sh import eval_sh_colors
 
 BACKENDS = ("torch", "auto")
 
