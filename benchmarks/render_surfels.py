@@ -1,6 +1,10 @@
-"""Speed and memory of the packed torch surfel rasterizer (forward + backward) on the CPU.
+"""Speed and memory of the surfel rasterizer (forward + backward), packed torch backend by default.
 
 Usage: python benchmarks/render_surfels.py [--quick] [--out docs/benchmarks] [--device cpu]
+       [--backend torch [triton ...]]
+
+``--backend`` lists the rasterizer backends to time; each case renders the same scene with each of
+them (on a GPU: ``--device cuda --backend torch triton``). The triton backend needs CUDA tensors.
 
 Scene (rendering.md §3.5): N random surfels filling the view at depth 3 ± 0.3, scales 0.005–0.025,
 opacity 0.1–0.9, RGB features, focal length 1.2·S for an S×S image. The loss touches every output
@@ -36,8 +40,8 @@ def _vm(key: str) -> int:
     return 0
 
 
-def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0) -> dict:
-    """Render one scene ``repeats`` times (after one warm-up) and time forward and backward."""
+def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0, backend: str = "torch") -> dict:
+    """Render one scene ``repeats`` times (after one warm-up) with ``backend`` and time forward and backward."""
     import torch
 
     from sage_core.render import RenderCamera, rasterize_surfels
@@ -67,7 +71,7 @@ def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0) -> dic
             p.grad = None
         sync()
         t0 = time.perf_counter()
-        out = rasterize_surfels(*params, cam, background=1.0)
+        out = rasterize_surfels(*params, cam, background=1.0, backend=backend)
         sync()
         t1 = time.perf_counter()
         loss = (
@@ -92,6 +96,7 @@ def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0) -> dic
         "size": size,
         "load_1min_at_start": round(load0, 2),
         "device": device,
+        "backend": backend,
         "repeats": repeats,
         "pairs": pairs,
         "forward_s": statistics.median(fwd),
@@ -107,8 +112,11 @@ def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0) -> dic
 
 
 def _markdown(meta: dict, rows: list[dict]) -> str:
+    backends = sorted({r.get("backend", "torch") for r in rows})
+    multi = backends != ["torch"]
+    title = "packed torch backend" if not multi else "backends: " + ", ".join(backends)
     lines = [
-        "# Surfel rasterizer benchmark (packed torch backend)",
+        f"# Surfel rasterizer benchmark ({title})",
         "",
         f"Machine: {meta['cpu_count']} CPUs, torch {meta['torch']} ({meta['threads']} threads), device {meta['device']}, "
         f"load average before/after {meta['load_before']} / {meta['load_after']} (the machine was shared).",
@@ -116,13 +124,18 @@ def _markdown(meta: dict, rows: list[dict]) -> str:
         f"backward over every output; median of {meta['repeats']} runs after one warm-up.",
         "Peak memory: peak resident set of a fresh process per case minus its resident set before rendering.",
         "Forward, backward and total are medians taken separately; best total is the fastest run.",
-        "",
-        "| N | image | pairs | forward (s) | backward (s) | total (s) | best total (s) | peak Δ RSS (GB) | load (1 min) |",
-        "|---|---|---|---|---|---|---|---|---|",
     ]
+    if multi:
+        lines.append(
+            "Pairs: the torch backend counts every significant (surfel, pixel) pair, the triton backend only the "
+            "composited ones (it stops at terminated pixels). CUDA peak memory is in the JSON (cuda_peak_bytes)."
+        )
+    head = "| N | image | pairs | forward (s) | backward (s) | total (s) | best total (s) | peak Δ RSS (GB) | load (1 min) |"
+    lines += ["", ("| backend " if multi else "") + head, "|---" * (head.count("|") - 1 + multi) + "|"]
     for r in rows:
         lines.append(
-            f"| {r['n']:,} | {r['size']}² | {r['pairs']:,} | {r['forward_s']:.2f} | {r['backward_s']:.2f} | "
+            (f"| {r.get('backend', 'torch')} " if multi else "")
+            + f"| {r['n']:,} | {r['size']}² | {r['pairs']:,} | {r['forward_s']:.2f} | {r['backward_s']:.2f} | "
             f"{r['total_s']:.2f} | {r['total_min_s']:.2f} | {r['peak_delta_bytes'] / 1e9:.2f} | {r['load_1min_at_start']:.1f} |"
         )
     return "\n".join(lines) + "\n"
@@ -140,11 +153,15 @@ def main() -> None:
     ap.add_argument("--out", default="docs/benchmarks", help="folder for render_surfels.json / .md")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument(
+        "--backend", nargs="+", default=["torch"], choices=["torch", "triton", "auto"],
+        help="rasterizer backends to time on the same scenes (triton needs --device cuda)",
+    )
     ap.add_argument("--case", nargs=2, type=int, metavar=("N", "S"), help=argparse.SUPPRESS)
     args = ap.parse_args()
 
     if args.case:
-        print(json.dumps(run_case(args.case[0], args.case[1], args.repeats or 3, args.device)))
+        print(json.dumps(run_case(args.case[0], args.case[1], args.repeats or 3, args.device, backend=args.backend[0])))
         return
 
     import torch
@@ -154,18 +171,22 @@ def main() -> None:
     load_before = [round(x, 2) for x in os.getloadavg()]
     rows = []
     for n, s in grid:
-        cmd = [sys.executable, __file__, "--case", str(n), str(s), "--repeats", str(repeats), "--device", args.device]
-        proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
-        row = json.loads(proc.stdout.strip().splitlines()[-1])
-        rows.append(row)
-        print(f"N={n:>6} {s}²: total {row['total_s']:.2f} s (fwd {row['forward_s']:.2f}, bwd {row['backward_s']:.2f}), "
-              f"peak Δ {row['peak_delta_bytes'] / 1e9:.2f} GB, pairs {row['pairs']:,}", flush=True)
+        for backend in args.backend:
+            cmd = [sys.executable, __file__, "--case", str(n), str(s), "--repeats", str(repeats), "--device", args.device,
+                   "--backend", backend]
+            proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            row = json.loads(proc.stdout.strip().splitlines()[-1])
+            rows.append(row)
+            tag = f"[{backend}] " if len(args.backend) > 1 or backend != "torch" else ""
+            print(f"{tag}N={n:>6} {s}²: total {row['total_s']:.2f} s (fwd {row['forward_s']:.2f}, bwd {row['backward_s']:.2f}), "
+                  f"peak Δ {row['peak_delta_bytes'] / 1e9:.2f} GB, pairs {row['pairs']:,}", flush=True)
     meta = {
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),
         "platform": platform.platform(),
         "device": args.device,
+        "backends": args.backend,
         "repeats": repeats,
         "load_before": load_before,
         "load_after": [round(x, 2) for x in os.getloadavg()],

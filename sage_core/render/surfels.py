@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from types import ModuleType
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +25,7 @@ from ._packed import composite_packed
 from ._project import candidate_pixel_boxes, project_surfels
 from ..geometry.sh import eval_sh_colors
 
-BACKENDS = ("torch", "auto")
+BACKENDS = ("torch", "triton", "auto")
 
 
 @dataclass
@@ -127,6 +128,30 @@ def _validate(
         raise ValueError(f"rasterize_surfels: need 0 < near < far, got near={near}, far={far}")
 
 
+def _triton_module(backend: str, device: torch.device) -> ModuleType | None:
+    """The Triton backend module when ``backend`` selects it for ``device``, else None (torch path).
+
+    "triton" raises ValueError when triton is missing or cannot run on ``device``; "auto" picks
+    triton only for CUDA tensors with compiled (not interpreted) kernels.
+    """
+    if backend == "torch" or (backend == "auto" and device.type != "cuda"):
+        return None
+    try:
+        from . import _triton_surfels
+    except ImportError as exc:
+        if backend == "auto":
+            return None
+        raise ValueError(f"rasterize_surfels: backend='triton' needs the 'triton' package ({exc})") from exc
+    if backend == "auto":
+        return None if _triton_surfels.INTERPRETED else _triton_surfels
+    if not _triton_surfels.device_supported(device):
+        raise ValueError(
+            f"rasterize_surfels: backend='triton' runs on CUDA tensors (got {device}); on CPU only under "
+            "Triton's interpreter (TRITON_INTERPRET=1 set before the first triton render)"
+        )
+    return _triton_surfels
+
+
 def rasterize_surfels(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -152,12 +177,15 @@ def rasterize_surfels(
     near: cull plane for surfel centres and per-pixel skip depth; near and far also define the
     distortion's normalized depth. chunk_pairs bounds the candidate pairs evaluated at once in the
     no-grad stage (peak memory). progress(i, n) is called after each candidate chunk.
+    backend: "torch" (packed pure torch), "triton" (tile kernels of ``_triton_surfels``; CUDA
+    tensors, or CPU under Triton's interpreter) or "auto" (triton for CUDA tensors when it imports).
     All outputs have the dtype and device of ``means``. Raises ValueError on bad shapes or NaN/Inf.
     """
     if backend not in BACKENDS:
         raise ValueError(f"rasterize_surfels: unknown backend {backend!r}; available: {', '.join(BACKENDS)}")
     _validate(means, quats, scales, opacities, colors, camera, near, far)
     dtype, device = means.dtype, means.device
+    tri = _triton_module(backend, device)
     cam = camera.to(device=device, dtype=dtype)
     Ks = cam.K if cam.batched else cam.K[None]
     w2cs = cam.w2c if cam.batched else cam.w2c[None]
@@ -202,7 +230,10 @@ def rasterize_surfels(
         table = torch.cat([rows.reshape(-1, 9), centre2d, op[:, None]], 1).T
         payload = torch.cat([feats.index_select(0, vid), proj.normal[c].index_select(0, vid)], 1).T
         boxes = candidate_pixel_boxes(M, centre2d, op, proj.rect[c].index_select(0, vid), W, H)
-        img = composite_packed(table, payload, boxes, W, H, near, far, chunk_pairs, progress)
+        if tri is not None:
+            img = tri.composite_triton(table, payload, boxes, W, H, near, far, progress)
+        else:
+            img = composite_packed(table, payload, boxes, W, H, near, far, chunk_pairs, progress)
         num_pairs.append(img.num_pairs)
 
         alpha = img.alpha.reshape(H, W)
