@@ -1,0 +1,293 @@
+"""The benchmark rows, the two sizes, and the plan of CLI steps that produces every row.
+
+A plan is an ordered list of :class:`Step`: ``sage`` commands run in subprocesses, plus two
+in-process steps (copying finished stage folders from a row's base workspace, and writing the
+test-split motion for ``sage reenact``). Each step has a unique key; rows list the keys they need,
+so steps shared by several rows (the synthetic capture, the SAGE phase-1 avatar) run once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+SDF_OFF_FROM = 1_000_000_000
+"""``sdf_from`` of the GaussianAvatars-style rows: past any iteration count, so phase 1 never adds
+L_pt, L_align, NeuS depth/normal/RGB, eikonal or smoothness terms."""
+
+GA_PHASE1: tuple[str, ...] = (
+    "--attributes", "free",
+    "--set", f"sdf_from={SDF_OFF_FROM}",
+    "--set", "w_normal_consistency=0",
+    "--set", "w_distortion=0",
+)  # fmt: skip
+"""Phase-1 options of the GaussianAvatars-style baseline: free per-surfel attributes, photometric
+loss only (no SDF terms, no 2DGS regularizers)."""
+
+
+@dataclass(frozen=True)
+class RowSpec:
+    """One row of the benchmark.
+
+    capture: "multiview" | "monocular" | "oneshot" (the ``sage synth --regime`` it trains on).
+    regime: ``sage ingest --regime``. base: row whose workspace this row copies ``copy_stages``
+    from (None: the row ingests itself). phase1 / phase2: extra options of the row's own phase-1 /
+    phase-2 run (None: not run by this row). eval_stage: avatar evaluated. eval_splits: one
+    ``sage eval --split`` run each. has_sdf: the row has a trained SDF (geometry metrics).
+    reenact: drive the avatar with the test-split motion (needs a test split).
+    """
+
+    id: str
+    label: str
+    input_type: str
+    capture: str
+    regime: str
+    base: str | None
+    copy_stages: tuple[str, ...]
+    phase1: tuple[str, ...] | None
+    phase2: tuple[str, ...] | None
+    eval_stage: str
+    eval_splits: tuple[str, ...]
+    has_sdf: bool
+    reenact: bool
+
+
+ROWS: dict[str, RowSpec] = {
+    r.id: r
+    for r in (
+        RowSpec("sage", "SAGE", "MV-SF", "multiview", "mv-sf", None, (), ("--attributes", "mlp"), (), "phase2", ("all",), True, True),
+        RowSpec("no_mlp", "w/o attribute MLPs", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
+                ("--attributes", "free"), (), "phase2", ("all",), True, True),
+        RowSpec("no_phase2", "w/o phase 2", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
+                None, None, "phase1", ("all",), True, True),
+        RowSpec("no_correction", "w/o correction", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
+                None, ("--correction", "off"), "phase2", ("all",), True, True),
+        RowSpec("ga_mvsf", "GA-style (free surfels, photometric only)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
+                GA_PHASE1, None, "phase1", ("all",), False, True),
+        RowSpec("ga_mvmf", "GA-style (free surfels, photometric only)", "MV-MF", "multiview", "mv-mf", None, (),
+                GA_PHASE1, None, "phase1", ("all",), False, True),
+        RowSpec("sv_hr", "SAGE", "SV-HR", "monocular", "sv-hr", None, (), ("--attributes", "mlp"), (), "phase2", ("novel", "test"), True, True),
+        RowSpec("one_shot", "SAGE", "One-shot", "oneshot", "one-shot", None, (), ("--attributes", "mlp"), (), "phase2", ("novel",), True, False),
+    )
+}  # fmt: skip
+"""Every row id, in table order."""
+
+ROW_IDS: tuple[str, ...] = tuple(ROWS)
+
+
+@dataclass(frozen=True)
+class Size:
+    """A benchmark size: the stage preset, the synthetic capture and per-stage ``--set`` overrides.
+
+    synth_args: extra ``sage synth`` options per capture kind. sets: stage -> ``key=value`` items
+    added to every run of that stage. motion_steps: frames from one test timestep to the next in
+    the reenactment clip.
+    """
+
+    name: str
+    preset: str
+    synth_preset: str
+    synth_args: dict[str, tuple[str, ...]]
+    sets: dict[str, tuple[str, ...]]
+    motion_steps: int
+    smoke: bool = False
+
+
+_PHASE2_EVAL = ("eval_phase1=false", "eval_frames=4")
+"""Phase 2's own evaluation is cut to a few frames: the suite's numbers come from ``sage eval``."""
+
+SIZES: dict[str, Size] = {
+    "small": Size("small", "tiny", "tiny", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8),
+    "full": Size("full", "default", "default", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8),
+}
+
+SMOKE_SETS: dict[str, tuple[str, ...]] = {
+    "init-mesh": ("pretrain.steps=20", "pretrain.bank_size=4000", "pretrain.batch_size=1024", "pretrain.eval_samples=2000", "mc_resolution=32"),
+    "phase1": ("iterations=4", "n_surfels=800", "eval_every=0", "mc_resolution=32", "rays_per_step=64", "neus_samples=8", "neus_importance=8"),
+    "phase2": ("iterations=2", "rays_per_step=64", "neus_samples=8", "neus_importance=8", *_PHASE2_EVAL),
+    "eval": ("samples=1",),
+}
+"""``--smoke``: a machinery check with a few steps per stage (numbers are not representative)."""
+
+
+def smoke_size(size: Size) -> Size:
+    """The smoke-test variant of a size: tiny preset, a 9-camera 64x94 capture, a few steps."""
+    small = {"multiview": ("--cameras", "9", "--test-timesteps", "2", "--width", "64", "--height", "94"),
+             "monocular": ("--width", "64", "--height", "94"), "oneshot": ("--width", "64", "--height", "94")}  # fmt: skip
+    return Size(size.name, "tiny", "tiny", small, dict(SMOKE_SETS), 2, smoke=True)
+
+
+@dataclass
+class Step:
+    """One step of the plan.
+
+    kind: "synth" | "cli" | "copy" | "motion". key: unique id (e.g. ``sage:phase1``). argv: the
+    arguments after ``sage`` ("synth" and "cli"). row: the row whose workspace the step writes
+    (None: shared). stage: the workspace stage it writes (manifest to read), if any. deps: keys
+    of the steps it needs. src / dst / stages: the copy. capture / out: the motion.
+    """
+
+    kind: str
+    key: str
+    argv: list[str] = field(default_factory=list)
+    row: str | None = None
+    stage: str | None = None
+    deps: list[str] = field(default_factory=list)
+    src: Path | None = None
+    dst: Path | None = None
+    stages: tuple[str, ...] = ()
+    capture: Path | None = None
+    out: Path | None = None
+    steps: int = 8
+
+
+@dataclass
+class Settings:
+    """What every command of one suite run shares."""
+
+    size: Size
+    out: Path
+    device: str = "auto"
+    seed: int = 0
+    lpips_weights: Path | None = None
+    overrides: dict[str, tuple[str, ...]] = field(default_factory=dict)
+
+    def capture_dir(self, kind: str) -> Path:
+        return self.out / "captures" / kind
+
+    def ws(self, row: str) -> Path:
+        return self.out / "ws" / row
+
+    def motion_path(self, kind: str) -> Path:
+        return self.out / "motions" / f"{kind}_test.npz"
+
+
+def parse_overrides(items: list[str] | None) -> dict[str, tuple[str, ...]]:
+    """``["phase1:iterations=10", "phase2:iterations=2"]`` -> {"phase1": ("iterations=10",), ...}."""
+    out: dict[str, list[str]] = {}
+    for item in items or []:
+        stage, sep, kv = item.partition(":")
+        if not sep or "=" not in kv or not stage:
+            raise ValueError(f"--override expects STAGE:key=value, got {item!r}")
+        out.setdefault(stage.strip(), []).append(kv.strip())
+    return {k: tuple(v) for k, v in out.items()}
+
+
+def _sets(st: Settings, stage: str) -> list[str]:
+    out: list[str] = []
+    for kv in (*st.size.sets.get(stage, ()), *st.overrides.get(stage, ())):
+        out += ["--set", kv]
+    return out
+
+
+def _common(st: Settings, stage: str) -> list[str]:
+    return ["--preset", st.size.preset, *_sets(st, stage), "--seed", str(st.seed), "--device", st.device, "--quiet"]
+
+
+def stage_argv(st: Settings, row: RowSpec, stage: str) -> list[str]:
+    """The ``sage`` arguments of one of the row's own stage runs (ingest, init-mesh, phase1, phase2)."""
+    ws = str(st.ws(row.id))
+    if stage == "ingest":
+        cap = st.capture_dir(row.capture)
+        return ["ingest", str(cap), ws, "--flame-model", str(cap / "model" / "synth_flame.pkl"), "--regime", row.regime, *_common(st, stage)]
+    if stage == "init-mesh":
+        return ["init-mesh", ws, *_common(st, stage)]
+    if stage == "phase1":
+        assert row.phase1 is not None
+        return ["phase1", ws, *row.phase1, *_common(st, stage)]
+    if stage == "phase2":
+        assert row.phase2 is not None
+        return ["phase2", ws, *row.phase2, *_common(st, stage)]
+    raise ValueError(f"unknown stage {stage!r}")
+
+
+def eval_argv(st: Settings, row: RowSpec, split: str) -> list[str]:
+    """``sage eval`` arguments of one split of a row."""
+    argv = ["eval", str(st.ws(row.id)), "--stage", row.eval_stage, "--split", split]
+    if st.lpips_weights is not None:
+        argv += ["--lpips-weights", str(st.lpips_weights)]
+    return argv + _common(st, "eval")
+
+
+def reenact_argv(st: Settings, row: RowSpec) -> list[str]:
+    """``sage reenact`` arguments: the row's avatar driven by its capture's test-split motion,
+    frontal (val) camera, PNG frames, no video; the render-only FPS is read from reenact.json."""
+    return ["reenact", str(st.ws(row.id)), "--flame-seq", str(st.motion_path(row.capture)), "--stage", row.eval_stage,
+            "--name", "bench", "--no-video", "--device", st.device, "--quiet"]  # fmt: skip
+
+
+def synth_argv(st: Settings, kind: str) -> list[str]:
+    """``sage synth`` arguments of a capture kind (``--force`` is added when an older capture is replaced)."""
+    return ["synth", str(st.capture_dir(kind)), "--regime", kind, "--preset", st.size.synth_preset,
+            *st.size.synth_args.get(kind, ()), "--seed", str(st.seed), "--quiet"]  # fmt: skip
+
+
+def own_stages(row: RowSpec) -> list[str]:
+    """The workspace stages a row runs itself, in order."""
+    out = [s for s in ("ingest", "init-mesh") if s not in row.copy_stages]
+    if row.phase1 is not None:
+        out.append("phase1")
+    if row.phase2 is not None:
+        out.append("phase2")
+    return out
+
+
+def row_steps(st: Settings, row: RowSpec) -> list[Step]:
+    """Every step a row needs, prerequisites (its base row's stages, the capture) first."""
+    steps: list[Step] = []
+    deps: list[str] = []
+    if row.base is not None:
+        base = ROWS[row.base]
+        for s in base_steps(st, base, row.copy_stages):
+            steps.append(s)
+        deps = [f"{base.id}:{row.copy_stages[-1]}"]
+        steps.append(Step("copy", f"{row.id}:copy", row=row.id, deps=deps, src=st.ws(base.id), dst=st.ws(row.id), stages=row.copy_stages))
+        deps = [f"{row.id}:copy"]
+    else:
+        steps.append(Step("synth", f"synth:{row.capture}", synth_argv(st, row.capture), capture=st.capture_dir(row.capture)))
+        deps = [f"synth:{row.capture}"]
+    for stage in own_stages(row):
+        key = f"{row.id}:{stage}"
+        steps.append(Step("cli", key, stage_argv(st, row, stage), row=row.id, stage=stage, deps=deps))
+        deps = [key]
+    last = deps
+    for split in row.eval_splits:
+        steps.append(Step("cli", f"{row.id}:eval:{split}", eval_argv(st, row, split), row=row.id, stage="eval", deps=last))
+    if row.reenact:
+        mkey = f"motion:{row.capture}"
+        steps.append(Step("motion", mkey, deps=[f"synth:{row.capture}"], capture=st.capture_dir(row.capture),
+                          out=st.motion_path(row.capture), steps=st.size.motion_steps))  # fmt: skip
+        steps.append(Step("cli", f"{row.id}:reenact", reenact_argv(st, row), row=row.id, deps=[*last, mkey]))
+    return steps
+
+
+def base_steps(st: Settings, base: RowSpec, stages: tuple[str, ...]) -> list[Step]:
+    """The steps of ``base`` up to and including the last of ``stages`` (its capture first)."""
+    steps = [Step("synth", f"synth:{base.capture}", synth_argv(st, base.capture), capture=st.capture_dir(base.capture))]
+    deps = [f"synth:{base.capture}"]
+    for stage in own_stages(base):
+        if stage not in stages:
+            break
+        key = f"{base.id}:{stage}"
+        steps.append(Step("cli", key, stage_argv(st, base, stage), row=base.id, stage=stage, deps=deps))
+        deps = [key]
+    return steps
+
+
+def plan(st: Settings, rows: list[str]) -> tuple[list[Step], dict[str, list[str]]]:
+    """The deduplicated steps of ``rows`` (in row order, each step where first needed) and, per
+    row, the keys of the steps it needs."""
+    unknown = [r for r in rows if r not in ROWS]
+    if unknown:
+        raise ValueError(f"unknown row(s) {', '.join(unknown)} (choose from {', '.join(ROW_IDS)})")
+    order: list[Step] = []
+    seen: set[str] = set()
+    needs: dict[str, list[str]] = {}
+    for rid in rows:
+        steps = row_steps(st, ROWS[rid])
+        needs[rid] = [s.key for s in steps]
+        for s in steps:
+            if s.key not in seen:
+                seen.add(s.key)
+                order.append(s)
+    return order, needs

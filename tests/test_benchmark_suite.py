@@ -1,0 +1,330 @@
+"""The benchmark suite (benchmarks/suite.py): row definitions -> CLI arguments, the results
+document (Markdown tables, merging partial runs), the subprocess runner, stage copies between
+workspaces, and one end-to-end smoke run of two rows."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from _suite import ROW_IDS, SIZES, Settings, merge_results, parse_overrides, plan, render_markdown, run_process, smoke_size  # noqa: E402
+from _suite.execute import step_command  # noqa: E402
+from _suite.report import DASH, render_document  # noqa: E402
+from _suite.workspaces import copy_stages  # noqa: E402
+
+
+def _settings(tmp_path: Path, **kw) -> Settings:
+    return Settings(SIZES["small"], tmp_path / "out", lpips_weights=Path("/w/lpips.pth"), **kw)
+
+
+def _steps(tmp_path: Path, rows=ROW_IDS, **kw):
+    steps, needs = plan(_settings(tmp_path, **kw), list(rows))
+    return {s.key: s for s in steps}, needs, steps
+
+
+def _flag(argv: list[str], name: str) -> str:
+    return argv[argv.index(name) + 1]
+
+
+def _sets(argv: list[str]) -> list[str]:
+    return [argv[i + 1] for i, a in enumerate(argv) if a == "--set"]
+
+
+# --------------------------------------------------------------------------------------------
+# rows -> commands
+# --------------------------------------------------------------------------------------------
+
+
+def test_rows_map_to_the_expected_cli_arguments(tmp_path):
+    by_key, needs, _ = _steps(tmp_path)
+    p1 = by_key["sage:phase1"].argv
+    assert p1[:2] == ["phase1", str(tmp_path / "out/ws/sage")] and _flag(p1, "--attributes") == "mlp"
+    assert _flag(p1, "--preset") == "tiny" and _flag(p1, "--seed") == "0"
+    assert _flag(by_key["no_mlp:phase1"].argv, "--attributes") == "free"
+    assert _flag(by_key["no_correction:phase2"].argv, "--correction") == "off"
+    assert "--correction" not in by_key["sage:phase2"].argv
+    for rid in ("ga_mvsf", "ga_mvmf"):
+        a = by_key[f"{rid}:phase1"].argv
+        assert _flag(a, "--attributes") == "free"
+        assert {"sdf_from=1000000000", "w_normal_consistency=0", "w_distortion=0"} <= set(_sets(a))
+        assert f"{rid}:phase2" not in by_key
+        assert _flag(by_key[f"{rid}:eval:all"].argv, "--stage") == "phase1"
+    assert _flag(by_key["ga_mvmf:ingest"].argv, "--regime") == "mv-mf"
+    assert _flag(by_key["sage:ingest"].argv, "--regime") == "mv-sf"
+    assert _flag(by_key["sv_hr:ingest"].argv, "--regime") == "sv-hr"
+    assert _flag(by_key["one_shot:ingest"].argv, "--regime") == "one-shot"
+    assert _flag(by_key["synth:monocular"].argv, "--regime") == "monocular"
+    assert _flag(by_key["sv_hr:eval:novel"].argv, "--split") == "novel"
+    assert _flag(by_key["one_shot:eval:novel"].argv, "--split") == "novel"
+    assert "one_shot:reenact" not in by_key
+    # w/o phase 2 evaluates the SAGE phase-1 avatar copied from the sage workspace
+    ev = by_key["no_phase2:eval:all"].argv
+    assert _flag(ev, "--stage") == "phase1" and _flag(ev, "--lpips-weights") == "/w/lpips.pth"
+    assert "no_phase2:phase1" not in by_key and "no_phase2:phase2" not in by_key
+    assert by_key["no_phase2:copy"].stages == ("ingest", "init-mesh", "phase1")
+    assert by_key["no_mlp:copy"].stages == ("ingest", "init-mesh")
+    assert "sage:phase1" in needs["no_phase2"] and "sage:phase2" not in needs["no_phase2"]
+    # phase 2's own evaluation is cut: the suite evaluates with `sage eval`
+    assert "eval_phase1=false" in _sets(by_key["sage:phase2"].argv)
+
+
+def test_plan_is_deduplicated_and_ordered(tmp_path):
+    by_key, needs, steps = _steps(tmp_path, rows=("no_phase2", "sage", "ga_mvsf"))
+    keys = [s.key for s in steps]
+    assert len(keys) == len(set(keys))
+    assert keys.count("synth:multiview") == 1
+    pos = {k: i for i, k in enumerate(keys)}
+    for s in steps:
+        assert all(pos[d] < pos[s.key] for d in s.deps), s.key
+    assert pos["sage:phase1"] < pos["no_phase2:copy"]
+    assert set(needs) == {"no_phase2", "sage", "ga_mvsf"}
+    assert step_command(by_key["no_phase2:copy"]).startswith("mkdir -p ")
+    assert step_command(by_key["sage:phase1"]).startswith("sage phase1 ")
+    with pytest.raises(ValueError, match="unknown row"):
+        plan(_settings(tmp_path), ["nope"])
+
+
+def test_overrides_and_smoke_size_reach_the_commands(tmp_path):
+    ov = parse_overrides(["phase1:iterations=7", "phase2:iterations=3"])
+    assert ov == {"phase1": ("iterations=7",), "phase2": ("iterations=3",)}
+    with pytest.raises(ValueError):
+        parse_overrides(["iterations=7"])
+    by_key, _, _ = _steps(tmp_path, rows=("sage",), overrides=ov)
+    assert "iterations=7" in _sets(by_key["sage:phase1"].argv)
+    assert "iterations=3" in _sets(by_key["sage:phase2"].argv)
+    smoke = smoke_size(SIZES["small"])
+    st = Settings(smoke, tmp_path)
+    steps, _ = plan(st, ["sage"])
+    k = {s.key: s for s in steps}
+    assert smoke.smoke and _flag(k["synth:multiview"].argv, "--cameras") == "9"
+    assert any(s.startswith("iterations=") for s in _sets(k["sage:phase1"].argv))
+    assert SIZES["full"].preset == "default" and SIZES["small"].preset == "tiny"
+
+
+# --------------------------------------------------------------------------------------------
+# results document
+# --------------------------------------------------------------------------------------------
+
+
+def _m(psnr, ssim, lpips, count=4):
+    return {"psnr": psnr, "ssim": ssim, "lpips": lpips, "count": count}
+
+
+def _results() -> dict:
+    sage = {
+        "id": "sage", "label": "SAGE", "input_type": "MV-SF", "has_sdf": True, "errors": [],
+        "steps": ["synth:multiview", "sage:phase1"],
+        "metrics": {"val": {"overall": _m(31.25, 0.9512, 0.0612)},
+                    "test": {"overall": _m(24.5, 0.8811, 0.1011), "frontal": _m(25.75, 0.9022, 0.0833)}},
+        "geometry": {"chamfer_mm": 1.234, "chamfer_rel_pct": 0.456, "normal_error_deg": 7.89},
+        "stages": {"phase1": {"wall_time_s": 301.0, "iterations_per_s": 4.98, "chamfer_m": 0.002},
+                   "phase2": {"wall_time_s": 61.5, "iterations_per_s": 5.5}},
+        "reenact": {"render_fps": 12.34}, "peak_rss_mib": 1500.0, "gpu_peak_mib": None,
+    }  # fmt: skip
+    no_phase2 = {
+        "id": "no_phase2", "label": "w/o phase 2", "input_type": "MV-SF", "has_sdf": True, "errors": [],
+        "steps": ["synth:multiview", "sage:phase1", "no_phase2:copy"],
+        "metrics": {"val": {"overall": _m(31.75, 0.95, 0.06)}, "test": {"overall": _m(22.0, 0.85, 0.12), "frontal": None}},
+        "stages": {"phase1": {"wall_time_s": 301.0, "shared": True}},
+    }  # fmt: skip
+    ga = {
+        "id": "ga_mvsf", "label": "GA-style", "input_type": "MV-SF", "has_sdf": False, "errors": ["ga_mvsf:eval:all: exit 3: boom happened"],
+        "steps": ["ga_mvsf:phase1"], "metrics": {}, "stages": {},
+    }  # fmt: skip
+    return {
+        "schema": 1, "size": "small", "smoke": False, "suite_command": "python benchmarks/suite.py --size small --out X",
+        "machine": {"cpu": "Test CPU", "cores": 2, "usable_cores": 2, "device": "cpu", "torch": "2.x"},
+        "settings": {"preset": "tiny", "seed": 0}, "runs": [],
+        "steps": {"synth:multiview": {"command": "sage synth X"}, "sage:phase1": {"command": "sage phase1 WS"},
+                  "no_phase2:copy": {"command": "mkdir -p A && cp -a B A/"}, "ga_mvsf:phase1": {"command": "sage phase1 GA"}},
+        "rows": {"sage": sage, "no_phase2": no_phase2, "ga_mvsf": ga},
+    }  # fmt: skip
+
+
+def _table_rows(md: str, heading: str) -> tuple[list[str], dict[str, list[str]]]:
+    """Header cells and row cells (keyed by the row id in backticks) of the first table after ``heading``."""
+    lines = md.splitlines()
+    i = lines.index(heading)
+    while not lines[i].startswith("|"):
+        i += 1
+    header = [c.strip() for c in lines[i].strip("|").split("|")]
+    rows = {}
+    i += 2
+    while i < len(lines) and lines[i].startswith("|"):
+        cells = [c.strip() for c in lines[i].strip().strip("|").split(" | ")]
+        rid = cells[0].split("`")[1]
+        rows[rid] = cells
+        i += 1
+    return header, rows
+
+
+def test_markdown_puts_numbers_in_their_columns_and_dashes_for_missing():
+    md = render_markdown(_results())
+    header, rows = _table_rows(md, "### Novel view and self-reenactment (multiview rows)")
+    col = {h: j for j, h in enumerate(header)}
+    s = rows["sage"]
+    assert s[col["Val PSNR"]] == "31.25" and s[col["Val SSIM"]] == "0.9512" and s[col["Val LPIPS"]] == "0.0612"
+    assert s[col["Frontal PSNR"]] == "25.75" and s[col["Frontal LPIPS"]] == "0.0833"
+    assert s[col["All PSNR"]] == "24.50" and s[col["All SSIM"]] == "0.8811" and s[col["All LPIPS"]] == "0.1011"
+    n = rows["no_phase2"]
+    assert n[col["Frontal PSNR"]] == DASH and n[col["All PSNR"]] == "22.00"
+    g = rows["ga_mvsf"]
+    assert g[col["Val PSNR"]] == DASH and "boom happened" in g[col["Notes"]] and g[col["Notes"]].startswith("error:")
+    assert "no_mlp" not in rows  # rows absent from the document are not invented
+    gh, grows = _table_rows(md, "### Geometry")
+    gc = {h: j for j, h in enumerate(gh)}
+    assert grows["sage"][gc["Chamfer to GT (mm)"]] == "1.234" and grows["sage"][gc["Normal error (deg)"]] == "7.89"
+    assert grows["sage"][gc["Chamfer to FLAME mesh (mm)"]] == "2.000"
+    assert all(c == DASH for c in grows["ga_mvsf"][1:])
+    ch, crows = _table_rows(md, "### Cost")
+    cc = {h: j for j, h in enumerate(ch)}
+    assert crows["sage"][cc["phase 1 (s)"]] == "301.0" and crows["no_phase2"][cc["phase 1 (s)"]] == "301.0*"
+    assert crows["sage"][cc["phase 1 it/s"]] == "4.98" and crows["sage"][cc["reenact FPS"]] == "12.34"
+    assert crows["sage"][cc["peak RSS (MiB)"]] == "1500" and crows["sage"][cc["peak GPU (MiB)"]] == DASH
+    # comparison with the paper: differences computed from the JSON, with the paper's beside them
+    assert "### Comparison with the paper" in md
+    _, comp = _table_rows(md, "Ablations (novel view = val split, self-reenactment = test split, all cameras):")
+    assert "-2.50" in comp["no_phase2"][6] and "-4.46" in comp["no_phase2"][6]  # ours 22.00-24.50, paper 22.18-26.64
+    assert comp["no_phase2"][7] == "yes"
+    assert "- `ga_mvsf`: ga_mvsf:eval:all: exit 3: boom happened" in md
+    assert "sage phase1 WS" in md and "mkdir -p A && cp -a B A/" in md
+    doc = render_document([{**_results(), "size": "full"}, _results()])
+    assert doc.index("## Size `small`") < doc.index("## Size `full`")
+
+
+def test_smoke_results_are_labelled():
+    md = render_markdown({**_results(), "smoke": True})
+    assert "Smoke test" in md.split("### Novel view")[0]
+
+
+def test_merge_keeps_rows_that_were_not_rerun():
+    old = _results()
+    new = {**_results(), "rows": {"sage": {**_results()["rows"]["sage"], "label": "SAGE new"}, "no_mlp": {"id": "no_mlp", "errors": []}},
+           "steps": {"x": {"command": "new"}}, "runs": [{"rows": ["sage", "no_mlp"]}]}  # fmt: skip
+    old["runs"] = [{"rows": ["sage", "no_phase2", "ga_mvsf"]}]
+    m = merge_results(old, new)
+    assert set(m["rows"]) == {"sage", "no_phase2", "ga_mvsf", "no_mlp"}
+    assert m["rows"]["sage"]["label"] == "SAGE new" and m["rows"]["ga_mvsf"] == old["rows"]["ga_mvsf"]
+    assert "x" in m["steps"] and "sage:phase1" in m["steps"]
+    assert [r["rows"] for r in m["runs"]] == [["sage", "no_phase2", "ga_mvsf"], ["sage", "no_mlp"]]
+    assert merge_results({**old, "size": "full"}, new) is new
+    assert merge_results({**old, "smoke": True}, new) is new
+    assert merge_results(None, new) is new
+
+
+# --------------------------------------------------------------------------------------------
+# runner and workspace copies
+# --------------------------------------------------------------------------------------------
+
+
+def test_run_process_measures_the_child_and_keeps_its_output(tmp_path):
+    code = "import sys, time; b = bytearray(160 * 2**20); b[::4096] = b'x' * len(b[::4096]); print('made it'); time.sleep(0.6); sys.exit(3)"
+    res = run_process([sys.executable, "-c", code], tmp_path / "log.txt")
+    assert res.rc == 3
+    assert res.peak_rss_mib is not None and 150 < res.peak_rss_mib < 400
+    assert "made it" in res.tail and res.wall_s > 0
+    small = run_process([sys.executable, "-c", "import time; time.sleep(0.6)"], tmp_path / "log2.txt")
+    assert small.rc == 0 and small.peak_rss_mib < res.peak_rss_mib
+
+
+def _fake_stage(ws: Path, stage: str, requires: list[str], payload: str) -> dict:
+    from sage_core.workspace import Workspace, begin_stage
+
+    w = Workspace(ws)
+    w.root.mkdir(parents=True, exist_ok=True)
+    with w.lock:
+        run = begin_stage(w, stage, {"p": payload}, f"h-{payload}", requires=requires, force=True)
+        (run.work_dir / "out.txt").write_text(payload)
+        return run.finish()
+
+
+def test_copied_stages_are_complete_in_the_new_workspace_and_recopied_when_the_source_changes(tmp_path):
+    from sage_core.workspace import Workspace
+
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    _fake_stage(src, "ingest", [], "a")
+    _fake_stage(src, "init-mesh", ["ingest"], "b")
+    assert copy_stages(src, dst, ("ingest", "init-mesh")) == ["ingest", "init-mesh"]
+    w = Workspace(dst)
+    assert w.status("ingest").status == "complete" and w.status("init-mesh").status == "complete"
+    assert (dst / "init" / "out.txt").read_text() == "b"
+    # a stage run in the copy on top of the copied ones is fresh
+    _fake_stage(dst, "phase1", ["init-mesh"], "c")
+    assert w.status("phase1").status == "complete"
+    assert copy_stages(src, dst, ("ingest", "init-mesh")) == []
+    # the source's init-mesh is redone: the copy follows and the copy's phase1 becomes stale
+    _fake_stage(src, "init-mesh", ["ingest"], "b2")
+    assert copy_stages(src, dst, ("ingest", "init-mesh")) == ["init-mesh"]
+    assert (dst / "init" / "out.txt").read_text() == "b2"
+    assert w.status("phase1").status == "stale"
+    from sage_core.errors import StageError
+
+    with pytest.raises(StageError):
+        copy_stages(src, tmp_path / "other", ("phase1",))
+
+
+def test_eval_metrics_are_read_only_while_current(tmp_path):
+    from _suite.collect import eval_metrics
+
+    from sage_core.workspace import Workspace, atomic_write_json, begin_stage
+
+    ws = tmp_path / "ws"
+    _fake_stage(ws, "ingest", [], "a")
+    p1 = _fake_stage(ws, "phase1", ["ingest"], "p")
+    w = Workspace(ws)
+    with w.lock:
+        run = begin_stage(w, "eval", {}, "e", requires=["ingest", "phase1"], force=True)
+        doc = {"overall": {"psnr": 21.5, "ssim": 0.9, "lpips": None, "psnr_ga": 22.0, "count": 3}, "frontal": None,
+               "frontal_camera": 8, "lpips_available": False, "counts": {"images": 3}}  # fmt: skip
+        atomic_write_json(run.work_dir / "phase1" / "val" / "metrics.json", doc)
+        atomic_write_json(run.work_dir / "results.json", {"phase1/val": {"avatar_stage": "phase1", "avatar_fingerprint": p1["fingerprint"],
+                                                                         "files": ["phase1/val"]}})  # fmt: skip
+        run.finish()
+    m = eval_metrics(ws, "phase1", "val")
+    assert m["overall"]["psnr"] == 21.5 and m["overall"]["lpips"] is None and m["frontal"] is None and m["images"] == 3
+    with pytest.raises(FileNotFoundError):
+        eval_metrics(ws, "phase1", "test")
+    _fake_stage(ws, "phase1", ["ingest"], "p2")  # re-trained avatar: the old result no longer counts
+    with pytest.raises(FileNotFoundError):
+        eval_metrics(ws, "phase1", "val")
+
+
+# --------------------------------------------------------------------------------------------
+# end to end
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_stages(tmp_path):
+    import suite
+
+    docs, out = tmp_path / "docs", tmp_path / "out"
+    args = ["--size", "small", "--smoke", "--out", str(out), "--rows", "no_phase2", "--device", "cpu", "--docs", str(docs)]
+    assert suite.main(args) == 0
+    doc = json.loads((docs / "benchmarks" / "suite_small.json").read_text())
+    assert doc["smoke"] is True and set(doc["rows"]) == {"no_phase2"}
+    r = doc["rows"]["no_phase2"]
+    assert r["errors"] == [], r["errors"]
+    assert r["metrics"]["val"]["overall"]["psnr"] > 5 and r["metrics"]["test"]["overall"]["psnr"] > 5
+    assert r["metrics"]["test"]["frontal"]["count"] >= 1 and r["metrics"]["val"]["overall"]["lpips"] is not None
+    assert r["reenact"]["render_fps"] > 0 and r["peak_rss_mib"] > 100
+    assert r["stages"]["phase1"]["shared"] is True and r["stages"]["phase1"]["iterations_per_s"] > 0
+    # the synthetic FLAME mesh is the ground truth: the GT mesh moved to canonical space must give
+    # the Chamfer distance phase 1 measured against its canonical FLAME mesh
+    assert r["geometry"]["chamfer_mm"] == pytest.approx(r["stages"]["phase1"]["chamfer_m"] * 1000, rel=0.05)
+    assert doc["steps"]["sage:phase1"]["ran"] is True and doc["steps"]["sage:phase1"]["peak_rss_mib"] > 100
+    md = (docs / "results.md").read_text()
+    assert "Smoke test" in md and "sage phase1 " in md and "### Comparison with the paper" in md
+    # a rerun skips every finished stage, keeps the measured memory and merges into the same document
+    assert suite.main(args) == 0
+    doc2 = json.loads((docs / "benchmarks" / "suite_small.json").read_text())
+    assert len(doc2["runs"]) == 2
+    assert doc2["steps"]["sage:phase1"]["ran"] is False
+    assert doc2["steps"]["sage:phase1"]["peak_rss_mib"] == doc["steps"]["sage:phase1"]["peak_rss_mib"]
+    assert doc2["rows"]["no_phase2"]["metrics"]["val"] == r["metrics"]["val"]
