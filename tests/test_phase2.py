@@ -269,3 +269,53 @@ def test_command_writes_outputs_and_manifest(tiny_ws, tmp_path, p2_init_dir, pha
     assert r.exit_code == 0 and "skipping" in r.output
     r = run(app, ["phase2", str(ws), "--correction", "maybe"])
     assert r.exit_code != 0
+
+
+def test_rest_teacher_reproduces_the_avatar_at_rest(phase1_avatar_path, p2_data, p2_init_dir):
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, correction=False)
+    assert tr.rest_teacher is not None and len(tr.rest_teacher.views) == len(p2_data.train)
+    fr = p2_data.train[0]
+    cam = RenderCamera.from_camera(fr.camera, "cpu")
+    with torch.no_grad():
+        img = tr.render_frame(fr).reshape(-1, 3)
+        verts = tr.avatar.pose_mesh(tr.inputs(fr.timestep))
+        from sage_core.render.mesh_raster import rasterize_mesh
+
+        ras = rasterize_mesh(verts, tr.avatar.faces, cam.K, cam.w2c, cam.width, cam.height)
+    pix = (ras.face_id.reshape(-1) >= 0).nonzero().squeeze(-1)
+    colors, valid = tr.rest_lookup(verts, cam, pix, ras)
+    assert float(valid.double().mean()) > 0.7
+    # at rest the training view itself is the closest view: its own render comes back
+    err = (colors[valid] - img[pix[valid]]).abs().amax(-1)
+    assert float((err < 1e-4).double().mean()) > 0.9  # the view's own pixel, sampled at its centre
+    assert float(err.mean()) < 0.01  # pixels next to the silhouette come from a neighbouring view
+
+
+def test_teacher_choice_is_checked(phase1_avatar_path, p2_data, p2_init_dir):
+    from sage_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="teacher"):
+        _trainer(phase1_avatar_path, p2_data, p2_init_dir, teacher="photo")
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, teacher="neus")
+    assert tr.rest_teacher is None
+    assert "appearance" in tr.step()
+
+
+def test_mouth_prior_faces_and_colours(phase1_avatar_path, p2_data, p2_init_dir):
+    from sage_core.flame.regions import Regions
+    from sage_core.train.phase2 import mouth_prior_table
+
+    av = _avatar(phase1_avatar_path)
+    regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
+    cavity = torch.as_tensor(regions.face_mask("mouth_interior"))
+    teeth = torch.as_tensor(regions.face_mask("teeth"))
+    assert bool(cavity.any()) and bool(teeth.any())
+    colors, has = mouth_prior_table(av, p2_init_dir, [0.1, 0.2, 0.3], [0.9, 0.8, 0.7])
+    assert torch.equal(has, cavity | teeth)
+    torch.testing.assert_close(colors[cavity & ~teeth], torch.tensor([0.1, 0.2, 0.3]).expand(int((cavity & ~teeth).sum()), 3))
+    torch.testing.assert_close(colors[teeth], torch.tensor([0.9, 0.8, 0.7]).expand(int(teeth.sum()), 3))
+    assert not bool(has[~(cavity | teeth)].any())
+    _, none = mouth_prior_table(av, None, [0.1, 0.2, 0.3], [0.9, 0.8, 0.7])
+    assert not bool(none.any())
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
+    assert not bool(tr.prior_faces.any())

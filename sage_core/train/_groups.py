@@ -16,20 +16,22 @@ def surfel_param_groups(
     lr_scale: float,
     lr_color: float,
     lr_opacity: float,
+    lr_shape: float | None = None,
 ) -> list[dict[str, Any]]:
     """Named Adam groups of the surfels and their attribute heads.
 
     Always: the local offsets ``mu_loc`` and the appearance network. With attribute networks
     (``mlp``) the shape network; with free attributes the per-surfel rotation, scale, SH colour
-    (the higher bands at 1/20 of the DC rate) and opacity.
+    (the higher bands at 1/20 of the DC rate) and opacity. ``lr_shape`` (default ``lr_networks``)
+    is the shape network's rate. Groups whose rate is 0 are left out (those parameters stay fixed).
     """
     groups: list[dict[str, Any]] = [
         {"name": "mu_loc", "params": [avatar.surfels.mu_loc], "lr": lr_position},
         {"name": "appearance", "params": list(avatar.appearance.parameters()), "lr": lr_networks},
     ]
     if avatar.shape is not None:
-        groups.append({"name": "shape", "params": list(avatar.shape.parameters()), "lr": lr_networks})
-        return groups
+        groups.append({"name": "shape", "params": list(avatar.shape.parameters()), "lr": lr_networks if lr_shape is None else lr_shape})
+        return [g for g in groups if g["lr"] > 0]
     s = avatar.surfels
     groups += [
         {"name": "q_loc", "params": [s.q_loc], "lr": lr_rotation},
@@ -39,4 +41,4 @@ def surfel_param_groups(
     ]
     if hasattr(s, "sh_rest"):
         groups.append({"name": "sh_rest", "params": [s.sh_rest], "lr": lr_color / 20.0})
-    return groups
+    return [g for g in groups if g["lr"] > 0]

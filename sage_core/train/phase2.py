@@ -14,9 +14,18 @@ free per-surfel attributes) are fine-tuned. Each step:
 4. appearance consistency: ``rays_per_step`` pixels are drawn without replacement with probability
    ∝ e_n/mean(e_n) + e_d/mean(e_d) + ``error_floor`` (e_n = 1 − N_r·N_s and e_d the per-pixel
    distortion of the render, means over the candidates), among pixels whose ray hits the posed mesh
-   on a non-hair triangle. Each ray is warped into canonical space through the triangle it hits
-   (:mod:`sage_core.train.warp`) and volume-rendered (NeuS) through the frozen SDF with a frozen copy
-   of the phase-1 appearance network and s-variance, under ``no_grad``: the teacher Ĉ never moves.
+   on a non-hair triangle. Each pixel's teacher colour Ĉ is the canonical appearance of the surface
+   point its ray hits, reached through the hit triangle's transform, from one of two teachers, both
+   frozen at the phase-1 state and computed under ``no_grad``:
+
+   * ``rest`` (default, :class:`~sage_core.train.rest_teacher.RestTeacher`): the phase-1 avatar's own
+     rasterized renders of the training views at rest, looked up at the same triangle and
+     barycentrics in the rest mesh, from the view whose direction in the triangle's frame is closest
+     to the deformed ray's; surface points no training view sees have no teacher;
+   * ``neus``: the ray warped into canonical space (:mod:`sage_core.train.warp`) and volume-rendered
+     (NeuS) through the frozen SDF with a frozen copy of the phase-1 appearance network and
+     s-variance.
+
    L_a = mean |Ĉ − I|² with I the rasterized surfel colour at those pixels;
 5. optionally (``w_photometric`` > 0) L_rgb of a captured training frame rendered at its own FLAME
    parameters; off by default, so phase 2 uses no images.
@@ -42,7 +51,8 @@ from ..avatar.init import REGION_HAIR, face_region_labels
 from ..avatar.model import Avatar
 from ..config import Phase2Config
 from ..data.dataset import IngestedData, IngestedFrame
-from ..errors import InputError
+from ..errors import ConfigError, InputError
+from ..flame.frames import surfel_frames
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..render import RenderCamera, rasterize_surfels
 from ..render.mesh_raster import rasterize_mesh
@@ -51,7 +61,10 @@ from ..workspace import rng_state, set_rng_state
 from . import losses as L
 from ._groups import surfel_param_groups
 from .expressions import ExpressionSampler, component_ranges_from_dirs
-from .warp import warp_pixels_to_canonical
+from .rest_teacher import RestTeacher
+from .warp import pixel_rays, warp_pixels_to_canonical
+
+TEACHERS: tuple[str, ...] = ("rest", "neus")
 
 Progress = Callable[..., None]
 STATE_FORMAT = 1
@@ -76,6 +89,33 @@ def hair_face_mask(avatar: Avatar, init_dir: str | Path | None = None) -> torch.
     s = avatar.surfels
     mask[s.binding[s.hair_mask()]] = True
     return mask
+
+
+def mouth_prior_table(avatar: Avatar, init_dir: str | Path | None, cavity: list[float], teeth: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-face prior colours of the mouth interior: ((F, 3) colours, (F,) bool faces with a prior).
+
+    The faces come from ``init_dir/regions.json`` (``mouth_interior`` with ``cavity``, ``teeth`` with
+    ``teeth``); without that file, or without those regions, no face has a prior."""
+    F = int(avatar.faces.shape[0])
+    colors = torch.zeros(F, 3, device=avatar.device)
+    has = torch.zeros(F, dtype=torch.bool, device=avatar.device)
+    path = Path(init_dir) / "regions.json" if init_dir is not None else None
+    if path is None or not path.is_file():
+        return colors, has
+    from ..flame.regions import Regions
+
+    try:
+        regions = Regions.from_dict(json.loads(path.read_text()))
+    except (ValueError, KeyError, TypeError) as e:
+        raise InputError(path, f"malformed regions: {e}") from None
+    if regions.n_faces != F:
+        raise InputError(path, f"regions describe {regions.n_faces} faces, the avatar has {F}")
+    for name, rgb in (("mouth_interior", cavity), ("teeth", teeth)):
+        if regions.has(name):
+            m = torch.as_tensor(regions.face_mask(name), device=avatar.device)
+            colors[m] = torch.tensor([float(v) for v in rgb], device=avatar.device)
+            has |= m
+    return colors, has
 
 
 def build_sampler(avatar: Avatar, data: IngestedData, cfg: Phase2Config, seed: int = 0) -> ExpressionSampler:
@@ -163,6 +203,8 @@ class Phase2Trainer:
             p.requires_grad_(False)
         for p in avatar.variance.parameters():
             p.requires_grad_(False)
+        if cfg.teacher not in TEACHERS:
+            raise ConfigError(f"phase2 teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
         self.teacher_app = copy.deepcopy(avatar.appearance).requires_grad_(False)
         self.teacher_variance = copy.deepcopy(avatar.variance).requires_grad_(False)
         self.posing = CorrectedPosing(
@@ -176,6 +218,12 @@ class Phase2Trainer:
         self._images: dict[tuple[int, int], torch.Tensor] = {}
         self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
         self.distortion_curve: list[float] = []
+        self.prior_colors, self.prior_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
+        if not cfg.mouth_prior:
+            self.prior_faces = torch.zeros_like(self.prior_faces)
+        self.rest_teacher: RestTeacher | None = None
+        if cfg.teacher == "rest" and cfg.w_appearance > 0:
+            self.rest_teacher = self._build_rest_teacher()
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
@@ -188,7 +236,24 @@ class Phase2Trainer:
             lr_scale=c.lr_scale,
             lr_color=c.lr_color,
             lr_opacity=c.lr_opacity,
+            lr_shape=c.lr_shape,
         )
+
+    def _build_rest_teacher(self) -> RestTeacher:
+        """Render the (phase-1) avatar at rest from at most ``teacher_max_views`` training views."""
+        c, av = self.cfg, self.avatar
+        frames = _subset(self.frames, c.teacher_max_views)
+        cams = [RenderCamera.from_camera(fr.camera, self.device) for fr in frames]
+        canon = av.canonical_state(with_sdf=av.attributes == "mlp")
+
+        def render_fn(i: int, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+            img, _ = av.render(cams[i], inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False)
+            return img.color
+
+        return RestTeacher.build(
+            render_fn, av.pose_mesh, av.faces, [(cm.K, cm.w2c, cm.width, cm.height) for cm in cams],
+            [self.inputs(fr.timestep) for fr in frames], depth_tol=c.teacher_depth_tol,
+        )  # fmt: skip
 
     def trainable_parameters(self) -> list[torch.nn.Parameter]:
         """Every parameter the optimizer updates."""
@@ -228,6 +293,18 @@ class Phase2Trainer:
         )  # fmt: skip
         return out.color.detach(), rays.valid
 
+    @torch.no_grad()
+    def rest_lookup(self, posed_vertices: torch.Tensor, camera: RenderCamera, pix: torch.Tensor, raster: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rest-teacher colours (R, 3) of the pixels ``pix`` (R,) of a deformed frame whose mesh raster is
+        ``raster`` (every pixel must hit the mesh), and their validity (R,)."""
+        assert self.rest_teacher is not None
+        av = self.avatar
+        fid = raster.face_id.reshape(-1)[pix]
+        bary = raster.bary.reshape(-1, 3)[pix]
+        _, dirs = pixel_rays(camera.K, camera.w2c, camera.width, camera.height, pix)
+        look = self.rest_teacher.lookup(av.faces, fid, bary, dirs.to(posed_vertices), surfel_frames(posed_vertices, av.faces))
+        return look.color, look.valid
+
     # ------------------------------------------------------------------ one step
     def step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms as floats."""
@@ -256,7 +333,14 @@ class Phase2Trainer:
                 score = torch.stack([e_n.detach().reshape(-1)[cand], render.distortion.detach().reshape(-1)[cand]], -1)
             pix = sample_pixels(score, cand, c.rays_per_step, c.error_floor, self.generator)
             if pix.numel() > 0:
-                target, valid = self.teacher(verts, cam, pix, raster)
+                if self.rest_teacher is not None:
+                    target, valid = self.rest_lookup(verts, cam, pix, raster)
+                    prior = self.prior_faces[fid[pix]] & ~valid
+                else:
+                    target, valid = self.teacher(verts, cam, pix, raster)
+                    prior = self.prior_faces[fid[pix]]
+                target = torch.where(prior[:, None], self.prior_colors[fid[pix]].to(target), target)
+                valid = valid | prior
                 pred = render.color.reshape(-1, 3)[pix]
                 terms["appearance"] = ((pred - target) ** 2).sum(-1)[valid].mean()
                 total = total + c.w_appearance * terms["appearance"]
