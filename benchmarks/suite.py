@@ -61,9 +61,14 @@ def _load(path: Path) -> dict | None:
         return None
 
 
+DISCUSSION_FILE = "discussion.md"
+"""Hand-written discussion of the measured results against the paper, appended to results.md."""
+
+
 def write_docs(doc: dict, docs_dir: Path) -> tuple[Path, Path]:
     """Merge ``doc`` into ``docs_dir/benchmarks/suite_<size>.json`` and regenerate
-    ``docs_dir/results.md`` from every ``suite_*.json`` there. Returns both paths."""
+    ``docs_dir/results.md`` from every ``suite_*.json`` there (and ``benchmarks/discussion.md``,
+    the hand-written comparison with the paper, when present). Returns both paths."""
     from _suite.report import merge_results, render_document
 
     from sage_core.workspace import atomic_write_json, atomic_write_text
@@ -73,7 +78,9 @@ def write_docs(doc: dict, docs_dir: Path) -> tuple[Path, Path]:
     atomic_write_json(json_path, merged)
     docs = [d for d in (_load(p) for p in sorted((docs_dir / "benchmarks").glob("suite_*.json"))) if d]
     md_path = docs_dir / "results.md"
-    atomic_write_text(md_path, render_document(docs))
+    discussion = docs_dir / "benchmarks" / DISCUSSION_FILE
+    text = discussion.read_text(encoding="utf-8") if discussion.is_file() else None
+    atomic_write_text(md_path, render_document(docs, text))
     return json_path, md_path
 
 

@@ -41,12 +41,12 @@ def parse_sets(values: list[str] | None) -> dict[str, Any]:
     return out
 
 
-def resolve_stage_config(stage: str, preset: str, config_file: Path | None, flags: dict[str, Any]) -> Any:
-    """preset < config file < flags, for one stage."""
+def resolve_stage_config(stage: str, preset: str, config_file: Path | None, flags: dict[str, Any], regime: str | None = None) -> Any:
+    """preset < regime defaults < config file < flags, for one stage."""
     from sage_core.config import load_config_file, resolve_config
 
     data = load_config_file(config_file) if config_file is not None else None
-    return resolve_config(stage, preset, data, flags, file_label=str(config_file) if config_file else "config file")
+    return resolve_config(stage, preset, data, flags, file_label=str(config_file) if config_file else "config file", regime=regime)
 
 
 @contextlib.contextmanager

@@ -161,6 +161,36 @@ class Phase1Config:
     eval_every: int = _f(1000, "Validation PSNR every N steps for the progress display (0: only at the end).")
     mc_resolution: int = _f(256, "Marching-cubes resolution of the extracted SDF mesh.")
     checkpoint_every: int = _f(1000, "Checkpoint interval in steps.")
+    canonical_warp: str = _f("auto", "How training pixels become canonical rays for the SDF terms: auto (the exact rigid head map where a frame differs from canonical only by global rotation/translation, else the hit-triangle warp; rays missing the mesh are dropped), rigid (rigid frames only) or triangle (always the hit-triangle warp).")
+    exposure: str = _f("off", "Per-training-frame exposure gain on the surfel and NeuS renders: off, gain (one scalar per frame) or rgb (one gain per channel). Regime default for sv-hr and one-shot: gain.")
+    lr_exposure: float = _f(2e-3, "Adam learning rate of the log exposure gains.")
+    w_exposure_prior: float = _f(0.01, "Weak prior mean((log gain)^2) holding the exposure gains near 1.")
+    w_sym_sdf: float = _f(0.0, "Soft left-right symmetry of the canonical SDF: mean |f(x) - f(Sx)| (box half-extent units), S the reflection across the head's sagittal plane. Regime default for sv-hr and one-shot: 0.1.")
+    w_sym_color: float = _f(0.0, "Soft left-right symmetry of the appearance network colour: mean |c(x) - c(Sx)|. Regime default for sv-hr and one-shot: 0.05.")
+    sym_points: int = _f(512, "Points per step for the symmetry terms (surfel centres and uniform points of the SDF box).")
+    sym_box_fraction: float = _f(0.25, "Fraction of the symmetry points drawn uniformly in the SDF box (the rest are surfel centres).")
+    pseudo_view_prob: float = _f(0.5, "One-shot: probability that a step trains on a synthesized pseudo view instead of the input image (weighted photometric loss, no SDF ray terms).")
+    pseudo_mirror: bool = _f(True, "One-shot: add the mirror pseudo-view (camera S·c2w·S, flipped image, mirrored mesh).")
+    pseudo_mirror_weight: float = _f(0.5, "One-shot: loss weight of the mirror view relative to the input view.")
+    pseudo_mirror_yaw_full_deg: float = _f(30.0, "One-shot: head yaw (deg) at which the mirror view reaches its full weight.")
+    pseudo_mirror_yaw_floor: float = _f(0.25, "One-shot: fraction of the mirror view's weight kept for a frontal head.")
+    pseudo_mirror_seen_weight: float = _f(0.1, "One-shot: per-pixel mirror weight where the input already sees that surface.")
+    pseudo_mirror_background_weight: float = _f(0.5, "One-shot: per-pixel mirror weight on the background.")
+    pseudo_mirror_tolerance: float = _f(1e-3, "One-shot: mirror-partner tolerance relative to the template's bounding-box diagonal.")
+    pseudo_ring_views: int = _f(8, "One-shot: textured-FLAME views on a yaw/pitch ring around the head (0: none).")
+    pseudo_ring_yaw_deg: float = _f(60.0, "One-shot: largest yaw (deg) of the ring views.")
+    pseudo_ring_pitch_deg: float = _f(20.0, "One-shot: largest pitch (deg) of the ring views.")
+    pseudo_ring_weight: float = _f(0.2, "One-shot: loss weight of each ring view.")
+    pseudo_ring_background_weight: float = _f(0.0, "One-shot: per-pixel ring weight on the background.")
+    pseudo_ring_supersample: int = _f(2, "One-shot: per-axis supersampling of the ring renders.")
+    pseudo_texture_resolution: int = _f(4, "One-shot: barycentric texture samples per face edge of the back-projected texture.")
+    pseudo_texture_mirror_confidence: float = _f(0.5, "One-shot: confidence of texels filled from their mirror partners.")
+    pseudo_texture_inpaint_confidence: float = _f(0.0, "One-shot: confidence of inpainted texels (0: never supervise).")
+    pose_refine: bool = _f(False, "Refine small per-frame corrections of the FLAME global rotation, neck pose and translation of the training timesteps (single-camera clips), from pose_refine_from on; they are saved in checkpoints and baked into the avatar's parameters.")
+    pose_refine_from: int = _f(1000, "First step of the pose refinement (after the geometry has settled).")
+    lr_pose_rotation: float = _f(1e-4, "Adam learning rate of the rotation and neck corrections (axis-angle, rad).")
+    lr_pose_translation: float = _f(1e-5, "Adam learning rate of the translation corrections (m).")
+    w_pose_prior: float = _f(1.0, "Weight of mean(correction^2) (rad^2, and translations in SDF box half extents squared) keeping the pose corrections small.")
 
 
 STAGE_CONFIGS: dict[str, type] = {
@@ -208,6 +238,13 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
             "checkpoint_every": 250,
         },
     },
+}
+
+# Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
+# workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
+REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
+    "sv-hr": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},
+    "one-shot": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},
 }
 
 T = TypeVar("T")
@@ -359,14 +396,17 @@ def resolve_config(
     file_data: dict[str, Any] | None = None,
     flags: dict[str, Any] | None = None,
     file_label: str = "config file",
+    regime: str | None = None,
 ) -> Any:
-    """Build a stage's config: dataclass defaults < preset < file section < flags.
+    """Build a stage's config: dataclass defaults < preset < regime defaults < file section < flags.
 
     Args:
         stage: stage name (key of ``STAGE_CONFIGS``).
         preset: ``tiny`` or ``default``.
         file_data: parsed config file (sectioned by stage, or flat for this stage).
         flags: dotted-key overrides from the command line; ``None`` values are ignored (unset flags).
+        regime: the workspace's ingested regime; its :data:`REGIME_OVERRIDES` apply (none: no
+            regime defaults).
     """
     if stage not in STAGE_CONFIGS:
         raise ConfigError(f"unknown stage '{stage}'")
@@ -375,6 +415,8 @@ def resolve_config(
     cfg = STAGE_CONFIGS[stage]()
     for k, v in PRESET_OVERRIDES[preset].get(stage, {}).items():
         _apply(cfg, k, v, f"preset {preset}")
+    for k, v in REGIME_OVERRIDES.get(regime or "", {}).get(stage, {}).items():
+        _apply(cfg, k, v, f"regime {regime}")
     if file_data:
         sections = {section_name(s) for s in STAGE_CONFIGS}
         if any(k in sections for k in file_data):
@@ -451,14 +493,21 @@ class Phase2Config:
     correction_w_s: float = _f(1e-3, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|).")
     correction_umbilic_tol: float = _f(1.0, "|k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.")
     lr_position: float = _f(5e-5, "Learning rate of the surfel offsets mu_loc.")
-    lr_networks: float = _f(1e-4, "Learning rate of the appearance and shape networks (mlp attributes).")
+    lr_networks: float = _f(1e-4, "Learning rate of the appearance network (0: frozen).")
+    lr_shape: float = _f(1e-5, "Learning rate of the shape network (mlp attributes; 0: frozen).")
     lr_color: float = _f(1e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).")
     lr_opacity: float = _f(1e-2, "Learning rate of free opacity logits.")
     lr_scale: float = _f(5e-3, "Learning rate of free log scales.")
     lr_rotation: float = _f(5e-4, "Learning rate of free rotations.")
     w_normal_consistency: float = _f(0.05, "lambda_n: 2DGS normal consistency under deformation.")
     w_distortion: float = _f(100.0, "lambda_d: 2DGS depth distortion under deformation.")
-    w_appearance: float = _f(1.0, "lambda_a: squared error between the surfel colour and the canonical NeuS teacher on sampled pixels.")
+    w_appearance: float = _f(1.0, "lambda_a: squared error between the surfel colour and the teacher colour on sampled pixels.")
+    teacher: str = _f("rest", "Appearance teacher: rest (the phase-1 avatar's own renders of the training views at rest, looked up through the mesh correspondence) or neus (canonical NeuS volume rendering of the warped ray).")
+    teacher_max_views: int = _f(64, "Rest teacher: at most this many training views (evenly spaced).")
+    mouth_prior: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): the cavity mouth_cavity_color, the teeth teeth_color.")
+    mouth_cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.")
+    teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.")
+    teacher_depth_tol: float = _f(0.01, "Rest teacher: relative depth slack of the visibility test.")
     w_photometric: float = _f(0.0, "Weight of an optional L_rgb term on a captured training frame (0: phase 2 uses no images).")
     photometric_every: int = _f(1, "Add the photometric term every N steps (when w_photometric > 0).")
     rays_per_step: int = _f(1024, "Pixels per step for the appearance term.")
@@ -486,4 +535,4 @@ class Phase2Config:
 
 
 STAGE_CONFIGS["phase2"] = Phase2Config
-PRESET_OVERRIDES["tiny"]["phase2"] = {"iterations": 300, "rays_per_step": 256, "neus_samples": 24, "neus_importance": 16, "lr_networks": 5e-4, "checkpoint_every": 100}
+PRESET_OVERRIDES["tiny"]["phase2"] = {"iterations": 300, "rays_per_step": 256, "neus_samples": 24, "neus_importance": 16, "lr_networks": 1e-4, "checkpoint_every": 100}

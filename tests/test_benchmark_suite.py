@@ -196,6 +196,8 @@ def test_markdown_puts_numbers_in_their_columns_and_dashes_for_missing():
     assert "sage phase1 WS" in md and "mkdir -p A && cp -a B A/" in md
     doc = render_document([{**_results(), "size": "full"}, _results()])
     assert doc.index("## Size `small`") < doc.index("## Size `full`")
+    doc = render_document([_results()], "## Discussion\n\nOurs against the paper.\n")
+    assert doc.rstrip().endswith("Ours against the paper.") and doc.index("## Size `small`") < doc.index("## Discussion")
 
 
 def test_smoke_results_are_labelled():

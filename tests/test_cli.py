@@ -119,3 +119,13 @@ def test_config_command_prints_a_reusable_config(tmp_path):
     assert config_hash(again) == config_hash(resolve_config("init-mesh", "tiny", None, {"pretrain.steps": 77}))
     res = runner.invoke(app, ["config", "nope"])
     assert res.exit_code == 3
+
+
+def test_config_command_applies_regime_defaults():
+    plain = runner.invoke(app, ["config", "phase1", "--preset", "tiny"])
+    svhr = runner.invoke(app, ["config", "phase1", "--preset", "tiny", "--regime", "sv-hr"])
+    assert plain.exit_code == 0 and svhr.exit_code == 0, svhr.output
+    assert "exposure: 'off'" in plain.output and "exposure: gain" in svhr.output
+    assert "app_sh_degree: 0" in svhr.output and "app_sh_degree: 0" not in plain.output
+    bad = runner.invoke(app, ["config", "phase1", "--regime", "bogus"])
+    assert bad.exit_code == 3 and "bogus" in bad.output

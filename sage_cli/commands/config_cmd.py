@@ -1,4 +1,4 @@
-"""``sage config STAGE``: print a stage's resolved configuration (preset < file < --set) with help."""
+"""``sage config STAGE``: print a stage's resolved configuration (preset < regime < file < --set) with help."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ def config(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     explain: Annotated[bool, typer.Option("--explain", help="List every field with its help text instead of YAML.")] = False,
+    regime: Annotated[Optional[str], typer.Option("--regime", help="Apply a regime's defaults (mv-sf, mv-mf, sv-hr, one-shot), as a workspace ingested with it does.")] = None,
 ) -> None:
     """Print the configuration a stage would run with, as YAML (usable as a --config file)."""
     with cli_errors():
@@ -26,7 +27,12 @@ def config(
 
         if stage not in STAGE_CONFIGS:
             raise ConfigError(f"unknown stage '{stage}' (stages with a config: {', '.join(STAGE_CONFIGS)})")
-        cfg = resolve_stage_config(stage, preset, config, parse_sets(set_))
+        if regime is not None:
+            from sage_core.data.ingest import REGIMES
+
+            if regime not in REGIMES:
+                raise ConfigError(f"unknown regime '{regime}' (regimes: {', '.join(REGIMES)})")
+        cfg = resolve_stage_config(stage, preset, config, parse_sets(set_), regime=regime)
         if explain:
             from rich.table import Table
 

@@ -4,7 +4,10 @@ Every frame of a split is rendered with that frame's FLAME parameters and camera
 background and compared with its ground truth. ``WS/eval/`` is a workspace stage that accumulates
 results: each (avatar stage, split) pair has its own folder ``WS/eval/<stage>/<split>/`` with
 ``metrics.json``, ``config.json`` and sample strips in ``images/``; ``WS/eval/results.json`` indexes
-them (key of the inputs, avatar stage and fingerprint, overall means). A new run copies the earlier
+them (key of the inputs, avatar stage and fingerprint, overall means). ``--split novel`` scores the
+avatar on the capture's held-out ground truth (``CAPTURE/gt/novel``: novel views and expressions)
+over the full image and over the region the training view(s) saw (``sage_core.evaluate.novel``).
+A new run copies the earlier
 results whose avatar stage is unchanged into the new stage folder and drops those whose avatar was
 re-trained since; the manifest lists every result's means. Re-running a (stage, split) whose avatar,
 data, settings and LPIPS weights are unchanged skips it.
@@ -34,7 +37,7 @@ from .._common import (
 )
 from .._stage import StageOptions, execute_stage
 
-SPLITS = ("test", "val", "all")
+SPLITS = ("test", "val", "all", "novel")
 _LPIPS_HINT = "unavailable: no weights (give --lpips-weights, set $SAGE_LPIPS_WEIGHTS or place ~/.cache/sage/lpips_alex_v0.1.pth)"
 
 
@@ -76,7 +79,7 @@ def print_metrics_table(title: str, doc: dict[str, Any]) -> None:
 
 def eval_(
     ws: Annotated[Path, typer.Argument(help="Workspace folder (after `sage phase1` or `sage phase2`).")],
-    split: Annotated[Optional[str], typer.Option("--split", help="test (self-reenactment), val (novel view) or all (both).")] = None,
+    split: Annotated[Optional[str], typer.Option("--split", help="test (self-reenactment), val (novel view), all (both) or novel (the capture's held-out gt/novel views and expressions).")] = None,
     stage: Annotated[Optional[str], typer.Option("--stage", help="Avatar to evaluate: auto (latest finished of phase2, phase1), phase1 or phase2.")] = None,
     lpips_weights: Annotated[Optional[Path], typer.Option("--lpips-weights", help="LPIPS AlexNet v0.1 weights (default: $SAGE_LPIPS_WEIGHTS, then ~/.cache/sage/lpips_alex_v0.1.pth; without them LPIPS is reported unavailable).")] = None,
     samples: Annotated[Optional[int], typer.Option("--samples", help="Sample strips (GT | render | error) written per split.")] = None,
@@ -95,7 +98,7 @@ def eval_(
         flags = {"split": split, "stage": stage, "samples": samples, **parse_sets(set_)}
         cfg = resolve_stage_config("eval", preset, config, flags)
         if cfg.split not in SPLITS:
-            raise ConfigError(f"--split must be test, val or all, got {cfg.split!r}")
+            raise ConfigError(f"--split must be test, val, all or novel, got {cfg.split!r}")
         if cfg.samples < 0:
             raise ConfigError(f"--samples must be >= 0, got {cfg.samples}")
         if not ws.is_dir():
@@ -116,6 +119,8 @@ def run_eval(ws_path: Path, cfg: Any, lpips_weights: Path | None, opts: StageOpt
     from sage_core.train.pipeline import fresh_results, resolve_avatar_stage, result_key
     from sage_core.workspace import Workspace, file_fingerprint, read_json
 
+    if cfg.split == "novel":
+        return run_eval_novel(ws_path, cfg, lpips_weights, opts)
     ws = Workspace(ws_path)
     ingest_fp = ws.require("ingest", "eval")["fingerprint"]
     av_stage = resolve_avatar_stage(ws, cfg.stage, "eval")
@@ -235,3 +240,119 @@ def run_eval(ws_path: Path, cfg: Any, lpips_weights: Path | None, opts: StageOpt
     rows.append(("wall time", f"{manifest['wall_time_s']:.1f} s"))
     summary_panel("sage eval", rows, paths + [("results index", out_dir / "results.json")])
     return {f"{av_stage}/{s}": results[f"{av_stage}/{s}"] for s in splits}
+
+
+def run_eval_novel(ws_path: Path, cfg: Any, lpips_weights: Path | None, opts: StageOptions) -> dict[str, Any]:
+    """``--split novel``: the avatar on the capture's held-out ground truth (``CAPTURE/gt/novel``).
+
+    Same stage, index and skip rules as the other splits (result ``<stage>/novel``); the metrics
+    add a visible-region block. InputError, before anything is written, when the capture has no
+    ``gt/novel``.
+    """
+    import dataclasses
+
+    from sage_core.data.dataset import IngestedData
+    from sage_core.evaluate.lpips import find_lpips_weights
+    from sage_core.evaluate.novel import open_novel_set
+    from sage_core.train.pipeline import fresh_results, resolve_avatar_stage, result_key
+    from sage_core.workspace import Workspace, file_fingerprint, read_json
+
+    ws = Workspace(ws_path)
+    ingest_fp = ws.require("ingest", "eval")["fingerprint"]
+    av_stage = resolve_avatar_stage(ws, cfg.stage, "eval")
+    av_fp = ws.require(av_stage, "eval")["fingerprint"]
+    data = IngestedData.open(ws.stage_dir("ingest"))
+    novel = open_novel_set(data)
+    novel_fp = [file_fingerprint(p) for p in novel.fingerprint_files()]
+    lp_path = find_lpips_weights(lpips_weights)
+    lp_fp = file_fingerprint(lp_path) if lp_path is not None else None
+    cfg = dataclasses.replace(cfg, stage=av_stage)
+    name = f"{av_stage}/novel"
+    key = result_key(avatar_stage=av_stage, avatar_fingerprint=av_fp, ingest=ingest_fp, split="novel",
+                     samples=cfg.samples, psnr_cap=cfg.psnr_cap, lpips=lp_fp, novel=novel_fp)  # fmt: skip
+    existing = fresh_results(ws, "eval")
+    out_dir = ws.stage_dir("eval")
+    if not opts.force and existing.get(name, {}).get("key") == key:
+        console.print(f"[green]eval[/]: {av_stage} on the held-out ground truth is already evaluated with the same avatar, data and settings; skipping. Use --force to redo it.")
+        doc = read_json(out_dir / name / "metrics.json")
+        print_metrics_table(f"{name} (held-out views and expressions)", doc)
+        print_metrics_table(f"{name} visible region", doc["visible_region"])
+        return {name: existing[name]}
+
+    keep = {k: v for k, v in existing.items() if k != name}
+    requires = ["ingest", *sorted({v["avatar_stage"] for v in keep.values()} | {av_stage})]
+    holder: dict[str, Any] = {}
+
+    def body(run, progress) -> None:
+        from sage_core.evaluate.lpips import LPIPS
+        from sage_core.evaluate.novel import evaluate_novel
+        from sage_core.train.pipeline import AvatarRenderer, carry_results, load_stage_avatar
+        from sage_core.workspace import atomic_write_json, now_iso
+
+        carry_results(run.ws, "eval", run.work_dir, keep)
+        loaded = load_stage_avatar(run.ws, av_stage, data, run.device)
+        md = loaded.avatar.model_data
+        held = open_novel_set(data, int(md.v_template.shape[0]), int(md.n_base_vertices))
+        renderer = AvatarRenderer(loaded.avatar, loaded.render)
+        lpips = LPIPS.from_path(lp_path, device=run.device) if lp_path is not None else None
+        out = run.work_dir / av_stage / "novel"
+
+        def prog(done: int, n: int, message: str = "") -> None:
+            progress(done, n, f"novel: {message}")
+
+        report = evaluate_novel(renderer.render, loaded.avatar, data, held, lpips=lpips, out_dir=out,
+                                n_samples=cfg.samples, psnr_cap=cfg.psnr_cap, progress=prog)  # fmt: skip
+        atomic_write_json(out / "config.json", {**dataclasses.asdict(cfg), "split": "novel", "avatar_stage": av_stage,
+                                                "avatar_fingerprint": loaded.fingerprint, "novel": str(held.root),
+                                                "lpips_weights": None if lp_path is None else str(lp_path)})  # fmt: skip
+        doc = report.to_dict()
+        results = dict(keep)
+        results[name] = {
+            "key": key,
+            "avatar_stage": av_stage,
+            "avatar_fingerprint": loaded.fingerprint,
+            "split": "novel",
+            "files": [name],
+            "finished_at": now_iso(),
+            "lpips_available": lpips is not None,
+            "overall": doc["overall"],
+            "frontal": doc["frontal"],
+            "visible_region": {"overall": doc["visible_region"]["overall"], "frontal": doc["visible_region"]["frontal"]},
+        }
+        atomic_write_json(run.work_dir / "results.json", results)
+        for entry_name, entry in results.items():
+            for k in ("psnr", "ssim", "lpips"):
+                run.metrics[f"{entry_name} {k}"] = entry["overall"][k]
+            run.outputs[entry_name] = str(run.ws.stage_dir("eval") / entry_name / "metrics.json")
+        for k in ("psnr", "ssim", "lpips"):
+            run.metrics[f"{name} visible {k}"] = doc["visible_region"]["overall"][k]
+        holder["results"] = results
+
+    run_opts = StageOptions(opts.ws, opts.preset, opts.config_file, opts.seed, opts.device, True, opts.verbose)
+    manifest = execute_stage(
+        "eval", run_opts, cfg, body, requires=tuple(requires),
+        external_inputs={"lpips_weights": lp_fp or "none", "novel": ",".join(novel_fp)}, title=f"eval {av_stage} novel",
+        discard_work_on_failure=True,
+    )  # fmt: skip
+    assert manifest is not None
+    results = holder["results"]
+    doc = read_json(out_dir / name / "metrics.json")
+    print_metrics_table(f"{name} (held-out views and expressions)", doc)
+    print_metrics_table(f"{name} visible region", doc["visible_region"])
+    o, v = doc["overall"], doc["visible_region"]["overall"]
+    rows: list[tuple[str, Any]] = [("avatar", f"{av_stage} ({ws.stage_dir(av_stage) / 'avatar.pt'})"),
+                                   ("held-out ground truth", str(novel.root)),
+                                   ("frontal", f"camera {doc['frontal_camera']} ({doc['frontal_rule']})")]
+    rows.append(("all views PSNR / SSIM / LPIPS", f"{_fmt(o['psnr'], 2)} dB / {_fmt(o['ssim'], 4)} / {_fmt(o['lpips'], 4)}"))
+    if doc.get("frontal") is not None:
+        f = doc["frontal"]
+        rows.append(("frontal PSNR / SSIM / LPIPS", f"{_fmt(f['psnr'], 2)} dB / {_fmt(f['ssim'], 4)} / {_fmt(f['lpips'], 4)}"))
+    rows.append(("visible region PSNR / SSIM / LPIPS", f"{_fmt(v['psnr'], 2)} dB / {_fmt(v['ssim'], 4)} / {_fmt(v['lpips'], 4)}"))
+    rows.append(("LPIPS", _LPIPS_HINT if lp_path is None else str(lp_path)))
+    others = sorted(k for k in results if k != name)
+    if others:
+        rows.append(("also in WS/eval", ", ".join(others)))
+    rows.append(("wall time", f"{manifest['wall_time_s']:.1f} s"))
+    summary_panel("sage eval", rows, [("novel metrics", out_dir / name / "metrics.json"), ("novel samples", out_dir / name / "images"),
+                                      ("results index", out_dir / "results.json")])
+    return {name: results[name]}

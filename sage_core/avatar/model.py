@@ -29,7 +29,7 @@ import dataclasses
 import io
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -269,6 +269,8 @@ class Avatar(nn.Module):
             if fr.timestep == ct and fr.camera_index not in seen:
                 seen.add(fr.camera_index)
                 cams.append(fr.camera)
+        if getattr(data, "regime", "") == "sv-hr":
+            cams = _clip_cameras_at_canonical(data, params, ct, out_c.joints[0, 0], world_from_mesh)
         init = init_surfels(
             verts_c, flame.faces, n_surfels, regions, cams, world_from_mesh=world_from_mesh,
             generator=generator, device=device, **(init_args or {}),
@@ -394,15 +396,24 @@ class Avatar(nn.Module):
         correction: SurfelCorrection | None = None,
         canonical: CanonicalSurfels | None = None,
         vertices: torch.Tensor | None = None,
+        vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ) -> PosedSurfels:
         """World-space surfels of one frame.
 
         flame_inputs: FlameModel kwargs of batch 1; camera_center_world: (3,) for view-dependent
         colour (None: view along the surfel normal); correction: optional surfel correction
         (phase 2); canonical: a precomputed :meth:`canonical_state` (with SDF values for mlp mode to
-        avoid a second SDF pass); vertices: the posed mesh if already computed.
+        avoid a second SDF pass); vertices: the posed mesh if already computed (used as given);
+        vertex_transform: (V, 3) -> (V, 3) applied to the FLAME-posed mesh before the surfels are
+        posed on it (e.g. a left-right mirror with its vertex permutation), so that surfels bound to
+        triangle b follow the transformed triangle b.
         """
-        verts = self.pose_mesh(flame_inputs) if vertices is None else vertices
+        if vertices is None:
+            verts = self.pose_mesh(flame_inputs)
+            if vertex_transform is not None:
+                verts = vertex_transform(verts)
+        else:
+            verts = vertices
         R_p, T_p, k_p = surfel_frames(verts, self.faces)
         cs = canonical if canonical is not None else self.canonical_state(with_sdf=self.attributes == "mlp")
         b = self.surfels.binding
@@ -450,12 +461,14 @@ class Avatar(nn.Module):
         background: torch.Tensor | float = 1.0,
         correction: SurfelCorrection | None = None,
         canonical: CanonicalSurfels | None = None,
+        vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
         **raster_kwargs: Any,
     ) -> tuple[SurfelRender, PosedSurfels]:
-        """Pose and rasterize for one (unbatched) camera; raster_kwargs go to ``rasterize_surfels``."""
+        """Pose and rasterize for one (unbatched) camera; raster_kwargs go to ``rasterize_surfels``;
+        vertex_transform as in :meth:`posed`."""
         w2c = camera.w2c.to(self.canonical_vertices)
         centre = -(w2c[:3, :3].T @ w2c[:3, 3])
-        p = self.posed(flame_inputs, centre, correction=correction, canonical=canonical)
+        p = self.posed(flame_inputs, centre, correction=correction, canonical=canonical, vertex_transform=vertex_transform)
         img = rasterize_surfels(p.means, p.quats, p.scales, p.opacities, p.colors, camera, background, **raster_kwargs)
         return img, p
 
@@ -554,6 +567,24 @@ def _rigid_world_from_canonical(params: FlameParams, row: int, root_joint: torch
     M[:3, :3] = R0
     M[:3, 3] = J0 - R0 @ J0 + t
     return M
+
+
+def _clip_cameras_at_canonical(data: Any, params: FlameParams, ct: int, root_joint: torch.Tensor, world_from_mesh: np.ndarray,
+                               limit: int = 16) -> list[Camera]:
+    """A head-turn clip's camera, once per training timestep (at most ``limit``, evenly spaced), moved
+    into the canonical timestep's world so that it sees the head as it did in its own frame:
+    w2c' = w2c·W_t·W_ct⁻¹ with W the rigid world-from-canonical map of each timestep."""
+    frames = sorted({f.timestep: f for f in data.train}.items())
+    if len(frames) > limit:
+        keep = np.unique(np.linspace(0, len(frames) - 1, limit).round().astype(int))
+        frames = [frames[i] for i in keep]
+    inv_ct = np.linalg.inv(world_from_mesh)
+    out: list[Camera] = []
+    for t, fr in frames:
+        W = _rigid_world_from_canonical(params, params.row_of(t), root_joint)
+        cam = fr.camera
+        out.append(Camera(cam.K.copy(), np.asarray(cam.w2c, np.float64) @ W @ inv_ct, cam.width, cam.height, cam.index, cam.name))
+    return out
 
 
 def canonical_rays_rigid(

@@ -54,6 +54,10 @@ NEUTRAL_RULE = (
     "(ties: earliest timestep)"
 )
 
+CROSS_VIEW_TIMESTEPS = 8
+"""sv-hr from a multiview capture: the other cameras' train frames at up to this many evenly spaced
+training timesteps become val frames (cross-view ground truth)."""
+
 Progress = Callable[[int, int, str], None]
 
 
@@ -91,6 +95,8 @@ class IngestSummary:
         background: "white" or "black".
         has_masks: whether ``masks/`` holds a mask for every frame.
         warnings: non-fatal findings.
+        coverage: sv-hr / one-shot: the yaw/pitch of the training camera relative to the head
+            (:meth:`sage_core.train.coverage.Coverage.to_dict`), else None.
     """
 
     out_dir: Path
@@ -107,10 +113,13 @@ class IngestSummary:
     background: str
     has_masks: bool
     warnings: list[str] = field(default_factory=list)
+    coverage: dict[str, Any] | None = None
 
     def metrics(self) -> dict[str, Any]:
         """Flat JSON-safe numbers for a stage manifest."""
+        cov = {k: v for k, v in (self.coverage or {}).items() if k.startswith("coverage_")}
         return {
+            **cov,
             "regime": self.regime,
             "canonical_timestep": self.canonical_timestep,
             "train_images": self.counts.get("train", 0),
@@ -139,6 +148,10 @@ class IngestSummary:
             ("head box (m)", size),
             ("background", self.background + ("" if self.has_masks else " (no masks)")),
         ]
+        if self.coverage is not None:
+            from ..train.coverage import Coverage
+
+            rows.append(("head coverage", Coverage.from_dict(self.coverage).text()))
         rows += [("warning", w) for w in self.warnings]
         return rows
 
@@ -172,6 +185,12 @@ def choose_neutral_timestep(params: FlameParams, timesteps: list[int]) -> int:
     return ts[int(np.argmin(scores))]
 
 
+def _train_source(capture: Capture) -> Path:
+    """The file that lists the capture's train frames (for messages)."""
+    train = capture.split("train")
+    return train[0].source if train else capture.root
+
+
 def _listing(values: list[int], limit: int = 12) -> str:
     head = ", ".join(str(v) for v in values[:limit])
     return head + (f", ... ({len(values)} in all)" if len(values) > limit else "")
@@ -186,7 +205,10 @@ def select_frames(capture: Capture, regime: str, timestep: int | None = None, ca
     - ``sv-hr``: every train frame of one camera (``camera``, or the only train camera).
     - ``one-shot``: exactly one train frame; ``camera``/``timestep`` are required when the capture
       has several.
-    For the last three, val keeps the val frames at the training timesteps; test is unchanged.
+    For the last three, val keeps the val frames at the training timesteps (sv-hr adds the other train
+    cameras' frames at up to :data:`CROSS_VIEW_TIMESTEPS` of those timesteps: cross-view ground
+    truth); test is unchanged. A capture that
+    does not fit the regime is refused with a message naming its train transforms file.
     """
     if regime not in REGIMES:
         raise ConfigError(f"unknown regime '{regime}' (choose from {', '.join(REGIMES)})")
@@ -214,26 +236,32 @@ def select_frames(capture: Capture, regime: str, timestep: int | None = None, ca
     elif regime == "sv-hr":
         if camera is None:
             if len(train_cams) > 1:
-                raise ConfigError(f"sv-hr needs one camera but the capture has {len(train_cams)} train cameras "
-                                  f"({_listing(train_cams)}); choose one with the camera option")
+                raise ConfigError(f"{_train_source(capture)}: sv-hr needs one camera but the capture has "
+                                  f"{len(train_cams)} train cameras ({_listing(train_cams)}); choose one with the "
+                                  "camera option (the other cameras then serve as cross-view ground truth)")
             camera = train_cams[0]
         train = [f for f in train_all if f.camera_index == camera]
         cam_ts = sorted({f.timestep for f in train})
         if timestep is not None and timestep not in cam_ts:
             raise ConfigError(f"timestep {timestep} has no train frame from camera {camera}")
         t = timestep if timestep is not None else choose_neutral_timestep(capture.params, cam_ts)
+        if len(cam_ts) < 2:
+            warnings.append(f"sv-hr: camera {camera} has only {len(cam_ts)} train frame(s); a head-turn clip "
+                            "needs several")
     else:  # one-shot
         if camera is None:
             if len(train_cams) > 1:
-                raise ConfigError(f"one-shot uses a single image but the capture has {len(train_cams)} train "
-                                  f"cameras ({_listing(train_cams)}); choose one with the camera option")
+                raise ConfigError(f"{_train_source(capture)}: one-shot uses a single image but the capture has "
+                                  f"{len(train_cams)} train cameras ({_listing(train_cams)}); choose one with the "
+                                  "camera option")
             camera = train_cams[0]
         cam_frames = [f for f in train_all if f.camera_index == camera]
         cam_ts = sorted({f.timestep for f in cam_frames})
         if timestep is None:
             if len(cam_ts) > 1:
-                raise ConfigError(f"one-shot uses a single image but camera {camera} has {len(cam_ts)} train "
-                                  f"timesteps ({_listing(cam_ts)}); choose one with the timestep option")
+                raise ConfigError(f"{_train_source(capture)}: one-shot uses a single image but camera {camera} "
+                                  f"has {len(cam_ts)} train timesteps ({_listing(cam_ts)}); choose one with the "
+                                  "timestep option")
             timestep = cam_ts[0]
         train = [f for f in cam_frames if f.timestep == timestep]
         if not train:
@@ -242,6 +270,14 @@ def select_frames(capture: Capture, regime: str, timestep: int | None = None, ca
 
     seen_ts = {f.timestep for f in train}
     val = [f for f in capture.split("val") if f.timestep in seen_ts]
+    if regime == "sv-hr":
+        # the capture's other train cameras at (up to CROSS_VIEW_TIMESTEPS evenly spaced of) the clip's
+        # timesteps: cross-view ground truth
+        ts = sorted(seen_ts)
+        if len(ts) > CROSS_VIEW_TIMESTEPS:
+            ts = [ts[i] for i in np.unique(np.linspace(0, len(ts) - 1, CROSS_VIEW_TIMESTEPS).round().astype(int))]
+        keep = set(ts)
+        val += [f for f in train_all if f.camera_index != camera and f.timestep in keep]
     test = list(capture.split("test"))
     return Selection(train=train, val=val, test=test, canonical_timestep=int(t), warnings=warnings)
 
@@ -453,6 +489,15 @@ def ingest(
         warnings.append("the capture has non-zero dynamic_offset; it is kept in flame_params.npz")
     canon_src = capture.param_paths.get(sel.canonical_timestep, capture.root)
     bbox = _head_bbox(model, params, sel.canonical_timestep, canon_src)
+    coverage: dict[str, Any] | None = None
+    if regime in ("sv-hr", "one-shot"):
+        from ..train.coverage import coverage_of_frames
+
+        cov = coverage_of_frames(model, params, [(f.timestep, f.camera) for f in sel.train])
+        coverage = cov.to_dict()
+        note = cov.warning()
+        if regime == "sv-hr" and note is not None:
+            warnings.append(note)
 
     # -- everything is checked; write
     total = len(all_frames) + 3
@@ -508,6 +553,7 @@ def ingest(
         background=background,
         has_masks=has_masks,
         warnings=warnings,
+        coverage=coverage,
     )
     doc = summary.to_dict()
     doc.pop("out_dir")

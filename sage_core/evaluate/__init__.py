@@ -10,6 +10,7 @@ from .lpips import (
     load_lpips_state_dict,
     lpips_or_none,
 )
+from .novel import NovelReport, NovelSet, evaluate_novel, open_novel_set, region_metrics, training_face_visibility, visible_region
 from .protocol import EvalReport, ImageMetrics, MetricMeans, evaluate_frames
 from .metrics import (
     mean_psnr,
@@ -21,6 +22,13 @@ from .metrics import (
 )
 
 __all__ = [
+    "NovelReport",
+    "NovelSet",
+    "evaluate_novel",
+    "open_novel_set",
+    "region_metrics",
+    "training_face_visibility",
+    "visible_region",
     "DEFAULT_CACHE_PATH",
     "EvalReport",
     "ImageMetrics",

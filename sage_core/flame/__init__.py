@@ -3,6 +3,7 @@ per-triangle frames, per-timestep parameter files."""
 
 from .frames import surfel_frames, triangle_frames
 from .lbs import FlameModel, FlameOutput
+from .mirror import MirrorMap, mirror_correspondence, model_mirror
 from .model_io import FlameModelData, load_flame_model, save_flame_npz, validate_model
 from .mouth import add_mouth_interior, has_mouth_interior
 from .params import FlameParams, load_param_npz, save_param_npz
@@ -10,6 +11,9 @@ from .regions import Regions, load_masks
 from .teeth import add_teeth, has_teeth
 
 __all__ = [
+    "MirrorMap",
+    "mirror_correspondence",
+    "model_mirror",
     "FlameModel",
     "FlameModelData",
     "FlameOutput",

@@ -15,6 +15,19 @@ parameters, rasterizes them and combines:
   detached: the surfels supervise the SDF), eikonal on the NeuS samples and the surfel centres;
 * MonoSDF normal smoothness at a subset of surfel centres.
 
+Single-camera regimes (SV-HR, one-shot; paper §5) add, through the config (regime defaults in
+``sage_core.config.REGIME_OVERRIDES``):
+
+* a per-frame exposure gain on the foreground of the renders (:mod:`.exposure`) with a weak prior;
+* soft left–right symmetry of the canonical SDF and appearance colour (:mod:`.symmetry`);
+* optional refinement of per-timestep corrections of the global rotation, neck pose and translation
+  (:class:`PoseRefinement`), from ``pose_refine_from`` on;
+* one-shot: synthesized pseudo views (``sage_core.train.pseudo_views``), drawn with probability
+  ``pseudo_view_prob``; a pseudo view poses the avatar with a training frame's parameters, optionally
+  mirrors the posed mesh, and adds a per-pixel weighted photometric loss (no SDF ray terms).
+
+Canonical rays come from a :class:`~sage_core.train.canonical_warp.CanonicalWarp` (``canonical_warp``).
+
 Every random draw uses the trainer's own CPU generator, so a run resumed from ``state_dict`` repeats
 the uninterrupted loss curve.
 """
@@ -28,19 +41,22 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
+from torch import nn
 
 from ..avatar.init import REGION_MOUTH
-from ..avatar.model import Avatar, canonical_rays_rigid
+from ..avatar.model import Avatar
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
-from ..evaluate.metrics import psnr, ssim
-from ..flame.frames import surfel_frames
+from ..evaluate.metrics import psnr, ssim, ssim_map
 from ..render import RenderCamera
-from ..render.mesh_raster import points_on_mesh, ray_directions, rasterize_mesh, warp_points_to_canonical, warp_directions_to_canonical
+from ..render.mesh_raster import ray_directions
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
 from ._groups import surfel_param_groups
+from .canonical_warp import CanonicalWarp, make_warp
+from .exposure import ExposureGain
+from .symmetry import MirrorPlane, color_symmetry_loss, plane_from_pairs, sdf_symmetry_loss
 
 Progress = Callable[..., None]
 STATE_FORMAT = 1
@@ -60,10 +76,12 @@ def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, de
 
 
 class CanonicalRays:
-    """Maps a frame's pixels to canonical rays (rigid or through the posed mesh's hit triangles)."""
+    """Tuple-returning adapter over a :class:`CanonicalWarp` (default: the rigid map for rigid frames,
+    else the hit-triangle warp)."""
 
-    def __init__(self, avatar: Avatar) -> None:
+    def __init__(self, avatar: Avatar, warp: CanonicalWarp | None = None) -> None:
         self.avatar = avatar
+        self.warp = warp if warp is not None else make_warp("auto")
 
     def map(
         self,
@@ -75,40 +93,95 @@ class CanonicalRays:
         """pix: (R,) flat pixel ids. Returns canonical origins (R, 3), unit directions (R, 3), the
         per-ray map of world distances to canonical distances (R,), world→canonical rotations
         (R, 3, 3) for normals, and a validity mask (R,) (False where a non-rigid ray misses the mesh)."""
-        av = self.avatar
-        o_w, d_w = ray_directions(camera.K, camera.w2c, camera.width, camera.height)
-        o_w = o_w.reshape(-1, 3)[pix]
-        d_w = d_w.reshape(-1, 3)[pix]
-        R = pix.shape[0]
-        if rigid is not None:
-            R0, t = rigid
-            o_c, d_c = canonical_rays_rigid(o_w, d_w, R0, t, av.root_joint)
-            rot = R0.T.expand(R, 3, 3)
-            return o_c, d_c, torch.ones(R, dtype=o_w.dtype, device=o_w.device), rot, torch.ones(R, dtype=torch.bool, device=o_w.device)
+        r = self.warp.map(self.avatar, flame_inputs, camera, pix, rigid)
+        return r.origins, r.dirs, r.scale, r.rotation, r.valid
+
+
+class PoseRefinement(nn.Module):
+    """Per-timestep corrections of the FLAME global rotation, neck pose (axis-angle, added to the
+    tracked vectors) and translation (metres, added), zero-initialised.
+
+    timesteps: the timesteps that get a correction (the training timesteps).
+    """
+
+    def __init__(self, timesteps: list[int]) -> None:
+        super().__init__()
+        self.timesteps = [int(t) for t in timesteps]
+        self._row = {t: i for i, t in enumerate(self.timesteps)}
+        n = len(self.timesteps)
+        self.rotation = nn.Parameter(torch.zeros(n, 3))
+        self.neck_pose = nn.Parameter(torch.zeros(n, 3))
+        self.translation = nn.Parameter(torch.zeros(n, 3))
+
+    def has(self, timestep: int) -> bool:
+        return int(timestep) in self._row
+
+    def apply(self, inputs: dict[str, torch.Tensor], timestep: int) -> dict[str, torch.Tensor]:
+        """FLAME kwargs (batch 1) with the timestep's corrections added (differentiable)."""
+        i = self._row[int(timestep)]
+        out = dict(inputs)
+        for k in ("rotation", "neck_pose", "translation"):
+            out[k] = inputs[k] + getattr(self, k)[i].to(inputs[k])[None]
+        return out
+
+    def prior(self, length_unit: float) -> torch.Tensor:
+        """mean of squared corrections (rad², translation in units of ``length_unit``), 0-d."""
+        return (self.rotation**2).mean() + (self.neck_pose**2).mean() + ((self.translation / length_unit) ** 2).mean()
+
+    def bake(self, params: Any) -> Any:
+        """A copy of ``params`` (FlameParams) with the corrections added to their rows."""
+        import dataclasses
+
+        rot, neck, tr = params.rotation.copy(), params.neck_pose.copy(), params.translation.copy()
         with torch.no_grad():
-            verts = av.pose_mesh(flame_inputs)
-            ras = rasterize_mesh(verts, av.faces, camera.K, camera.w2c, camera.width, camera.height)
-            fid = ras.face_id.reshape(-1)[pix]
-            bary = ras.bary.reshape(-1, 3)[pix]
-            ok = fid >= 0
-            fid_s = torch.where(ok, fid, torch.zeros_like(fid))
-            hit = points_on_mesh(verts, av.faces, fid_s, bary)
-            fr_d = surfel_frames(verts, av.faces)
-            fr_c = (av.R_c, av.T_c, av.k_c)
-            hit_c = warp_points_to_canonical(hit, fid_s, fr_d, fr_c)
-            d_c = warp_directions_to_canonical(d_w, fid_s, fr_d, fr_c)
-            ratio = av.k_c[fid_s] / fr_d[2][fid_s]
-            t_hit = ((hit - o_w) * d_w).sum(-1)
-            o_c = hit_c - (t_hit * ratio)[:, None] * d_c
-            rot = av.R_c[fid_s] @ fr_d[0][fid_s].transpose(-1, -2)
-        return o_c, d_c, ratio, rot, ok
+            for t, i in self._row.items():
+                r = params.row_of(t)
+                rot[r] += self.rotation[i].cpu().numpy().astype(rot.dtype)
+                neck[r] += self.neck_pose[i].cpu().numpy().astype(neck.dtype)
+                tr[r] += self.translation[i].cpu().numpy().astype(tr.dtype)
+        return dataclasses.replace(params, rotation=rot, neck_pose=neck, translation=tr)
+
+    def summary(self) -> dict[str, float]:
+        """Mean and max magnitudes of the corrections (degrees, millimetres)."""
+        with torch.no_grad():
+            r = torch.rad2deg(self.rotation.norm(dim=-1))
+            n = torch.rad2deg(self.neck_pose.norm(dim=-1))
+            t = self.translation.norm(dim=-1) * 1000.0
+        return {
+            "pose_refine_rotation_mean_deg": float(r.mean()), "pose_refine_rotation_max_deg": float(r.max()),
+            "pose_refine_neck_mean_deg": float(n.mean()), "pose_refine_neck_max_deg": float(n.max()),
+            "pose_refine_translation_mean_mm": float(t.mean()), "pose_refine_translation_max_mm": float(t.max()),
+        }  # fmt: skip
+
+
+def mirror_transform(mirror_index: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The left-right mirror of a posed mesh: v'_i = S·v_m(i), S = diag(−1, 1, 1). (V, 3) -> (V, 3)."""
+
+    def f(verts: torch.Tensor) -> torch.Tensor:
+        s = torch.tensor([-1.0, 1.0, 1.0], dtype=verts.dtype, device=verts.device)
+        return verts[..., mirror_index.to(verts.device), :] * s
+
+    return f
+
+
+def weighted_rgb_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    """(1 − w)·mean(ω·|pred − gt|) + w·mean(ω·(1 − SSIM map)); pred, gt: (H, W, 3), weight ω: (H, W)."""
+    om = weight[..., None]
+    l1 = (om * (pred - gt).abs()).mean()
+    if ssim_weight == 0:
+        return l1
+    sm = ssim_map(pred.permute(2, 0, 1), gt.permute(2, 0, 1)).permute(1, 2, 0)
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (om * (1.0 - sm)).mean()
 
 
 class Phase1Trainer:
     """Phase-1 optimisation (see the module doc).
 
     avatar: an :class:`Avatar` (mlp or free attributes); data: the ingested capture; cfg: the
-    stage config; generator: CPU generator for every random draw (frames, rays, NeuS jitter).
+    stage config; generator: CPU generator for every random draw (frames, rays, NeuS jitter);
+    pseudo_views: one-shot pseudo views (objects with the attributes of
+    ``sage_core.train.pseudo_views.PseudoView``; ``frame_index`` indexes ``data.train``);
+    mirror_index: (V,) vertex mirror index for pseudo views with ``mirror`` set.
     """
 
     def __init__(
@@ -118,6 +191,8 @@ class Phase1Trainer:
         cfg: Phase1Config,
         device: str | torch.device = "cpu",
         generator: torch.Generator | None = None,
+        pseudo_views: list[Any] | None = None,
+        mirror_index: torch.Tensor | None = None,
     ) -> None:
         self.avatar = avatar
         self.data = data
@@ -131,15 +206,30 @@ class Phase1Trainer:
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
-        self.rays = CanonicalRays(avatar)
+        self.warp = make_warp(cfg.canonical_warp)
         self.length_unit = float(avatar.sdf.half_extent)
+        self.exposure: ExposureGain | None = None
+        if cfg.exposure != "off":
+            if cfg.exposure not in ("gain", "rgb"):
+                raise ValueError(f"exposure must be off, gain or rgb, got {cfg.exposure!r}")
+            self.exposure = ExposureGain(len(self.frames), per_channel=cfg.exposure == "rgb").to(self.device)
+        self.pose: PoseRefinement | None = None
+        if cfg.pose_refine:
+            self.pose = PoseRefinement(sorted({f.timestep for f in self.frames})).to(self.device)
+        self.sym_plane: MirrorPlane | None = None
+        if cfg.w_sym_sdf > 0 or cfg.w_sym_color > 0:
+            self.sym_plane = symmetry_plane(avatar)
+        self.pseudo_views: list[Any] = []
+        self._pseudo: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, RenderCamera]] = []
+        self._mirror: Callable[[torch.Tensor], torch.Tensor] | None = None
+        self.set_pseudo_views(pseudo_views or [], mirror_index)
         self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
         self._not_mouth = avatar.surfels.region_id != REGION_MOUTH
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
         av, c = self.avatar, self.cfg
-        return [
+        groups = [
             {"name": "sdf_mlp", "params": av.sdf.mlp_parameters(), "lr": c.lr_sdf},
             {"name": "grid", "params": av.sdf.grid_parameters(), "lr": c.lr_grid},
             {"name": "variance", "params": list(av.variance.parameters()), "lr": c.lr_variance},
@@ -152,6 +242,29 @@ class Phase1Trainer:
             lr_color=c.lr_color,
             lr_opacity=c.lr_opacity,
         )
+        if self.exposure is not None:
+            groups.append({"name": "exposure", "params": [self.exposure.log_gain], "lr": c.lr_exposure})
+        if self.pose is not None:
+            groups.append({"name": "pose_rotation", "params": [self.pose.rotation, self.pose.neck_pose], "lr": c.lr_pose_rotation})
+            groups.append({"name": "pose_translation", "params": [self.pose.translation], "lr": c.lr_pose_translation})
+        return groups
+
+    def set_pseudo_views(self, views: list[Any], mirror_index: torch.Tensor | None = None) -> None:
+        """Use these pseudo views (see the class doc); call before training starts."""
+        if any(v.mirror for v in views) and mirror_index is None:
+            raise ValueError("a mirrored pseudo view needs the vertex mirror index")
+        for v in views:
+            if not 0 <= int(v.frame_index) < len(self.frames):
+                raise ValueError(f"pseudo view {v.name!r}: frame_index {v.frame_index} is not a training frame")
+        self.pseudo_views = list(views)
+        self._pseudo = [
+            (torch.as_tensor(v.image, dtype=torch.float32, device=self.device),
+             torch.as_tensor(v.mask, dtype=torch.float32, device=self.device),
+             torch.as_tensor(v.weight, dtype=torch.float32, device=self.device),
+             RenderCamera.from_camera(v.camera, self.device))
+            for v in views
+        ]  # fmt: skip
+        self._mirror = mirror_transform(mirror_index.to(self.device)) if mirror_index is not None else None
 
     def _set_lrs(self) -> None:
         c = self.cfg
@@ -175,16 +288,35 @@ class Phase1Trainer:
         return img, mask, cam  # type: ignore[return-value]
 
     def inputs(self, timestep: int) -> dict[str, torch.Tensor]:
-        """Cached FLAME kwargs of a timestep."""
+        """Cached FLAME kwargs of a timestep (as tracked, without pose corrections)."""
         if timestep not in self._inputs:
             self._inputs[timestep] = self.avatar.frame_inputs(timestep)
             self._rigid[timestep] = self.avatar.rigid_transform(self._inputs[timestep])
         return self._inputs[timestep]
 
     def rigid(self, timestep: int) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """(R0, t) of a rigidly moved timestep, else None (cached)."""
+        """(R0, t) of a rigidly moved timestep, else None (cached; tracked parameters)."""
         self.inputs(timestep)
         return self._rigid[timestep]
+
+    def _refining(self) -> bool:
+        return self.pose is not None and self.step_count >= self.cfg.pose_refine_from
+
+    def frame_inputs(self, timestep: int) -> tuple[dict[str, torch.Tensor], tuple[torch.Tensor, torch.Tensor] | None]:
+        """FLAME kwargs of a timestep with the pose corrections once refinement has started
+        (differentiable in the corrections), and its rigid transform (recomputed when corrected)."""
+        base = self.inputs(timestep)
+        if self.pose is None or not self._refining() or not self.pose.has(timestep):
+            return base, self._rigid[timestep]
+        inp = self.pose.apply(base, timestep)
+        return inp, self.avatar.rigid_transform({k: v.detach() for k, v in inp.items()})
+
+    def _eval_inputs(self, timestep: int) -> dict[str, torch.Tensor]:
+        base = self.inputs(timestep)
+        if self.pose is None or not self.pose.has(timestep):
+            return base
+        with torch.no_grad():
+            return {k: v.detach() for k, v in self.pose.apply(base, timestep).items()}
 
     def _randint(self, n: int, size: int) -> torch.Tensor:
         return torch.randint(n, (size,), generator=self.generator)
@@ -193,19 +325,44 @@ class Phase1Trainer:
     def step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms as floats."""
         c, av = self.cfg, self.avatar
-        i = int(self._randint(len(self.frames), 1)[0])
-        fr = self.frames[i]
-        img, mask, cam = self._frame(i)
-        inputs = self.inputs(fr.timestep)
+        pv_index: int | None = None
+        if self._pseudo and c.pseudo_view_prob > 0:
+            if float(torch.rand((), generator=self.generator)) < c.pseudo_view_prob:
+                pv_index = int(self._randint(len(self._pseudo), 1)[0])
+        transform = None
+        weight: torch.Tensor | None = None
+        view_weight = 1.0
+        if pv_index is None:
+            i: int | None = int(self._randint(len(self.frames), 1)[0])
+            fr = self.frames[i]
+            img, mask, cam = self._frame(i)
+            timestep = fr.timestep
+        else:
+            i = None
+            pv = self.pseudo_views[pv_index]
+            img, mask, weight, cam = self._pseudo[pv_index]
+            timestep = self.frames[int(pv.frame_index)].timestep
+            view_weight = float(pv.view_weight)
+            if pv.mirror:
+                transform = self._mirror
+        inputs, rigid = self.frame_inputs(timestep)
         self._set_lrs()
         step = self.step_count
         use_sdf = step >= c.sdf_from
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
-        render, _ = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False)
+        render, _ = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
+                              vertex_transform=transform)
+        color = render.color
+        if self.exposure is not None and i is not None:
+            color = self.exposure.apply(color, render.alpha, i, c.background)
         terms: dict[str, torch.Tensor] = {}
-        terms["rgb"] = L.rgb_loss(render.color, img, c.ssim_weight)
-        total = terms["rgb"]
+        if weight is None:
+            terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight)
+            total = terms["rgb"]
+        else:
+            terms["pseudo_rgb"] = weighted_rgb_loss(color, img, weight, c.ssim_weight)
+            total = view_weight * terms["pseudo_rgb"]
         if c.w_normal_consistency > 0 and step >= c.normal_consistency_from:
             terms["normal_consistency"] = L.normal_consistency_loss(render.normal_world, render.surf_normal_world)
             total = total + c.w_normal_consistency * terms["normal_consistency"]
@@ -219,7 +376,16 @@ class Phase1Trainer:
             terms["pt"] = L.point_sdf_loss(canon.sdf[keep], self.length_unit)
             terms["align"] = L.align_loss(canon.normals[keep], canon.sdf_grad[keep])
             total = total + c.w_pt * terms["pt"] + c.w_align * terms["align"]
-            total = total + self._sdf_terms(terms, canon, render, img, mask, cam, inputs, fr.timestep)
+            rays = (img, mask, cam, inputs, rigid, i) if i is not None else None
+            total = total + self._sdf_terms(terms, canon, render, rays)
+            if self.sym_plane is not None:
+                total = total + self._symmetry_terms(terms, canon)
+        if self.exposure is not None and c.w_exposure_prior > 0:
+            terms["exposure_prior"] = self.exposure.prior()
+            total = total + c.w_exposure_prior * terms["exposure_prior"]
+        if self.pose is not None and self._refining() and c.w_pose_prior > 0:
+            terms["pose_prior"] = self.pose.prior(self.length_unit)
+            total = total + c.w_pose_prior * terms["pose_prior"]
 
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
@@ -232,40 +398,49 @@ class Phase1Trainer:
         out = {k: float(v.detach()) for k, v in terms.items()}
         out["loss"] = float(total.detach())
         with torch.no_grad():
-            out["psnr"] = float(psnr(render.color.detach().permute(2, 0, 1), img.permute(2, 0, 1)))
+            out["psnr"] = float(psnr(color.detach().permute(2, 0, 1), img.permute(2, 0, 1)))
+        if pv_index is not None:
+            out["pseudo_view"] = float(pv_index)
         return out
 
-    def _sdf_terms(self, terms, canon, render, img, mask, cam, inputs, timestep) -> torch.Tensor:
+    def _sdf_terms(self, terms, canon, render, rays) -> torch.Tensor:
+        """Ray terms (when ``rays`` = (img, mask, cam, inputs, rigid, frame index) of a real frame),
+        eikonal and normal smoothness."""
         c, av = self.cfg, self.avatar
-        total = img.new_zeros(())
-        fg = torch.nonzero(mask.reshape(-1) > 0.5, as_tuple=False).reshape(-1)
-        if fg.numel() > 0 and c.rays_per_step > 0:
-            pix = fg[self._randint(fg.numel(), c.rays_per_step).to(fg.device)]
-            o_c, d_c, ratio, rot, ok = self.rays.map(inputs, cam, pix, self.rigid(timestep))
-            out = render_neus(
-                av.sdf, av.appearance, o_c, d_c, av.variance, c.neus_samples, c.neus_importance, c.neus_up_steps,
-                1.0, c.background, length_unit=self.length_unit, perturb=True, generator=self.generator, return_samples=True,
-            )  # fmt: skip
-            gt = img.reshape(-1, 3)[pix]
-            terms["neus_rgb"] = L.neus_rgb_loss(out.color[ok], gt[ok])
-            total = total + c.w_neus_rgb * terms["neus_rgb"]
-            # surfel depth (camera z) -> distance along the world ray -> canonical distance
-            with torch.no_grad():
-                Rw = cam.w2c[:3, :3]
-                _, d_w = ray_directions(cam.K, cam.w2c, cam.width, cam.height)
-                dz = (d_w.reshape(-1, 3)[pix] @ Rw.T)[:, 2]
-                a = render.alpha.reshape(-1)[pix]
-                t_s = render.depth.reshape(-1)[pix] / dz.clamp_min(1e-6) * ratio
-                n_s = (rot @ render.normal_world.reshape(-1, 3)[pix][..., None]).squeeze(-1)
-            wsum = out.weights_sum
-            valid = ok & (a > 0.5) & (wsum.detach() > 0.5)
-            t_sdf = out.depth / wsum.clamp_min(1e-6)
-            terms["depth"] = L.depth_loss(t_sdf, t_s, valid, self.length_unit)
-            terms["normal"] = L.normal_loss(out.normal, n_s, valid)
-            total = total + c.w_depth * terms["depth"] + c.w_normal * terms["normal"]
-            eik = L.eikonal_loss(out.gradients, out.sample_mask)
-        else:
-            eik = img.new_zeros(())
+        total = canon.means.new_zeros(())
+        eik = canon.means.new_zeros(())
+        if rays is not None:
+            img, mask, cam, inputs, rigid, fi = rays
+            fg = torch.nonzero(mask.reshape(-1) > 0.5, as_tuple=False).reshape(-1)
+            if fg.numel() > 0 and c.rays_per_step > 0:
+                pix = fg[self._randint(fg.numel(), c.rays_per_step).to(fg.device)]
+                cr = self.warp.map(av, {k: v.detach() for k, v in inputs.items()}, cam, pix, rigid)
+                o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
+                out = render_neus(
+                    av.sdf, av.appearance, o_c, d_c, av.variance, c.neus_samples, c.neus_importance, c.neus_up_steps,
+                    1.0, c.background, length_unit=self.length_unit, perturb=True, generator=self.generator, return_samples=True,
+                )  # fmt: skip
+                gt = img.reshape(-1, 3)[pix]
+                neus_color = out.color
+                if self.exposure is not None:
+                    neus_color = self.exposure.apply(neus_color, out.weights_sum, fi, c.background)
+                terms["neus_rgb"] = L.neus_rgb_loss(neus_color[ok], gt[ok])
+                total = total + c.w_neus_rgb * terms["neus_rgb"]
+                # surfel depth (camera z) -> distance along the world ray -> canonical distance
+                with torch.no_grad():
+                    Rw = cam.w2c[:3, :3]
+                    _, d_w = ray_directions(cam.K, cam.w2c, cam.width, cam.height)
+                    dz = (d_w.reshape(-1, 3)[pix] @ Rw.T)[:, 2]
+                    a = render.alpha.reshape(-1)[pix]
+                    t_s = render.depth.reshape(-1)[pix] / dz.clamp_min(1e-6) * ratio
+                    n_s = (rot @ render.normal_world.reshape(-1, 3)[pix][..., None]).squeeze(-1)
+                wsum = out.weights_sum
+                valid = ok & (a > 0.5) & (wsum.detach() > 0.5)
+                t_sdf = out.depth / wsum.clamp_min(1e-6)
+                terms["depth"] = L.depth_loss(t_sdf, t_s, valid, self.length_unit)
+                terms["normal"] = L.normal_loss(out.normal, n_s, valid)
+                total = total + c.w_depth * terms["depth"] + c.w_normal * terms["normal"]
+                eik = L.eikonal_loss(out.gradients, out.sample_mask)
         eik = eik + L.eikonal_loss(canon.sdf_grad)
         terms["eikonal"] = eik
         total = total + c.w_eikonal * eik
@@ -280,14 +455,56 @@ class Phase1Trainer:
             total = total + c.w_smooth * terms["smooth"]
         return total
 
+    def _symmetry_terms(self, terms, canon) -> torch.Tensor:
+        """Soft left–right symmetry of the SDF and the appearance colour (see :mod:`.symmetry`)."""
+        c, av = self.cfg, self.avatar
+        plane = self.sym_plane
+        assert plane is not None
+        dt, dev = canon.means.dtype, canon.means.device
+        m = max(1, c.sym_points)
+        n_box = int(round(m * min(max(c.sym_box_fraction, 0.0), 1.0)))
+        n_surf = m - n_box
+        parts = []
+        if n_surf > 0:
+            parts.append(canon.means[self._randint(canon.means.shape[0], n_surf).to(dev)].detach())
+        if n_box > 0:
+            u = torch.rand((n_box, 3), generator=self.generator, dtype=dt).to(dev)
+            lo, hi = av.sdf.bbox_min.to(dt), av.sdf.bbox_max.to(dt)
+            parts.append(lo + u * (hi - lo))
+        pts = torch.cat(parts, 0)
+        total = pts.new_zeros(())
+        if c.w_sym_sdf > 0:
+            terms["sym_sdf"] = sdf_symmetry_loss(lambda x: av.sdf(x)[0], pts, plane, self.length_unit)
+            total = total + c.w_sym_sdf * terms["sym_sdf"]
+        if c.w_sym_color > 0:
+            dirs = torch.randn((pts.shape[0], 3), generator=self.generator, dtype=dt).to(dev)
+            dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+            def color(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+                _, grad, feat = av.sdf.gradient(x)
+                nrm = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                rgb, _ = av.appearance(x, v, nrm, feat)
+                return rgb
+
+            terms["sym_color"] = color_symmetry_loss(color, pts, dirs, plane)
+            total = total + c.w_sym_color * terms["sym_color"]
+        return total
+
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
     def render_frame(self, fr: IngestedFrame) -> tuple[torch.Tensor, torch.Tensor]:
-        """Render one ingested frame: (render (H, W, 3), ground truth (H, W, 3))."""
+        """Render one ingested frame: (render (H, W, 3), ground truth (H, W, 3)). Training frames get
+        their exposure gain; every timestep its pose correction, when these are enabled."""
         cam = RenderCamera.from_camera(fr.camera, self.device)
-        img, _ = self.avatar.render(cam, self.inputs(fr.timestep), self.cfg.background, near=self.cfg.near, far=self.cfg.far, return_statistics=False)
+        img, _ = self.avatar.render(cam, self._eval_inputs(fr.timestep), self.cfg.background, near=self.cfg.near, far=self.cfg.far, return_statistics=False)
+        color = img.color
+        if self.exposure is not None and fr.role == "train":
+            for j, t in enumerate(self.frames):
+                if t.timestep == fr.timestep and t.camera_index == fr.camera_index:
+                    color = self.exposure.apply(color, img.alpha, j, self.cfg.background)
+                    break
         gt = torch.as_tensor(self.data.load_image(fr), device=self.device)
-        return img.color.clamp(0, 1), gt
+        return color.clamp(0, 1), gt
 
     @torch.no_grad()
     def evaluate(self, split: str = "val", max_frames: int | None = None, return_images: bool = False) -> dict[str, Any]:
@@ -314,8 +531,9 @@ class Phase1Trainer:
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume exactly: avatar (incl. bindings), optimizer, RNGs, step."""
-        return {
+        """Everything needed to resume exactly: avatar (incl. bindings), optimizer, RNGs, step,
+        exposure gains and pose corrections when enabled."""
+        st = {
             "format": STATE_FORMAT,
             "step": self.step_count,
             "avatar": {k: v.detach().clone() for k, v in self.avatar.state_dict().items() if not k.startswith("flame.")},
@@ -323,15 +541,49 @@ class Phase1Trainer:
             "generator": self.generator.get_state(),
             "rng": rng_state(),
         }
+        if self.exposure is not None:
+            st["exposure"] = {k: v.detach().clone() for k, v in self.exposure.state_dict().items()}
+        if self.pose is not None:
+            st["pose"] = {k: v.detach().clone() for k, v in self.pose.state_dict().items()}
+        return st
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict` (same surfel count)."""
+        """Restore :meth:`state_dict` (same surfel count and options)."""
         self.avatar.load_state_dict(state["avatar"], strict=False)
+        if self.exposure is not None and "exposure" in state:
+            self.exposure.load_state_dict(state["exposure"])
+        if self.pose is not None and "pose" in state:
+            self.pose.load_state_dict(state["pose"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         set_rng_state(state["rng"])
         self.step_count = int(state["step"])
         self._not_mouth = self.avatar.surfels.region_id != REGION_MOUTH
+
+
+def symmetry_plane(avatar: Avatar) -> MirrorPlane | None:
+    """The canonical sagittal plane: the template's x = 0 mirror pairs
+    (:func:`sage_core.flame.mirror.model_mirror`, teeth and mouth interior included) fitted on the
+    canonical mesh; None when the template is not mirror-symmetric."""
+    from ..flame.mirror import model_mirror
+
+    mm, _ = model_mirror(avatar.model_data)
+    if mm is None:
+        return None
+    return plane_from_pairs(avatar.canonical_vertices, torch.as_tensor(mm.vertex, device=avatar.canonical_vertices.device))
+
+
+def one_shot_pseudo_views(data: IngestedData, avatar: Avatar, cfg: Phase1Config) -> tuple[list[Any], torch.Tensor | None]:
+    """Pseudo views and the vertex mirror index for a one-shot capture (``sage_core.train.pseudo_views``);
+    none for the other regimes, or when that module is not installed."""
+    if data.regime != "one-shot":
+        return [], None
+    try:
+        from .pseudo_views import build_pseudo_views  # type: ignore[import-not-found]
+    except ImportError:
+        return [], None
+    views, mirror_index = build_pseudo_views(data, avatar, cfg)
+    return list(views), mirror_index
 
 
 def _mesh_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
@@ -365,7 +617,8 @@ def run_phase1(
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     avatar = build_avatar(data, init_dir, cfg, device, gen)
-    trainer = Phase1Trainer(avatar, data, cfg, device, gen)
+    views, mirror_index = one_shot_pseudo_views(data, avatar, cfg)
+    trainer = Phase1Trainer(avatar, data, cfg, device, gen, pseudo_views=views, mirror_index=mirror_index)
     if checkpoint_dir is not None:
         ck = latest_checkpoint(checkpoint_dir)
         if ck is not None:
@@ -392,11 +645,15 @@ def run_phase1(
         progress(total, total, "evaluating")
     val = trainer.evaluate("val", return_images=True)
     train = trainer.evaluate("train", max_frames=16)
+    single_camera = data.regime in ("sv-hr", "one-shot")
+    test = trainer.evaluate("test") if single_camera else None
     renders = out_dir / "renders"
     renders.mkdir(parents=True, exist_ok=True)
     for fr, pred, gt in val.pop("images"):
         err = np.repeat(np.clip(np.abs(pred - gt).mean(-1, keepdims=True) * 4.0, 0, 1), 3, axis=-1)
         write_image(renders / f"val_t{fr.timestep:05d}_c{fr.camera_index:02d}.png", np.concatenate([gt, pred, err], 1))
+    if trainer.pose is not None:
+        avatar.params = trainer.pose.bake(avatar.params)
     avatar.save(out_dir / "avatar.pt")
 
     if progress is not None:
@@ -431,5 +688,21 @@ def run_phase1(
         "train_time_s": train_time,
         "final_losses": last,
     }
+    if single_camera:
+        assert test is not None
+        metrics.update({"regime": data.regime, "test_psnr": test["psnr"], "test_ssim": test["ssim"], "test_images": test["n"]})
+    if trainer.exposure is not None:
+        g = trainer.exposure.gains().detach().cpu()
+        metrics["exposure_gains"] = {f"t{fr.timestep:05d}_c{fr.camera_index:02d}": [float(x) for x in g[j]] for j, fr in enumerate(trainer.frames)}
+        metrics["exposure_gain_min"] = float(g.min())
+        metrics["exposure_gain_max"] = float(g.max())
+    if trainer.pose is not None:
+        metrics.update(trainer.pose.summary())
+    if trainer.sym_plane is not None:
+        metrics["symmetry_plane_normal"] = [float(x) for x in trainer.sym_plane.normal]
+        metrics["symmetry_plane_offset_m"] = float(trainer.sym_plane.offset)
+        metrics["symmetry_plane_residual_m"] = trainer.sym_plane.residual
+    if data.regime == "one-shot":
+        metrics["pseudo_views"] = len(trainer.pseudo_views)
     atomic_write_json(out_dir / "metrics.json", metrics)
     return metrics

@@ -1,0 +1,104 @@
+"""End to end through the CLI: a synthetic monocular clip as sv-hr, and a single image as one-shot
+(synth → ingest → init-mesh → phase 1 with a few iterations)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sage_cli.app import app
+
+_INIT = ["--preset", "tiny", "--steps", "10", "--mc-resolution", "24", "--set", "pretrain.bank_size=3000",
+         "--set", "pretrain.batch_size=512", "--set", "pretrain.eval_samples=1000", "--quiet", "--device", "cpu"]  # fmt: skip
+_P1 = ["--preset", "tiny", "--device", "cpu", "--iterations", "3", "--surfels", "500"] + [
+    a for kv in ("rays_per_step=32", "neus_samples=8", "neus_importance=8", "neus_up_steps=1", "app_hidden=16",
+                 "shape_hidden=16", "smooth_points=64", "sym_points=64", "mc_resolution=24", "eval_every=0")
+    for a in ("--set", kv)
+]  # fmt: skip
+
+
+@pytest.fixture
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _ok(res) -> None:
+    assert res.exit_code == 0, res.output
+
+
+def _finite(d: dict) -> bool:
+    return all(math.isfinite(v) for v in d.values())
+
+
+def test_svhr_end_to_end(tmp_path, one_thread):
+    r = CliRunner()
+    cap, ws = tmp_path / "cap", tmp_path / "ws"
+    _ok(r.invoke(app, ["synth", str(cap), "--preset", "tiny", "--regime", "monocular", "--width", "48", "--height", "69",
+                       "--train-timesteps", "4", "--test-timesteps", "1", "--quiet"]))
+    model = cap / "model" / "synth_flame.pkl"
+    res = r.invoke(app, ["ingest", str(cap), str(ws), "--regime", "sv-hr", "--flame-model", str(model), "--device", "cpu"])
+    _ok(res)
+    assert "head coverage" in res.output and "yaw" in res.output
+    manifest = json.loads((ws / "data" / "manifest.json").read_text())
+    m = manifest["metrics"]
+    assert m["regime"] == "sv-hr"
+    assert m["coverage_yaw_min_deg"] < -40 and m["coverage_yaw_max_deg"] > 40 and m["coverage_narrow"] is False
+    _ok(r.invoke(app, ["init-mesh", str(ws), *_INIT]))
+    res = r.invoke(app, ["phase1", str(ws), *_P1, "--set", "pose_refine=true", "--set", "pose_refine_from=1"])
+    _ok(res)
+    assert "head coverage (sv-hr): yaw" in res.output and "test PSNR" in res.output
+    cfg = json.loads((ws / "phase1" / "config.json").read_text())
+    assert cfg["app_sh_degree"] == 0 and cfg["exposure"] == "gain" and cfg["w_sym_sdf"] > 0 and cfg["w_sym_color"] > 0
+    metrics = json.loads((ws / "phase1" / "metrics.json").read_text())
+    assert _finite(metrics["final_losses"]) and "sym_sdf" in metrics["final_losses"]
+    gains = metrics["exposure_gains"]
+    assert len(gains) == 4 and all(len(g) == 1 and 0.5 < g[0] < 2.0 for g in gains.values())
+    assert math.isfinite(metrics["test_psnr"]) and metrics["test_images"] == 1
+    assert metrics["pose_refine_rotation_max_deg"] > 0
+    assert abs(metrics["symmetry_plane_normal"][0]) > 0.99
+    p1 = json.loads((ws / "phase1" / "manifest.json").read_text())["metrics"]
+    assert "exposure_gain_min" in p1 and "exposure_gains" not in p1
+
+
+def test_svhr_warns_on_a_narrow_clip(tmp_path, one_thread):
+    """A multiview capture restricted to its frontal camera sees the head from one direction only."""
+    r = CliRunner()
+    cap, ws = tmp_path / "cap", tmp_path / "ws"
+    _ok(r.invoke(app, ["synth", str(cap), "--preset", "tiny", "--width", "32", "--height", "46", "--cameras", "3",
+                       "--train-timesteps", "2", "--test-timesteps", "1", "--quiet"]))
+    model = cap / "model" / "synth_flame.pkl"
+    res = r.invoke(app, ["ingest", str(cap), str(ws), "--regime", "sv-hr", "--flame-model", str(model), "--device", "cpu"])
+    assert res.exit_code != 0 and "transforms_train.json" in res.output and "sv-hr needs one camera" in res.output
+    res = r.invoke(app, ["ingest", str(cap), str(ws), "--regime", "sv-hr", "--camera", "1", "--flame-model", str(model), "--device", "cpu"])
+    _ok(res)
+    assert "narrower than ±45°" in res.output
+    m = json.loads((ws / "data" / "manifest.json").read_text())["metrics"]
+    assert m["coverage_narrow"] is True and m["train_cameras"] == 1 and m["val_images"] >= 2
+
+
+def test_one_shot_end_to_end(tmp_path, one_thread):
+    r = CliRunner()
+    cap, ws = tmp_path / "cap", tmp_path / "ws"
+    _ok(r.invoke(app, ["synth", str(cap), "--preset", "tiny", "--regime", "oneshot", "--width", "48", "--height", "69", "--quiet"]))
+    model = cap / "model" / "synth_flame.pkl"
+    _ok(r.invoke(app, ["ingest", str(cap), str(ws), "--regime", "one-shot", "--flame-model", str(model), "--quiet", "--device", "cpu"]))
+    m = json.loads((ws / "data" / "manifest.json").read_text())["metrics"]
+    assert m["train_images"] == 1 and "coverage_yaw_min_deg" in m
+    _ok(r.invoke(app, ["init-mesh", str(ws), *_INIT]))
+    res = r.invoke(app, ["phase1", str(ws), *_P1, "--set", "pseudo_view_prob=0.7", "--set", "exposure=rgb", "--quiet"])
+    _ok(res)
+    cfg = json.loads((ws / "phase1" / "config.json").read_text())
+    assert cfg["app_sh_degree"] == 0 and cfg["exposure"] == "rgb" and cfg["w_sym_sdf"] > 0 and cfg["pseudo_view_prob"] == 0.7
+    metrics = json.loads((ws / "phase1" / "metrics.json").read_text())
+    assert _finite(metrics["final_losses"])
+    assert len(metrics["exposure_gains"]) == 1 and len(next(iter(metrics["exposure_gains"].values()))) == 3
+    if importlib.util.find_spec("sage_core.train.pseudo_views") is not None:
+        assert metrics["pseudo_views"] > 0
