@@ -24,9 +24,7 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
 
-from ..flame.frames import surfel_frames
-from ..render.mesh_raster import points_on_mesh, ray_directions, rasterize_mesh, warp_directions_to_canonical, warp_points_to_canonical
-from .warp import CanonicalRays
+from .warp import CanonicalRays, pixel_rays, rigid_rays_to_canonical, warp_pixels_to_canonical
 
 if TYPE_CHECKING:
     from ..avatar.model import Avatar
@@ -53,11 +51,6 @@ class CanonicalWarp(Protocol):
         rigid motion of canonical (:meth:`Avatar.rigid_transform`), else None. Returns the rays
         (R of them), computed without gradients."""
         ...
-
-
-def _pixel_rays(camera: RenderCamera, pix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    o_w, d_w = ray_directions(camera.K, camera.w2c, camera.width, camera.height)
-    return o_w.reshape(-1, 3)[pix], d_w.reshape(-1, 3)[pix]
 
 
 def rigid_head_map(x: torch.Tensor, R0: torch.Tensor, t: torch.Tensor, J0: torch.Tensor) -> torch.Tensor:
@@ -87,15 +80,8 @@ class RigidFlameWarp:
                 raise ValueError("the frame is not a rigid motion of canonical space (neck, jaw, eyes or expression differ)")
         R0, t = rigid
         with torch.no_grad():
-            o_w, d_w = _pixel_rays(camera, pix)
-            R = pix.shape[0]
-            o_c = rigid_head_map_inverse(o_w, R0, t, avatar.root_joint)
-            d_c = d_w @ R0
-            ones = torch.ones(R, dtype=o_w.dtype, device=o_w.device)
-            return CanonicalRays(
-                o_c, d_c, ones, R0.T.expand(R, 3, 3), torch.full((R,), -1, dtype=torch.long, device=o_w.device),
-                torch.ones(R, dtype=torch.bool, device=o_w.device), torch.full_like(ones, float("inf")),
-            )  # fmt: skip
+            o_w, d_w = pixel_rays(camera.K, camera.w2c, camera.width, camera.height, pix)
+            return rigid_rays_to_canonical(o_w, d_w, R0, t, avatar.root_joint)
 
 
 class TriangleFrameWarp:
@@ -110,24 +96,9 @@ class TriangleFrameWarp:
         rigid: Rigid | None = None,
     ) -> CanonicalRays:
         with torch.no_grad():
-            o_w, d_w = _pixel_rays(camera, pix)
             verts = avatar.pose_mesh(flame_inputs)
-            ras = rasterize_mesh(verts, avatar.faces, camera.K, camera.w2c, camera.width, camera.height)
-            fid = ras.face_id.reshape(-1)[pix]
-            bary = ras.bary.reshape(-1, 3)[pix]
-            ok = fid >= 0
-            fid_s = torch.where(ok, fid, torch.zeros_like(fid))
-            hit = points_on_mesh(verts, avatar.faces, fid_s, bary)
-            fr_d = surfel_frames(verts, avatar.faces)
-            fr_c = (avatar.R_c, avatar.T_c, avatar.k_c)
-            hit_c = warp_points_to_canonical(hit, fid_s, fr_d, fr_c)
-            d_c = warp_directions_to_canonical(d_w, fid_s, fr_d, fr_c)
-            ratio = avatar.k_c[fid_s] / fr_d[2][fid_s]
-            t_hit = ((hit - o_w) * d_w).sum(-1)
-            o_c = hit_c - (t_hit * ratio)[:, None] * d_c
-            rot = avatar.R_c[fid_s] @ fr_d[0][fid_s].transpose(-1, -2)
-            t_hit = torch.where(ok, t_hit, torch.full_like(t_hit, float("inf")))
-            return CanonicalRays(o_c, d_c, ratio, rot, fid.long(), ok, t_hit)
+            return warp_pixels_to_canonical(verts, avatar.faces, (avatar.R_c, avatar.T_c, avatar.k_c), camera.K, camera.w2c,
+                                            camera.width, camera.height, pix)  # fmt: skip
 
 
 class AutoWarp:
