@@ -51,7 +51,7 @@ def test_depth_loss_masked_mean_and_gradient_to_sdf_side_only():
     surf_d = torch.tensor([1.5, 2.0, 10.0], dtype=torch.float64)
     mask = torch.tensor([True, True, False])
     loss = L.depth_loss(sdf_d, surf_d.detach(), mask, scale=0.5)
-    assert float(loss) == pytest.approx(0.5)  # mean(0.5, 0) / 0.5
+    assert float(loss.detach()) == pytest.approx(0.5)  # mean(0.5, 0) / 0.5
     loss.backward()
     assert torch.allclose(sdf_d.grad, torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64))
 
@@ -67,7 +67,7 @@ def test_normal_loss_zero_when_equal_up_to_length_and_known_value():
 def test_eikonal_and_smoothness():
     g = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64, requires_grad=True)
     loss = L.eikonal_loss(g)
-    assert float(loss) == pytest.approx(8.0)  # ((5-1)^2 + 0) / 2
+    assert float(loss.detach()) == pytest.approx(8.0)  # ((5-1)^2 + 0) / 2
     loss.backward()
     assert float(g.grad[1].abs().sum()) == pytest.approx(0.0)
     n = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -96,6 +96,6 @@ def test_neus_rgb_loss():
     a = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
     b = torch.full((4, 3), 0.5, dtype=torch.float64)
     loss = L.neus_rgb_loss(a, b)
-    assert float(loss) == pytest.approx(0.5)
+    assert float(loss.detach()) == pytest.approx(0.5)
     loss.backward()
     assert torch.allclose(a.grad, torch.full((4, 3), -1.0 / 12, dtype=torch.float64))

@@ -319,3 +319,17 @@ def test_mouth_prior_faces_and_colours(phase1_avatar_path, p2_data, p2_init_dir)
     assert not bool(none.any())
     tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
     assert not bool(tr.prior_faces.any())
+
+
+def test_free_surfels_keep_opacity_scale_rotation_by_default(p2_data, p2_init_dir):
+    cfg1 = resolve_config("phase1", "tiny", None, {**P1_FLAGS, "attributes": "free"})
+    av = build_avatar(p2_data, p2_init_dir, cfg1, "cpu", torch.Generator().manual_seed(0))
+    tr = Phase2Trainer(av, p2_data, _cfg(), "cpu", torch.Generator().manual_seed(0), p2_init_dir)
+    names = {g["name"] for g in tr.optimizer.param_groups}
+    assert {"mu_loc", "sh_dc"} <= names and not names & {"opacity", "s_loc", "q_loc"}
+    before = {k: getattr(av.surfels, k).detach().clone() for k in ("opacity", "s_loc", "q_loc")}
+    tr.step()
+    for k, v in before.items():
+        assert torch.equal(getattr(av.surfels, k), v)
+    tr2 = Phase2Trainer(av, p2_data, _cfg(lr_opacity=1e-2), "cpu", torch.Generator().manual_seed(0), p2_init_dir)
+    assert "opacity" in {g["name"] for g in tr2.optimizer.param_groups}
