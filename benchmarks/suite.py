@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         "settings": {"preset": size.preset, "synth_preset": size.synth_preset, "seed": args.seed, "device": args.device,
                      "lpips_weights": str(settings.lpips_weights) if settings.lpips_weights else None,
                      "overrides": {k: list(v) for k, v in overrides.items()}, "out": str(out)},  # fmt: skip
-        "runs": [{"started_at": started, "finished_at": now_iso(), "wall_s": round(time.time() - t0, 1), "rows": rows,
+        "runs": [{"started_at": started, "finished_at": now_iso(), "wall_s": round(time.time() - t0, 1), "rows": rows, "command": suite_cmd,
                   "load_start": [round(x, 2) for x in load0], "load_end": [round(x, 2) for x in os.getloadavg()]}],  # fmt: skip
         "steps": records,
         "rows": row_docs,

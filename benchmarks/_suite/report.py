@@ -286,7 +286,7 @@ def render_markdown(results: dict[str, Any]) -> str:
         lines += ["**Smoke test: a few steps per stage on a reduced capture. These numbers check the machinery and say",
                   "nothing about the method.**", ""]  # fmt: skip
     lines += [
-        f"- Suite command: `{results.get('suite_command', DASH)}`",
+        f"- Suite command (latest run): `{results.get('suite_command', DASH)}`",
         f"- Machine: {m.get('cpu', DASH)}, {m.get('usable_cores', DASH)} usable of {m.get('cores', DASH)} cores, "
         f"{m.get('memory_gib', DASH)} GiB RAM, {m.get('os', DASH)}; Python {m.get('python', DASH)}, torch {m.get('torch', DASH)}; "
         f"device `{m.get('device', DASH)}`" + (f" ({m['gpu']}, {m.get('gpu_memory_gib')} GiB)" if m.get("gpu") else ""),
@@ -295,7 +295,8 @@ def render_markdown(results: dict[str, Any]) -> str:
     ]
     for run in results.get("runs") or []:
         lines.append(f"- Run {run.get('started_at', DASH)} → {run.get('finished_at', DASH)} ({fmt(run.get('wall_s'), 0)} s), rows "
-                     f"{', '.join(run.get('rows') or [])}; load average at start / end: {run.get('load_start', DASH)} / {run.get('load_end', DASH)}")  # fmt: skip
+                     f"{', '.join(run.get('rows') or [])}; load average at start / end: {run.get('load_start', DASH)} / {run.get('load_end', DASH)}"
+                     + (f"; `{run['command']}`" if run.get("command") else ""))  # fmt: skip
     lines.append("")
     lines += ["### Novel view and self-reenactment (multiview rows)", "",
               "Val = novel view (the held-out frontal camera at the training timesteps); Frontal / All = self-reenactment",
