@@ -4,18 +4,17 @@ and the phase-1 trainer with exposure, pose refinement (exact resume) and a mirr
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
 import torch
 
 from sage_core.config import REGIME_OVERRIDES, resolve_config, to_dict
-from sage_core.data.cameras import Camera
 from sage_core.data.dataset import IngestedData
 from sage_core.errors import ConfigError
 from sage_core.flame.mirror import mirror_correspondence, model_mirror
 from sage_core.train.exposure import ExposureGain
+from sage_core.train.pseudo_views import PseudoView
 from sage_core.train.symmetry import (
     MirrorPlane,
     color_symmetry_loss,
@@ -219,18 +218,6 @@ def test_svhr_steps_with_exposure_and_pose_refinement_resume_exactly(svhr_ws, on
     assert np.allclose(baked.rotation[r] - tr.avatar.params.rotation[r], tr.pose.rotation.detach()[0].numpy(), atol=1e-7)
 
 
-@dataclass
-class _PseudoView:
-    name: str
-    camera: Camera
-    image: torch.Tensor
-    mask: torch.Tensor
-    weight: torch.Tensor
-    frame_index: int
-    mirror: bool
-    view_weight: float
-
-
 def test_mirrored_pseudo_view_trains_with_weighted_loss(svhr_ws, one_thread):
     from sage_core.train.phase1 import mirror_transform
 
@@ -240,7 +227,7 @@ def test_mirrored_pseudo_view_trains_with_weighted_loss(svhr_ws, one_thread):
     mask = torch.as_tensor(data.load_mask(fr))
     weight = mask.clone()
     weight[:, : weight.shape[1] // 2] = 0.0
-    view = _PseudoView("mirror-0", fr.camera, img.flip(1), mask.flip(1), weight, 0, True, 0.5)
+    view = PseudoView("mirror-0", fr.camera, img.flip(1), mask.flip(1), weight, 0, True, 0.5)
     tr0 = _trainer(svhr_ws)
     mm, reason = model_mirror(tr0.avatar.model_data)
     assert mm is not None, reason
@@ -265,7 +252,7 @@ def test_mirrored_pseudo_view_trains_with_weighted_loss(svhr_ws, one_thread):
         plain = av.posed(inputs, None)
         assert not torch.allclose(p.means, plain.means)
     # a zero weight map gives a zero photometric term
-    zero = _PseudoView("blank", fr.camera, img, mask, torch.zeros_like(weight), 0, False, 1.0)
+    zero = PseudoView("blank", fr.camera, img, mask, torch.zeros_like(weight), 0, False, 1.0)
     tr3 = _trainer(svhr_ws, views=[zero], mirror=None, pseudo_view_prob=1.0)
     assert tr3.step()["pseudo_rgb"] == 0.0
 

@@ -156,12 +156,9 @@ class PoseRefinement(nn.Module):
 
 def mirror_transform(mirror_index: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
     """The left-right mirror of a posed mesh: v'_i = S·v_m(i), S = diag(−1, 1, 1). (V, 3) -> (V, 3)."""
+    from .pseudo_views import mirror_vertices
 
-    def f(verts: torch.Tensor) -> torch.Tensor:
-        s = torch.tensor([-1.0, 1.0, 1.0], dtype=verts.dtype, device=verts.device)
-        return verts[..., mirror_index.to(verts.device), :] * s
-
-    return f
+    return lambda verts: mirror_vertices(verts, mirror_index)
 
 
 def weighted_rgb_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
@@ -575,13 +572,11 @@ def symmetry_plane(avatar: Avatar) -> MirrorPlane | None:
 
 def one_shot_pseudo_views(data: IngestedData, avatar: Avatar, cfg: Phase1Config) -> tuple[list[Any], torch.Tensor | None]:
     """Pseudo views and the vertex mirror index for a one-shot capture (``sage_core.train.pseudo_views``);
-    none for the other regimes, or when that module is not installed."""
+    none for the other regimes."""
     if data.regime != "one-shot":
         return [], None
-    try:
-        from .pseudo_views import build_pseudo_views  # type: ignore[import-not-found]
-    except ImportError:
-        return [], None
+    from .pseudo_views import build_pseudo_views
+
     views, mirror_index = build_pseudo_views(data, avatar, cfg)
     return list(views), mirror_index
 
