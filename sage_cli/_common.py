@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
+import numbers
 import time
 from pathlib import Path
 from typing import Annotated, Any, Callable, Iterator, Optional
@@ -139,9 +141,21 @@ class ProgressDisplay:
             self._last_log = now
 
 
+MISSING = "—"
+"""What the panels and tables show for a metric that was not measured (None or NaN)."""
+
+
+def fmt_metric(v: Any, spec: str = ".4g") -> str:
+    """A metric for display: ``format(v, spec)``, or :data:`MISSING` where there is no value
+    (None, NaN, or anything that is not a real number; a bool is not a metric)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or math.isnan(v):
+        return MISSING
+    return format(v, spec)
+
+
 def _fmt_stat(k: str, v: Any) -> str:
     if isinstance(v, float):
-        return f"{k} {v:.4g}"
+        return f"{k} {fmt_metric(v)}"
     return f"{k} {v}"
 
 
@@ -159,7 +173,7 @@ def summary_panel(title: str, rows: list[tuple[str, Any]], paths: list[tuple[str
 
 def _fmt_value(v: Any) -> str:
     if isinstance(v, float):
-        return f"{v:.4g}"
+        return fmt_metric(v)
     if isinstance(v, (list, tuple)):
         return ", ".join(_fmt_value(x) for x in v)
     return str(v)

@@ -97,13 +97,14 @@ def merge_results(old: dict[str, Any] | None, new: dict[str, Any]) -> dict[str, 
 # --------------------------------------------------------------------------------------------
 
 
+def present(v: Any) -> bool:
+    """Whether ``v`` is a measured number (None, NaN, a bool or a non-number is not)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
+
+
 def fmt(v: Any, digits: int) -> str:
     """A number with ``digits`` decimals, or the dash for a missing value."""
-    if v is None or isinstance(v, bool) or not isinstance(v, (int, float)):
-        return DASH
-    if v != v:  # NaN
-        return DASH
-    return f"{v:.{digits}f}"
+    return f"{v:.{digits}f}" if present(v) else DASH
 
 
 def _triple(m: dict[str, Any] | None) -> list[str]:
@@ -196,9 +197,8 @@ def _cost_table(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def _delta(a: Any, b: Any) -> float | None:
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-        return float(a) - float(b)
-    return None
+    """``a - b``, or None where either is missing (None, NaN or not a number)."""
+    return float(a) - float(b) if present(a) and present(b) else None
 
 
 def _sgn(v: float | None, digits: int = 2) -> str:

@@ -25,7 +25,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from .._common import ConfigOpt, ForceOpt, PresetOpt, SeedOpt, SetOpt, VerboseOpt, cli_errors, console, err_console
+from .._common import ConfigOpt, ForceOpt, PresetOpt, SeedOpt, SetOpt, VerboseOpt, cli_errors, console, err_console, fmt_metric
 
 _PSNR_RE = re.compile(r"(?<![\w])psnr (-?[0-9][0-9.eE+-]*)")
 
@@ -250,7 +250,7 @@ def _table(rows: dict[str, dict[str, Any]]) -> Any:
         el = r.get("elapsed")
         psnr = r.get("psnr")
         t.add_row(sid, f"[{colors.get(state, 'white')}]{state}[/]", str(r.get("stage") or ""), prog,
-                  f"{el:.0f} s" if isinstance(el, (int, float)) else "", f"{psnr:.2f}" if isinstance(psnr, (int, float)) else "")  # fmt: skip
+                  f"{el:.0f} s" if isinstance(el, (int, float)) else "", fmt_metric(psnr, ".2f"))  # fmt: skip
     return t
 
 
@@ -479,7 +479,7 @@ class _BatchRun:
             t.add_column(col)
         for o in self.outcomes.values():
             vp, tp = o.metrics.get("val_psnr"), o.metrics.get("test_psnr")
-            t.add_row(o.id, o.status, f"{o.wall_time_s:.1f} s", "" if vp is None else f"{vp:.2f}", "" if tp is None else f"{tp:.2f}", o.error or "")
+            t.add_row(o.id, o.status, f"{o.wall_time_s:.1f} s", fmt_metric(vp, ".2f"), fmt_metric(tp, ".2f"), o.error or "")
         console.print(t)
         console.print(f"summary: {jp}\n         {mp}")
         failed = [o.id for o in self.outcomes.values() if o.status != "finished" and o.status != "skipped"]

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .._common import cli_errors, console
+from .._common import cli_errors, console, fmt_metric
 
 
 def _age(iso: str | None) -> str:
@@ -45,7 +45,7 @@ def _metrics(stage: str, m: dict | None, limit: int = 3) -> str:
         v = metrics[k]
         if isinstance(v, bool) or not isinstance(v, (int, float, str)):
             continue
-        parts.append(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}")
+        parts.append(f"{k} {fmt_metric(v)}" if isinstance(v, float) else f"{k} {v}")
         if len(parts) >= limit:
             break
     return "\n".join(parts)

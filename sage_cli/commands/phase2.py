@@ -8,6 +8,7 @@ from typing import Annotated, Any, Optional
 import typer
 
 from .._common import (
+    MISSING,
     ConfigOpt,
     DeviceOpt,
     ForceOpt,
@@ -16,6 +17,7 @@ from .._common import (
     SetOpt,
     VerboseOpt,
     cli_errors,
+    fmt_metric,
     parse_sets,
     resolve_stage_config,
     summary_panel,
@@ -24,14 +26,10 @@ from .._stage import StageOptions, execute_stage
 
 
 def _fmt_means(m: dict[str, Any] | None) -> str:
+    """PSNR / SSIM / LPIPS means of one evaluation block; the dash for a block or metric not measured."""
     if not m:
-        return "n/a"
-
-    def num(v: Any, digits: int) -> str:
-        return f"{v:.{digits}f}" if isinstance(v, (int, float)) else str(v)
-
-    lp = m.get("lpips")
-    return f"{num(m.get('psnr'), 2)} dB / {num(m.get('ssim'), 4)} / LPIPS {num(lp, 4) if lp is not None else 'n/a'}"
+        return MISSING
+    return f"{fmt_metric(m.get('psnr'), '.2f')} dB / {fmt_metric(m.get('ssim'), '.4f')} / LPIPS {fmt_metric(m.get('lpips'), '.4f')}"
 
 
 def phase2(

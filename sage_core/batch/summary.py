@@ -119,7 +119,7 @@ def summary_markdown(outcomes: list[SubjectOutcome], counts: dict[str, int] | No
     """A markdown table: subject, status, wall time, val/test PSNR and SSIM, error."""
 
     def num(v: Any, d: int) -> str:
-        return f"{v:.{d}f}" if isinstance(v, (int, float)) else "–"
+        return f"{v:.{d}f}" if isinstance(v, (int, float)) and not isinstance(v, bool) and v == v else "—"
 
     lines = [
         "| subject | status | wall time (s) | val PSNR | val SSIM | test PSNR | test SSIM | error |",
