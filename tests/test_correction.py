@@ -306,3 +306,28 @@ def test_cuda_matches_cpu():
     gpu = corr.to("cuda")(*(a.cuda() for a in args))
     assert torch.allclose(gpu.quat.cpu(), cpu.quat, atol=1e-10)
     assert torch.allclose(gpu.scale_factor.cpu(), cpu.scale_factor, atol=1e-10)
+
+
+def test_anisotropy_gate_keeps_orientation_at_rest_and_turns_under_anisotropic_stretch():
+    verts, faces = _grid()
+    corr, binding = _setup(verts, faces, umbilic_tol=0.0, anisotropy_tol=0.1)
+    N = binding.numel()
+    g = torch.Generator().manual_seed(5)
+    spin = (torch.rand(N, generator=g, dtype=DT) - 0.5) * 2 * math.pi
+    rot = _surfels(verts, faces, binding, spin)
+    n = quat_to_matrix(rot)[..., 2]
+    d1 = torch.tensor([1.0, 0.0, 0.0], dtype=DT).expand(N, 3)
+    dirs = torch.stack([d1, torch.linalg.cross(n, d1, dim=-1)], -2)
+    kappa = torch.tensor([40.0, -10.0], dtype=DT).expand(N, 2)
+    ungated, _ = _setup(verts, faces, umbilic_tol=0.0)
+    full = ungated(verts, binding, rot, n, kappa, dirs)
+    assert full.angle.abs().max() > 0.3
+    # at rest and under uniform scaling: no turn
+    for posed in (verts, 1.5 * verts):
+        out = corr(posed, binding, rot, n, kappa, dirs)
+        assert float(out.angle.abs().max()) < 1e-8
+    # 5 % anisotropy: half the turn; 30 %: the full turn
+    for sx, frac in ((1.05, 0.5), (1.3, 1.0)):
+        posed = verts * torch.tensor([sx, 1.0, 1.0], dtype=DT)
+        out = corr(posed, binding, rot, n, kappa, dirs)
+        torch.testing.assert_close(out.angle, frac * full.angle, atol=1e-9, rtol=1e-6)

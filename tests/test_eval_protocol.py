@@ -153,6 +153,9 @@ def test_sample_strips(data, frames, tmp_path):
         np.testing.assert_allclose(img[:, 2 * w:], min(1.0, 0.1 * ERROR_GAIN), atol=1.5 / 255)
     doc = json.loads((tmp_path / "metrics.json").read_text())
     assert len(doc["samples"]) == 3 and doc["lpips_available"] is False
+    # written relative to the metrics file, so they survive moving the result folder
+    assert doc["samples"] == [p.relative_to(tmp_path).as_posix() for p in report.samples]
+    assert all((tmp_path / s).is_file() for s in doc["samples"])
     assert doc["overall"]["lpips"] is None and doc["protocol"]["lpips"].startswith("unavailable")
 
 

@@ -166,7 +166,7 @@ def test_sample_pixels_prefers_high_error():
 
 
 def test_sdf_frozen_teacher_detached(phase1_avatar_path, p2_data, p2_init_dir):
-    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir)
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, teacher="neus")
     av = tr.avatar
     sdf0 = {k: v.clone() for k, v in av.sdf.state_dict().items()}
     teach0 = {k: v.clone() for k, v in tr.teacher_app.state_dict().items()}
@@ -333,3 +333,76 @@ def test_free_surfels_keep_opacity_scale_rotation_by_default(p2_data, p2_init_di
         assert torch.equal(getattr(av.surfels, k), v)
     tr2 = Phase2Trainer(av, p2_data, _cfg(lr_opacity=1e-2), "cpu", torch.Generator().manual_seed(0), p2_init_dir)
     assert "opacity" in {g["name"] for g in tr2.optimizer.param_groups}
+
+
+def test_rest_teacher_keeps_no_neus_copy(phase1_avatar_path, p2_data, p2_init_dir):
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir)
+    assert tr.rest_teacher is not None and tr.teacher_app is None and tr.teacher_variance is None
+    state = tr.state_dict()
+    assert state["teacher_app"] is None
+    again = _trainer(phase1_avatar_path, p2_data, p2_init_dir, seed=7)
+    again.load_state_dict(state)
+    assert again.step_count == tr.step_count
+
+
+def test_wrinkle_shading_statistics_storage_and_rest_pose(phase1_avatar_path, p2_data, p2_init_dir, tmp_path):
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, seed=3, wrinkle_shading=True, wrinkle_strength=0.4)
+    fr = p2_data.train[0]
+    for _ in range(3):
+        tr.step()
+    before = tr.render_frame(fr)
+    st = tr.wrinkle_stats
+    assert st is not None and float(st.count.sum()) > 0 and float(st.sum.sum()) > 0
+    resumed = _trainer(phase1_avatar_path, p2_data, p2_init_dir, seed=9, wrinkle_shading=True, wrinkle_strength=0.4)
+    resumed.load_state_dict(tr.state_dict())
+    torch.testing.assert_close(resumed.wrinkle_stats.mean(), st.mean())
+    out = tr.finish_wrinkles()
+    av = tr.avatar
+    w = av.surfels.wrinkle
+    assert w is not None and tuple(w.shape) == (len(av.surfels), 2)
+    assert 0.0 < out["surfels_darkening"] < 1.0
+    assert float(w[:, 0].max()) <= 0.4 + 1e-6 and float(w[:, 0].min()) >= 0.0
+    assert float(w[av.surfels.hair_mask(), 0].abs().sum()) == 0.0
+    torch.testing.assert_close(w[:, 1], torch.full_like(w[:, 1], 0.25))
+    # the training frame's mesh is the rest mesh: wrinkle shading changes nothing there
+    after = tr.render_frame(fr)
+    torch.testing.assert_close(after, before, atol=1e-5, rtol=0)
+    path = av.save(tmp_path / "avatar.pt")
+    torch.testing.assert_close(Avatar.load(path).surfels.wrinkle, w)
+    # under a compressing expression some surfel darkens
+    inputs = _deformed_inputs(av, p2_data)
+    with torch.no_grad():
+        p, _ = tr.posing.posed(inputs, None)
+        from sage_core.avatar.wrinkles import apply_wrinkles
+
+        dark = apply_wrinkles(p.colors, w, p.vertices, av.canonical_vertices, av.faces, av.surfels.binding)
+    assert bool((dark < p.colors - 1e-6).any()) and bool((dark <= p.colors + 1e-7).all())
+
+
+def test_mouth_prior_colours_unseen_mouth_surfels_only(phase1_avatar_path, p2_data, p2_init_dir):
+    from sage_core.flame.regions import Regions
+
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_occlusion_jaw=0.0)
+    av = tr.avatar
+    regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
+    mouth = torch.as_tensor(regions.face_mask("mouth_interior") | regions.face_mask("teeth"))
+    seen = tr.seen_faces()
+    assert bool(seen.any()) and not bool(seen.all())
+    assert torch.equal(tr.prior_faces, mouth & ~seen)
+    prior = av.surfels.color_prior
+    assert prior is not None and tuple(prior.shape) == (len(av.surfels), 4)
+    on = prior[:, 3] > 0
+    assert bool(on.any())
+    assert torch.equal(on, tr.prior_faces[av.surfels.binding])
+    # without occlusion the prior colour is the table colour
+    torch.testing.assert_close(prior[on, :3], tr.prior_colors[av.surfels.binding[on]])
+    # the blended colours: prior where set, the network's elsewhere
+    cols = torch.rand(len(av.surfels), 3)
+    out = av.surfels.blend_color_prior(cols)
+    torch.testing.assert_close(out[~on], cols[~on])
+    torch.testing.assert_close(out[on], prior[on, :3])
+    # occlusion darkens: ambient visibility lies in [0, 1] and is below 1 somewhere inside the mouth
+    vis = tr.prior_visibility(on, 0.3, samples=64)
+    assert vis.shape == (int(on.sum()),) and float(vis.min()) >= 0 and float(vis.max()) <= 1 and float(vis.min()) < 1
+    off = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
+    assert off.avatar.surfels.color_prior is None

@@ -62,6 +62,8 @@ ROWS: dict[str, RowSpec] = {
                 None, None, "phase1", ("all",), True, True),
         RowSpec("no_correction", "w/o correction", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
                 None, ("--correction", "off"), "phase2", ("all",), True, True),
+        RowSpec("wrinkles", "SAGE + wrinkle shading (skin)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
+                None, ("--set", "wrinkle_shading=true", "--set", "wrinkle_region=skin"), "phase2", ("all",), True, False),
         RowSpec("ga_mvsf", "GA-style (free surfels, photometric only)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
                 GA_PHASE1, None, "phase1", ("all",), False, True),
         RowSpec("ga_mvmf", "GA-style (free surfels, photometric only)", "MV-MF", "multiview", "mv-mf", None, (),

@@ -1,4 +1,4 @@
-"""Surfels bound to FLAME triangles: binding maths, initialization, rebinding, surfel correction."""
+"""Surfels bound to FLAME triangles: binding maths, initialization, rebinding, surfel correction, shading."""
 
 from .binding import local_to_world, nearest_triangles, point_triangle_distance, world_to_local
 from .correction import CorrectionResult, SurfelCorrection
@@ -16,6 +16,7 @@ from .init import (
 )
 from .model import Avatar, CanonicalSurfels, PosedSurfels
 from .neighbours import surfel_neighbours, triangle_neighbours
+from .shading import SHADING_MODES, SHIrradiance, orient_outward
 from .surfels import SurfelSet, replace_optimizer_param
 
 __all__ = [
@@ -30,6 +31,8 @@ __all__ = [
     "REGION_NAMES",
     "REGION_NECK",
     "REGION_OTHER",
+    "SHADING_MODES",
+    "SHIrradiance",
     "SurfelCorrection",
     "SurfelInit",
     "SurfelSet",
@@ -37,6 +40,7 @@ __all__ = [
     "init_surfels",
     "local_to_world",
     "nearest_triangles",
+    "orient_outward",
     "point_triangle_distance",
     "replace_optimizer_param",
     "surfel_neighbours",

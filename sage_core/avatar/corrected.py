@@ -16,7 +16,9 @@ correction terms themselves (the correction quaternion and scale factors are con
 while the gradients of the uncorrected surfel parameters flow through ``q ⊗ dq`` and ``s · factor``.
 
 With ``enabled=False`` (``--correction off``) :meth:`CorrectedPosing.posed` returns exactly
-``Avatar.posed(...)``.
+``Avatar.posed(...)``. With an avatar whose ``shading`` is on, the colours are shaded with the
+corrected surfel normals (:meth:`Avatar.shade_colors` after the correction); ``shade=False`` returns
+the albedo.
 """
 
 from __future__ import annotations
@@ -63,6 +65,8 @@ class CorrectedPosing:
         w_s: curvature damping length (m).
         min_neighbours: triangles with fewer valid neighbours are not corrected.
         umbilic_tol: |κ1 − κ2| (1/m) above which the rotation applies in full.
+        anisotropy_tol: relative stretch anisotropy above which the rotation applies in full (0:
+            always; see :class:`~sage_core.avatar.correction.SurfelCorrection`).
         stretch_range: clamp of the relative stretch.
         refresh_tolerance: a cached curvature is recomputed when its surfel's canonical centre moved
             farther than this (m); default the SDF's finest hash-grid cell size / 4.
@@ -80,6 +84,7 @@ class CorrectedPosing:
         w_s: float = 1e-3,
         min_neighbours: int = 1,
         umbilic_tol: float = 1.0,
+        anisotropy_tol: float = 0.0,
         stretch_range: tuple[float, float] = (0.25, 4.0),
         refresh_tolerance: float | None = None,
         use_curvature: bool = True,
@@ -93,7 +98,7 @@ class CorrectedPosing:
         self.radius = float(radius)
         self.correction = SurfelCorrection.from_mesh(
             verts, avatar.faces, self.radius, max_neighbours, w_s=w_s, min_neighbours=min_neighbours,
-            stretch_range=stretch_range, umbilic_tol=umbilic_tol, enabled=self.enabled,
+            stretch_range=stretch_range, umbilic_tol=umbilic_tol, anisotropy_tol=anisotropy_tol, enabled=self.enabled,
         )  # fmt: skip
         if refresh_tolerance is None:
             refresh_tolerance = 0.25 * float(avatar.sdf.default_fd_step())
@@ -170,17 +175,20 @@ class CorrectedPosing:
         camera_center_world: torch.Tensor | None,
         canonical: CanonicalSurfels | None = None,
         vertices: torch.Tensor | None = None,
+        shade: bool = True,
     ) -> tuple[PosedSurfels, CorrectionResult | None]:
         """Posed (and, when enabled, corrected) surfels of one frame and the correction applied.
 
         Arguments as :meth:`Avatar.posed`; without ``canonical`` it is :meth:`canonical_state` (frozen
-        SDF). Returns (surfels, correction or None when disabled).
+        SDF); shade: with the avatar's shading on, colours are albedo × irradiance at the corrected
+        normals (False: the albedo). Returns (surfels, correction or None when disabled).
         """
         av = self.avatar
         cs = canonical if canonical is not None else self.canonical_state()
-        p = av.posed(flame_inputs, camera_center_world, canonical=cs, vertices=vertices)
         if not self.enabled:
-            return p, None
+            return av.posed(flame_inputs, camera_center_world, canonical=cs, vertices=vertices, shade=shade), None
+        p = av.posed(flame_inputs, camera_center_world, canonical=cs, vertices=vertices, shade=False)
         res = self.correct(p.vertices, cs)
         quats, scales = SurfelCorrection.apply(res, p.quats, p.scales)
-        return PosedSurfels(p.means, quats, scales, p.opacities, p.colors, p.vertices), res
+        colors = av.shade_colors(p.colors, quats, p.vertices) if shade else p.colors
+        return PosedSurfels(p.means, quats, scales, p.opacities, colors, p.vertices), res

@@ -38,7 +38,10 @@ Rotation. Principal curvature directions d1, d2 (canonical, ⊥ n) give the angl
 tangent basis. The surfel turns about its own normal by φ, the angle from e1 to the nearest of
 ±d1, ±d2: φ = ((α + π/4) mod π/2) − π/4 ∈ [−45°, 45°), well within the ±90° limit, and the same for
 d and −d (sign-consistent). Where the surface is nearly umbilic the directions are arbitrary, so φ
-is scaled by min(1, |κ1 − κ2| / umbilic_tol). The correction quaternion is dq = (cos φ/2, 0, 0,
+is scaled by min(1, |κ1 − κ2| / umbilic_tol), and, with ``anisotropy_tol`` > 0, by
+min(1, (σ1 − σ2) / (σ2·anisotropy_tol)) with σ1 ≥ σ2 the principal stretches of G: under an isotropic
+deformation (at rest in particular) a surfel keeps the orientation it was fitted with, and the turn
+grows with the anisotropy of the stretch that the scale update acts on. The correction quaternion is dq = (cos φ/2, 0, 0,
 sin φ/2), a rotation about the local z axis, applied as q' = q ⊗ dq (Hamilton, wxyz): R(q') = R(q)·Rz(φ)
 keeps the third column (the normal) and turns the first onto cos φ·t1 + sin φ·t2. It is valid for
 the local, canonical or posed quaternion of the surfel alike, as those differ by a left factor.
@@ -141,6 +144,10 @@ class SurfelCorrection(torch.nn.Module):
         stretch_range: clamp (lo, hi) of the relative stretch.
         umbilic_tol: |κ1 − κ2| (1/m) at and above which the rotation is applied in full; 0 disables
             the fade.
+        anisotropy_tol: relative anisotropy (σ1 − σ2)/σ2 of the neighbourhood's stretch at and
+            above which the rotation is applied in full (it fades linearly to none at an isotropic
+            deformation, so that the correction keeps a surfel's fitted orientation at rest); 0
+            always applies it in full.
         enabled: False makes every call return the identity correction (``--correction off``).
     """
 
@@ -155,6 +162,7 @@ class SurfelCorrection(torch.nn.Module):
         stretch_range: tuple[float, float] = (0.25, 4.0),
         umbilic_tol: float = 1.0,
         enabled: bool = True,
+        anisotropy_tol: float = 0.0,
     ) -> None:
         super().__init__()
         if sigma <= 0:
@@ -192,6 +200,7 @@ class SurfelCorrection(torch.nn.Module):
         self.min_neighbours = int(min_neighbours)
         self.stretch_range = (float(stretch_range[0]), float(stretch_range[1]))
         self.umbilic_tol = float(umbilic_tol)
+        self.anisotropy_tol = float(anisotropy_tol)
         self.enabled = bool(enabled)
 
     @classmethod
@@ -286,6 +295,10 @@ class SurfelCorrection(torch.nn.Module):
             k1, k2 = curvatures[..., 0], curvatures[..., 1]
             if self.umbilic_tol > 0:
                 phi = phi * ((k1 - k2).abs() / self.umbilic_tol).clamp(max=1.0)
+            if self.anisotropy_tol > 0:
+                sig, _ = principal_stretches(G)
+                aniso = (sig[..., 0] - sig[..., 1]) / sig[..., 1].clamp_min(1e-12)
+                phi = phi * (aniso / self.anisotropy_tol).clamp(max=1.0)
             theta = alpha - phi
             c2, s2 = torch.cos(theta) ** 2, torch.sin(theta) ** 2
             kappa = torch.stack([k1 * c2 + k2 * s2, k1 * s2 + k2 * c2], -1)

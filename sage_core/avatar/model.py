@@ -21,6 +21,26 @@ Attributes:
   ``s_loc`` of the :class:`SurfelSet`. Unlike GaussianAvatars, the SH is evaluated with the
   canonical view direction (as in mlp mode), so a rigid head motion does not change the colours. The appearance network is still built: it colours the NeuS
   volume rendering of the canonical field.
+
+Shading (``shading``): with "none" (the default) the colour above is the surfel's colour, fixed in
+head space. With "sh2" it is an albedo, multiplied by the irradiance of a light fixed in the world
+(:class:`~sage_core.avatar.shading.SHIrradiance`, submodule ``light``) at the surfel's world normal:
+
+    c = albedo · E(n_w),   n_w = ±R[:, 2] of the posed (and corrected) surfel rotation,
+
+with the sign chosen towards the outward normal of the posed bound triangle (the third column of its
+surfel frame). n_w is used without gradient: the light and the albedo learn from the images, the
+surfel orientation from its own geometric terms. ``posed(..., shade=False)`` returns the albedo.
+
+Phase-2 additions, applied to the attribute colour before the shading when the surfel set carries
+them: the colour prior of unobserved mouth-interior surfels (:meth:`SurfelSet.blend_color_prior`) and
+wrinkle shading, a darkening by the frame's surface compression
+(:func:`~sage_core.avatar.wrinkles.apply_wrinkles`).
+
+Exposure gains: phase 1 stores its per-training-frame gains with the avatar
+(:meth:`Avatar.set_exposure_gains`, plain data in the file); :meth:`Avatar.exposure_gain` gives the
+gain of a (timestep, camera) training frame, None for any other frame (novel views and expressions
+use gain 1).
 """
 
 from __future__ import annotations
@@ -51,7 +71,9 @@ from ..geometry.sh import eval_sh_colors
 from ..render.volume import SVariance
 from .correction import SurfelCorrection
 from .init import init_surfels
+from .shading import SHADING_MODES, SHIrradiance, orient_outward
 from .surfels import SurfelSet
+from .wrinkles import apply_wrinkles
 
 AVATAR_FORMAT = 1
 AVATAR_KIND = "sage-avatar"
@@ -63,7 +85,8 @@ class PosedSurfels:
     """Surfels of one frame in world space.
 
     means: (N, 3); quats: (N, 4) unit wxyz; scales: (N, 2) world standard deviations;
-    opacities: (N,) in [0, 1]; colors: (N, 3) in [0, 1] for the given camera centre;
+    opacities: (N,) in [0, 1]; colors: (N, 3) in [0, 1] for the given camera centre (times the
+    irradiance, which may exceed 1, for a shaded avatar);
     vertices: (V, 3) the frame's posed FLAME mesh.
     """
 
@@ -144,6 +167,8 @@ class Avatar(nn.Module):
         base_scale: (N,) world base size of each surfel for the shape network (mlp mode); default
             the surfel set's current canonical scale (geometric mean of the two).
         neus_variance: initial NeuS s-variance (``variance`` module, inv_s per SDF box half extent).
+        shading: "none" (colour fixed in head space) or "sh2" (albedo × world-space SH irradiance of
+            the world normal; adds the ``light`` submodule), see the module doc.
     """
 
     canonical_vertices: torch.Tensor
@@ -166,10 +191,13 @@ class Avatar(nn.Module):
         shape_args: dict[str, Any] | None = None,
         base_scale: torch.Tensor | None = None,
         neus_variance: float = 0.3,
+        shading: str = "none",
     ) -> None:
         super().__init__()
         if attributes not in ("mlp", "free"):
             raise ValueError(f"attributes must be 'mlp' or 'free', got {attributes!r}")
+        if shading not in SHADING_MODES:
+            raise ValueError(f"shading must be one of {', '.join(SHADING_MODES)}, got {shading!r}")
         if surfels.attributes != attributes:
             raise ValueError(f"surfel set has attributes={surfels.attributes!r}, avatar {attributes!r}")
         self.model_data = model_data
@@ -186,6 +214,9 @@ class Avatar(nn.Module):
         box = (self.sdf.bbox_min.detach().cpu(), self.sdf.bbox_max.detach().cpu())
         self.appearance = AppearanceNetwork(self.sdf.feature_dim, *box, **self.app_args).to(device)
         self.variance = SVariance(neus_variance).to(device)
+        self.shading = shading
+        self.light: SHIrradiance | None = SHIrradiance().to(device) if shading != "none" else None
+        self.exposure_gains: dict[tuple[int, int], torch.Tensor] = {}
         self.shape: ShapeNetwork | None = None
         if attributes == "mlp":
             self.shape = ShapeNetwork(self.sdf.encoding.output_dim, *box, **self.shape_args).to(device)
@@ -225,6 +256,7 @@ class Avatar(nn.Module):
         init_opacity: float = 0.5,
         init_args: dict[str, Any] | None = None,
         neus_variance: float = 0.3,
+        shading: str = "none",
         device: str | torch.device = "cpu",
         generator: torch.Generator | None = None,
     ) -> Avatar:
@@ -234,7 +266,7 @@ class Avatar(nn.Module):
         (mouth interior included) by :func:`init_surfels`, with the training cameras mapped into
         canonical space through the canonical timestep's global rotation and translation.
         init_args: extra keyword arguments of :func:`init_surfels` (region and camera weights, ...).
-        Free-mode surfels start with the initial opacity and 0.5 grey.
+        Free-mode surfels start with the initial opacity and 0.5 grey. shading: see the class doc.
         """
         import json
 
@@ -282,7 +314,7 @@ class Avatar(nn.Module):
         app = {"hidden": 32, "n_layers": 2, "sh_degree": 2, **(app_args or {})}
         shp = {"hidden": 32, "n_layers": 2, **(shape_args or {})}
         avatar = cls(model_data, params, ct, surfels, blob["args"], attributes, app, shp if attributes == "mlp" else None,
-                     neus_variance=neus_variance)
+                     neus_variance=neus_variance, shading=shading)
         avatar.sdf.load_state_dict(sdf_net.state_dict())
         return avatar.to(device)
 
@@ -397,6 +429,8 @@ class Avatar(nn.Module):
         canonical: CanonicalSurfels | None = None,
         vertices: torch.Tensor | None = None,
         vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        shade: bool = True,
+        light_transform: torch.Tensor | None = None,
     ) -> PosedSurfels:
         """World-space surfels of one frame.
 
@@ -406,7 +440,11 @@ class Avatar(nn.Module):
         avoid a second SDF pass); vertices: the posed mesh if already computed (used as given);
         vertex_transform: (V, 3) -> (V, 3) applied to the FLAME-posed mesh before the surfels are
         posed on it (e.g. a left-right mirror with its vertex permutation), so that surfels bound to
-        triangle b follow the transformed triangle b.
+        triangle b follow the transformed triangle b; shade: with shading on, multiply the colours
+        by the world irradiance at the (corrected) surfel normals (False: the albedo; no effect when
+        ``shading`` is "none"); light_transform: (3, 3) orthogonal map applied to the world normals
+        before the irradiance, for a render that should see a transformed light (a left-right mirror
+        view of the capture sees the mirror image of the world light: S = diag(−1, 1, 1)).
         """
         if vertices is None:
             verts = self.pose_mesh(flame_inputs)
@@ -452,7 +490,45 @@ class Avatar(nn.Module):
             if view_c is None:
                 view_c = -cs.rotation[..., 2].detach()
             colors, opac = self.appearance(cs.means, view_c, n, feat)
+        colors = self.surfels.blend_color_prior(colors)
+        if self.surfels.wrinkle is not None:
+            colors = apply_wrinkles(colors, self.surfels.wrinkle, verts, self.canonical_vertices, self.faces, b)
+        if shade and self.light is not None:
+            colors = self._shade(colors, quats, Rpb[..., 2], light_transform)
         return PosedSurfels(means, quats, scales, opac, colors, verts)
+
+    def world_normals(self, quats: torch.Tensor, triangle_normals: torch.Tensor) -> torch.Tensor:
+        """Outward unit world normals of posed surfels, without gradient.
+
+        quats: (N, 4) posed surfel rotations; triangle_normals: (N, 3) outward normals of their
+        posed bound triangles (the third column of the surfel frame) -> (N, 3).
+        """
+        with torch.no_grad():
+            n = quat_to_matrix(quat_normalize(quats.detach()))[..., 2]
+            return orient_outward(n, triangle_normals.detach().to(n))
+
+    def _shade(
+        self, colors: torch.Tensor, quats: torch.Tensor, triangle_normals: torch.Tensor, light_transform: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        assert self.light is not None
+        n = self.world_normals(quats, triangle_normals)
+        if light_transform is not None:
+            n = n @ light_transform.to(n).T
+        return colors * self.light.irradiance(n)
+
+    def shade_colors(
+        self, colors: torch.Tensor, quats: torch.Tensor, vertices: torch.Tensor, light_transform: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Albedo × world irradiance of posed surfels (identity when ``shading`` is "none").
+
+        colors: (N, 3) albedo (``posed(..., shade=False).colors``); quats: (N, 4) posed, possibly
+        corrected, surfel rotations; vertices: (V, 3) the posed mesh they are bound to;
+        light_transform as in :meth:`posed` -> (N, 3).
+        """
+        if self.light is None:
+            return colors
+        R_p, _, _ = surfel_frames(vertices.detach(), self.faces)
+        return self._shade(colors, quats, R_p[self.surfels.binding][..., 2], light_transform)
 
     def render(
         self,
@@ -462,13 +538,16 @@ class Avatar(nn.Module):
         correction: SurfelCorrection | None = None,
         canonical: CanonicalSurfels | None = None,
         vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        shade: bool = True,
+        light_transform: torch.Tensor | None = None,
         **raster_kwargs: Any,
     ) -> tuple[SurfelRender, PosedSurfels]:
         """Pose and rasterize for one (unbatched) camera; raster_kwargs go to ``rasterize_surfels``;
-        vertex_transform as in :meth:`posed`."""
+        vertex_transform, shade and light_transform as in :meth:`posed`."""
         w2c = camera.w2c.to(self.canonical_vertices)
         centre = -(w2c[:3, :3].T @ w2c[:3, 3])
-        p = self.posed(flame_inputs, centre, correction=correction, canonical=canonical, vertex_transform=vertex_transform)
+        p = self.posed(flame_inputs, centre, correction=correction, canonical=canonical, vertex_transform=vertex_transform,
+                       shade=shade, light_transform=light_transform)  # fmt: skip
         img = rasterize_surfels(p.means, p.quats, p.scales, p.opacities, p.colors, camera, background, **raster_kwargs)
         return img, p
 
@@ -500,7 +579,29 @@ class Avatar(nn.Module):
             "shape_args": _plain(self.shape_args),
             "n_surfels": len(self.surfels),
             "sh_degree": self.surfels.sh_degree,
+            "shading": self.shading,
         }
+
+    # ------------------------------------------------------------------ exposure gains
+    def set_exposure_gains(self, gains: dict[tuple[int, int], Any]) -> None:
+        """Store the per-training-frame exposure gains: {(timestep, camera index): (C,) gain},
+        C = 1 or 3 (replaces any stored before; saved with the avatar)."""
+        out: dict[tuple[int, int], torch.Tensor] = {}
+        for (t, c), g in gains.items():
+            v = torch.as_tensor(g, dtype=torch.float32).detach().cpu().reshape(-1).clone()
+            if v.numel() not in (1, 3) or not bool(torch.isfinite(v).all()) or bool((v <= 0).any()):
+                raise ValueError(f"exposure gain of timestep {t}, camera {c} must be 1 or 3 positive numbers, got {v.tolist()}")
+            out[(int(t), int(c))] = v
+        self.exposure_gains = out
+
+    def exposure_gain(self, timestep: int, camera_index: int) -> torch.Tensor | None:
+        """(C,) exposure gain of a training frame (on the avatar's device), or None when the frame has
+        none stored (novel views and expressions: gain 1)."""
+        g = self.exposure_gains.get((int(timestep), int(camera_index)))
+        return None if g is None else g.to(self.device)
+
+    def _exposure_plain(self) -> list[dict[str, Any]]:
+        return [{"timestep": t, "camera": c, "gain": [float(x) for x in g]} for (t, c), g in sorted(self.exposure_gains.items())]
 
     def save(self, path: str | Path) -> Path:
         """Write a self-contained avatar file atomically (constructor data, FLAME model arrays,
@@ -518,6 +619,8 @@ class Avatar(nn.Module):
             "params": _plain(self.params),
             "state": state,
         }
+        if self.exposure_gains:
+            blob["exposure_gains"] = self._exposure_plain()
         buf = io.BytesIO()
         torch.save(blob, buf)
         p = Path(path)
@@ -546,8 +649,10 @@ class Avatar(nn.Module):
             obj = cls(
                 model_data, params, args["canonical_timestep"], surfels, args["sdf_args"], args["attributes"],
                 args["app_args"], args["shape_args"] or None, base_scale=state["base_scale"],
+                shading=args.get("shading", "none"),
             )  # fmt: skip
             missing, unexpected = obj.load_state_dict(state, strict=False)
+            obj.set_exposure_gains({(e["timestep"], e["camera"]): e["gain"] for e in blob.get("exposure_gains", [])})
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             raise InputError(p, f"malformed avatar file: {e}") from None
         bad = [k for k in missing if not k.startswith("flame.")]

@@ -5,6 +5,12 @@ State (per-surfel tensors have N index-aligned rows):
 * buffers ``binding`` (N,) int64 face ids and ``region_id`` (N,) int64 labels into
   :data:`sage_core.avatar.init.REGION_NAMES`, plus ``face_region`` (F,) int64 (the label of every
   face, used to relabel after rebinding; empty when unknown);
+* optional buffer ``wrinkle`` (N, 2): wrinkle shading (:mod:`sage_core.avatar.wrinkles`), the
+  darkening amplitude and the area compression at which it applies in full; absent (None, not in the
+  state dict) until phase 2 sets it with :meth:`SurfelSet.set_wrinkle`;
+* optional buffer ``color_prior`` (N, 4): a fixed colour (RGB) and its blend weight in [0, 1] that
+  replaces the attribute colour of surfels no training view saw (the mouth interior), set by phase 2
+  with :meth:`SurfelSet.set_color_prior`; absent (None) otherwise;
 * parameters ``mu_loc`` (N, 3), ``q_loc`` (N, 4) wxyz and ``s_loc`` (N, 2) log in-plane scales,
   all relative to the bound triangle's frame (formats.md §6, surfel convention);
 * with ``attributes="free"``: ``sh_dc`` (N, 1, 3), ``sh_rest`` (N, (d+1)²−1, 3) (absent at degree
@@ -29,7 +35,7 @@ from .init import REGION_HAIR, SurfelInit
 SH_C0 = 0.28209479177387814
 ATTRIBUTE_MODES = ("free", "mlp")
 _PARAMS = ("mu_loc", "q_loc", "s_loc", "sh_dc", "sh_rest", "opacity")
-_BUFFERS = ("binding", "region_id")
+_BUFFERS = ("binding", "region_id", "wrinkle", "color_prior")
 
 
 def _logit(p: float) -> float:
@@ -53,6 +59,8 @@ class SurfelSet(nn.Module):
     binding: torch.Tensor
     region_id: torch.Tensor
     face_region: torch.Tensor
+    wrinkle: torch.Tensor | None
+    color_prior: torch.Tensor | None
 
     def __init__(
         self,
@@ -89,6 +97,8 @@ class SurfelSet(nn.Module):
         self.register_buffer("region_id", rid.to(device=device, dtype=torch.long).clone())
         fr = torch.zeros(0, dtype=torch.long) if face_region is None else face_region.detach().reshape(-1)
         self.register_buffer("face_region", fr.to(device=device, dtype=torch.long).clone())
+        self.register_buffer("wrinkle", None)
+        self.register_buffer("color_prior", None)
         self.mu_loc = nn.Parameter(mu_loc.detach().clone())
         self.q_loc = nn.Parameter(q_loc.detach().to(device=device, dtype=dtype).clone())
         self.s_loc = nn.Parameter(s_loc.detach().to(device=device, dtype=dtype).clone())
@@ -122,8 +132,38 @@ class SurfelSet(nn.Module):
             state["binding"], state["mu_loc"], state["q_loc"], state["s_loc"], state["region_id"],
             state.get("face_region"), attributes="free" if free else "mlp", sh_degree=degree,
         )
+        if state.get("wrinkle") is not None:
+            obj.set_wrinkle(state["wrinkle"])
+        if state.get("color_prior") is not None:
+            obj.set_color_prior(state["color_prior"])
         obj.load_state_dict(state)
         return obj
+
+    def set_wrinkle(self, wrinkle: torch.Tensor | None) -> None:
+        """Set (or with None remove) the wrinkle shading buffer: (N, 2) amplitude in [0, 1] and full
+        compression in (0, 1] per surfel (see :mod:`sage_core.avatar.wrinkles`)."""
+        if wrinkle is None:
+            self.wrinkle = None
+            return
+        if tuple(wrinkle.shape) != (len(self), 2):
+            raise ValueError(f"wrinkle must be ({len(self)}, 2), got {tuple(wrinkle.shape)}")
+        self.wrinkle = wrinkle.detach().to(device=self.binding.device, dtype=self.mu_loc.dtype).clone()
+
+    def set_color_prior(self, prior: torch.Tensor | None) -> None:
+        """Set (or with None remove) the colour prior: (N, 4) RGB and blend weight per surfel."""
+        if prior is None:
+            self.color_prior = None
+            return
+        if tuple(prior.shape) != (len(self), 4):
+            raise ValueError(f"color_prior must be ({len(self)}, 4), got {tuple(prior.shape)}")
+        self.color_prior = prior.detach().to(device=self.binding.device, dtype=self.mu_loc.dtype).clone()
+
+    def blend_color_prior(self, colors: torch.Tensor) -> torch.Tensor:
+        """colors (N, 3) blended with the colour prior where it has weight (unchanged without one)."""
+        if self.color_prior is None:
+            return colors
+        w = self.color_prior[:, 3:4].to(colors)
+        return colors * (1.0 - w) + self.color_prior[:, :3].to(colors) * w
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:

@@ -39,7 +39,7 @@ import torch
 from ..data.cameras import Camera
 from ..errors import InputError
 from .metrics import psnr, psnr_per_channel_mean, ssim, ssim_map
-from .protocol import EvalReport, ImageMetrics, MetricMeans, _fmt, _lpips_device, error_strip, sample_indices
+from .protocol import EvalReport, ImageMetrics, MetricMeans, _fmt, _lpips_device, error_strip, sample_indices, sample_refs
 
 if TYPE_CHECKING:
     from ..avatar.model import Avatar
@@ -370,7 +370,7 @@ class NovelReport:
         for row, cov in zip(vis["images"], self.coverage):
             row["coverage"] = cov
         doc["visible_region"] = vis
-        doc["samples"] = [str(p) for p in self.samples]
+        doc["samples"] = sample_refs(self.samples, self.metrics_path)
         return doc
 
 

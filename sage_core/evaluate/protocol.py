@@ -207,7 +207,7 @@ class EvalReport:
                 }
                 for m in self.images
             ],
-            "samples": [str(p) for p in self.samples],
+            "samples": sample_refs(self.samples, self.metrics_path),
         }
 
     def rows(self) -> list[tuple[str, ...]]:
@@ -220,6 +220,18 @@ class EvalReport:
             out.append(row(f"frontal (cam {FRONTAL_CAMERA})", self.frontal))
         out.append(row("all", self.overall))
         return out
+
+
+def sample_refs(samples: list[Path], metrics_path: Path | None) -> list[str]:
+    """Sample-strip paths as written into ``metrics.json``: relative to its folder (so they stay valid
+    when the result folder moves), absolute when a strip lies elsewhere or there is no file."""
+    out: list[str] = []
+    for p in samples:
+        try:
+            out.append(Path(p).relative_to(metrics_path.parent).as_posix() if metrics_path is not None else str(p))
+        except ValueError:
+            out.append(str(p))
+    return out
 
 
 def sample_indices(n_frames: int, n_samples: int) -> list[int]:

@@ -6,6 +6,13 @@ as SH degree 0: ``f_dc = (rgb − 0.5) / C0`` with
 C0 = 0.28209479 (formats.md §7.1), which a viewer turns back into ``rgb = 0.5 + C0·f_dc``. Which view
 the colours are baked for is the caller's choice when posing: a camera centre, or None for each
 surfel seen along its own normal.
+
+Shading: for an avatar with ``shading="sh2"`` the posed colours are albedo × the world irradiance at
+each surfel's outward normal in the pose being written (``Avatar.posed`` with its default
+``shade=True``), so the PLY's colours have that pose's shading baked in: a rest/canonical-pose PLY
+carries the light as it falls on the head in the canonical pose (no global rotation), and a viewer
+that moves the splats does not relight them. With ``shading="none"`` the colours are the avatar's
+head-space colours, unchanged.
 """
 
 from __future__ import annotations
@@ -47,7 +54,11 @@ def encode_posed_ply(
     posed: PosedSurfels, comments: Sequence[str] | None = None, up_axis: str | None = "y"
 ) -> tuple[bytes, int]:
     """PLY bytes of posed surfels (means (N, 3), quats (N, 4), scales (N, 2), opacities (N,),
-    colours (N, 3)); returns (bytes, rows dropped)."""
+    colours (N, 3)); returns (bytes, rows dropped).
+
+    The colours are written as given: for a shaded avatar (``shading="sh2"``) posed with
+    ``shade=True`` they are albedo × irradiance at the written pose, i.e. the pose's shading is baked
+    into the PLY (see the module doc)."""
     return encode_ply(
         posed.means, posed.quats, posed.scales, posed.opacities, rgb_to_sh_dc(posed.colors.clamp(0.0, 1.0)),
         None, comments=comments, up_axis=up_axis,
@@ -60,7 +71,8 @@ def write_posed_ply(
     comments: Sequence[str] | None = None,
     up_axis: str | None = "y",
 ) -> PlyExport:
-    """Encode posed surfels as a viewer PLY and write it atomically."""
+    """Encode posed surfels as a viewer PLY and write it atomically (colours as in
+    :func:`encode_posed_ply`: a shaded avatar's irradiance at this pose is baked in)."""
     data, dropped = encode_posed_ply(posed, comments, up_axis)
     atomic_write_bytes(path, data)
     n = int(posed.means.shape[0])

@@ -15,6 +15,16 @@ parameters, rasterizes them and combines:
   detached: the surfels supervise the SDF), eikonal on the NeuS samples and the surfel centres;
 * MonoSDF normal smoothness at a subset of surfel centres.
 
+Shading (``shading``; :mod:`sage_core.avatar.shading`): with "sh2" the avatar's surfel colours are
+albedo × the irradiance of a world-fixed order-2 SH light at the surfels' outward world normals, the
+light (``lr_light``) being optimised with the rest under the weak prior
+``w_light_prior·mean_c (mean irradiance − 1)²`` that fixes the albedo/light brightness scale. The
+NeuS colour is shaded the same way, so that the appearance network learns one albedo from both
+renders: each ray's composited colour is multiplied on its foreground by E(n_w), n_w the ray's
+expected canonical SDF normal (normalised, without gradient) mapped to the world by the transpose of
+the warp's world → canonical rotation (exact for rigid frames, the hit triangle's rotation otherwise).
+Mirrored one-shot pseudo views see the mirrored light (normals reflected by S before the irradiance).
+
 Single-camera regimes (SV-HR, one-shot; paper §5) add, through the config (regime defaults in
 ``sage_core.config.REGIME_OVERRIDES``):
 
@@ -45,8 +55,10 @@ from torch import nn
 
 from ..avatar.init import REGION_MOUTH
 from ..avatar.model import Avatar
+from ..avatar.shading import SHADING_MODES, shade_foreground
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
+from ..errors import ConfigError
 from ..evaluate.metrics import psnr, ssim, ssim_map
 from ..render import RenderCamera
 from ..render.mesh_raster import ray_directions
@@ -64,6 +76,8 @@ STATE_FORMAT = 1
 
 def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, device: str | torch.device, generator: torch.Generator) -> Avatar:
     """The phase-1 avatar from the init-mesh outputs and the config."""
+    if cfg.shading not in SHADING_MODES:
+        raise ConfigError(f"shading must be one of {', '.join(SHADING_MODES)}, got {cfg.shading!r}")
     return Avatar.build(
         init_dir, data, cfg.n_surfels, cfg.attributes,
         app_args={"hidden": cfg.app_hidden, "n_layers": cfg.app_layers, "sh_degree": cfg.app_sh_degree},
@@ -71,7 +85,7 @@ def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, de
         sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity,
         init_args={"face_weight": cfg.face_weight, "mouth_weight": cfg.mouth_weight, "hair_weight": cfg.hair_weight,
                    "neck_weight": cfg.neck_weight, "camera_weight": cfg.camera_weight, "scale_factor": cfg.init_scale_factor},
-        neus_variance=cfg.neus_variance, device=device, generator=generator,
+        neus_variance=cfg.neus_variance, shading=cfg.shading, device=device, generator=generator,
     )  # fmt: skip
 
 
@@ -241,6 +255,8 @@ class Phase1Trainer:
         )
         if self.exposure is not None:
             groups.append({"name": "exposure", "params": [self.exposure.log_gain], "lr": c.lr_exposure})
+        if av.light is not None and c.lr_light > 0:
+            groups.append({"name": "light", "params": list(av.light.parameters()), "lr": c.lr_light})
         if self.pose is not None:
             groups.append({"name": "pose_rotation", "params": [self.pose.rotation, self.pose.neck_pose], "lr": c.lr_pose_rotation})
             groups.append({"name": "pose_translation", "params": [self.pose.translation], "lr": c.lr_pose_translation})
@@ -327,6 +343,7 @@ class Phase1Trainer:
             if float(torch.rand((), generator=self.generator)) < c.pseudo_view_prob:
                 pv_index = int(self._randint(len(self._pseudo), 1)[0])
         transform = None
+        light_transform: torch.Tensor | None = None
         weight: torch.Tensor | None = None
         view_weight = 1.0
         if pv_index is None:
@@ -342,6 +359,7 @@ class Phase1Trainer:
             view_weight = float(pv.view_weight)
             if pv.mirror:
                 transform = self._mirror
+                light_transform = torch.diag(torch.tensor([-1.0, 1.0, 1.0], device=self.device))
         inputs, rigid = self.frame_inputs(timestep)
         self._set_lrs()
         step = self.step_count
@@ -349,7 +367,7 @@ class Phase1Trainer:
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
         render, _ = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
-                              vertex_transform=transform)
+                              vertex_transform=transform, light_transform=light_transform)
         color = render.color
         if self.exposure is not None and i is not None:
             color = self.exposure.apply(color, render.alpha, i, c.background)
@@ -380,6 +398,9 @@ class Phase1Trainer:
         if self.exposure is not None and c.w_exposure_prior > 0:
             terms["exposure_prior"] = self.exposure.prior()
             total = total + c.w_exposure_prior * terms["exposure_prior"]
+        if av.light is not None and c.w_light_prior > 0:
+            terms["light_prior"] = av.light.mean_prior()
+            total = total + c.w_light_prior * terms["light_prior"]
         if self.pose is not None and self._refining() and c.w_pose_prior > 0:
             terms["pose_prior"] = self.pose.prior(self.length_unit)
             total = total + c.w_pose_prior * terms["pose_prior"]
@@ -419,6 +440,11 @@ class Phase1Trainer:
                 )  # fmt: skip
                 gt = img.reshape(-1, 3)[pix]
                 neus_color = out.color
+                if av.light is not None:
+                    with torch.no_grad():
+                        n_c = out.normal / out.normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                        n_w = (rot.transpose(-1, -2) @ n_c[..., None]).squeeze(-1)
+                    neus_color = shade_foreground(neus_color, out.weights_sum, av.light.irradiance(n_w), c.background)
                 if self.exposure is not None:
                     neus_color = self.exposure.apply(neus_color, out.weights_sum, fi, c.background)
                 terms["neus_rgb"] = L.neus_rgb_loss(neus_color[ok], gt[ok])
@@ -649,6 +675,9 @@ def run_phase1(
         write_image(renders / f"val_t{fr.timestep:05d}_c{fr.camera_index:02d}.png", np.concatenate([gt, pred, err], 1))
     if trainer.pose is not None:
         avatar.params = trainer.pose.bake(avatar.params)
+    if trainer.exposure is not None:
+        g = trainer.exposure.gains().detach().cpu()
+        avatar.set_exposure_gains({(fr.timestep, fr.camera_index): g[j] for j, fr in enumerate(trainer.frames)})
     avatar.save(out_dir / "avatar.pt")
 
     if progress is not None:
@@ -667,6 +696,7 @@ def run_phase1(
         mean_abs_sdf = float(canon.sdf[keep].abs().mean())
     metrics = {
         "attributes": cfg.attributes,
+        "shading": cfg.shading,
         "n_surfels": len(avatar.surfels),
         "iterations": total,
         "val_psnr": val["psnr"],
@@ -691,6 +721,8 @@ def run_phase1(
         metrics["exposure_gains"] = {f"t{fr.timestep:05d}_c{fr.camera_index:02d}": [float(x) for x in g[j]] for j, fr in enumerate(trainer.frames)}
         metrics["exposure_gain_min"] = float(g.min())
         metrics["exposure_gain_max"] = float(g.max())
+    if avatar.light is not None:
+        metrics["light_mean_irradiance"] = [float(x) for x in avatar.light.mean_irradiance().detach().cpu()]
     if trainer.pose is not None:
         metrics.update(trainer.pose.summary())
     if trainer.sym_plane is not None:

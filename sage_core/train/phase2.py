@@ -30,6 +30,22 @@ free per-surfel attributes) are fine-tuned. Each step:
 5. optionally (``w_photometric`` > 0) L_rgb of a captured training frame rendered at its own FLAME
    parameters; off by default, so phase 2 uses no images.
 
+With ``rest_fraction`` > 0 a step poses the training frame exactly as captured with that
+probability, so the appearance term also holds the avatar to its own phase-1 renders at rest.
+
+Mouth-interior prior (``mouth_prior``, SAGE's composited mouth prior): the surfels bound to
+mouth-interior and teeth triangles that no training view sees at rest (:meth:`Phase2Trainer.seen_faces`)
+get fixed colours, ``mouth_cavity_color`` / ``teeth_color`` times their ambient visibility with the
+jaw opened to ``mouth_occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), stored in the avatar
+(:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
+of the appearance term.
+
+Wrinkle shading (``wrinkle_shading``, off by default; :mod:`sage_core.avatar.wrinkles`): the
+per-pixel distortion of every deformed render is accumulated on the posed-mesh triangle each pixel
+sees; after the last step the triangles' mean distortion sets per-surfel darkening amplitudes
+(``wrinkle_region`` ``distortion``; ``skin`` gives every skin triangle the full amplitude), stored in
+the avatar and applied at render time in proportion to the surface compression of the frame.
+
 Total: λ_n L_n + λ_d L_d + λ_a L_a (+ λ_rgb L_rgb). Every random draw uses the trainer's CPU
 generator; :meth:`Phase2Trainer.state_dict` holds the parameters, the teacher, the optimizer, the
 generator and the global RNG states, so a resumed run repeats the uninterrupted loss curve.
@@ -49,6 +65,7 @@ import torch
 from ..avatar.corrected import CorrectedPosing
 from ..avatar.init import REGION_HAIR, face_region_labels
 from ..avatar.model import Avatar
+from ..avatar.wrinkles import FaceDistortionStats, face_compression, wrinkle_amplitude
 from ..config import Phase2Config
 from ..data.dataset import IngestedData, IngestedFrame
 from ..errors import ConfigError, InputError
@@ -205,11 +222,14 @@ class Phase2Trainer:
             p.requires_grad_(False)
         if cfg.teacher not in TEACHERS:
             raise ConfigError(f"phase2 teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
-        self.teacher_app = copy.deepcopy(avatar.appearance).requires_grad_(False)
-        self.teacher_variance = copy.deepcopy(avatar.variance).requires_grad_(False)
+        self.teacher_app: torch.nn.Module | None = None
+        self.teacher_variance: torch.nn.Module | None = None
+        if cfg.teacher == "neus":
+            self.teacher_app = copy.deepcopy(avatar.appearance).requires_grad_(False)
+            self.teacher_variance = copy.deepcopy(avatar.variance).requires_grad_(False)
         self.posing = CorrectedPosing(
             avatar, cfg.correction, radius_edges=cfg.correction_radius_edges, max_neighbours=cfg.correction_max_neighbours,
-            w_s=cfg.correction_w_s, umbilic_tol=cfg.correction_umbilic_tol,
+            w_s=cfg.correction_w_s, umbilic_tol=cfg.correction_umbilic_tol, anisotropy_tol=cfg.correction_anisotropy_tol,
         )  # fmt: skip
         self.hair_faces = hair_face_mask(avatar, init_dir)
         self.sampler = build_sampler(avatar, data, cfg)
@@ -221,9 +241,22 @@ class Phase2Trainer:
         self.prior_colors, self.prior_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
         if not cfg.mouth_prior:
             self.prior_faces = torch.zeros_like(self.prior_faces)
+        if bool(self.prior_faces.any()):
+            self.prior_faces &= ~self.seen_faces()
+            b = avatar.surfels.binding
+            on = self.prior_faces[b]
+            rgb = self.prior_colors[b].clone()
+            if cfg.mouth_occlusion_jaw > 0 and bool(on.any()):
+                rgb[on] *= self.prior_visibility(on, cfg.mouth_occlusion_jaw)[:, None].to(rgb)
+            avatar.surfels.set_color_prior(torch.cat([rgb, on.to(rgb)[:, None]], -1))
         self.rest_teacher: RestTeacher | None = None
         if cfg.teacher == "rest" and cfg.w_appearance > 0:
             self.rest_teacher = self._build_rest_teacher()
+        self.wrinkle_stats: FaceDistortionStats | None = None
+        if cfg.wrinkle_region not in ("distortion", "skin"):
+            raise ConfigError(f"phase2 wrinkle_region must be distortion or skin, got {cfg.wrinkle_region!r}")
+        if cfg.wrinkle_shading:
+            self.wrinkle_stats = FaceDistortionStats(int(avatar.faces.shape[0]), self.device)
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
@@ -247,13 +280,50 @@ class Phase2Trainer:
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
 
         def render_fn(i: int, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
-            img, _ = av.render(cams[i], inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False)
+            img, _ = av.render(cams[i], inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
+                               shade=False)  # fmt: skip
             return img.color
 
         return RestTeacher.build(
             render_fn, av.pose_mesh, av.faces, [(cm.K, cm.w2c, cm.width, cm.height) for cm in cams],
             [self.inputs(fr.timestep) for fr in frames], depth_tol=c.teacher_depth_tol,
         )  # fmt: skip
+
+    @torch.no_grad()
+    def prior_visibility(self, which: torch.Tensor, jaw: float, samples: int = 256) -> torch.Tensor:
+        """Ambient visibility (:func:`sage_core.geometry.occlusion.ambient_visibility`, ``samples`` rays)
+        of the surfels ``which`` ((N,) bool) with the jaw of the canonical frame opened to ``jaw``
+        radians, on the side of their triangle that faces the open air (the larger of the two).
+        Returns (M,) in [0, 1]."""
+        from ..geometry.occlusion import ambient_visibility
+
+        av = self.avatar
+        inputs = dict(self.inputs(self.data.canonical_timestep))
+        inputs["jaw_pose"] = torch.tensor([[float(jaw), 0.0, 0.0]], dtype=inputs["jaw_pose"].dtype, device=av.device)
+        p = av.posed(inputs, None)
+        V = p.vertices.detach().double().cpu().numpy()
+        Fc = av.faces.detach().long().cpu().numpy()
+        f = av.surfels.binding[which].cpu().numpy()
+        n = np.cross(V[Fc[f, 1]] - V[Fc[f, 0]], V[Fc[f, 2]] - V[Fc[f, 0]])
+        x = p.means[which].detach().double().cpu().numpy()
+        eps = 1e-4 * float(np.linalg.norm(V.max(0) - V.min(0)))
+        vis = np.maximum(ambient_visibility(V, Fc, x, n, samples, eps), ambient_visibility(V, Fc, x, -n, samples, eps))
+        return torch.as_tensor(vis, device=av.device)
+
+    @torch.no_grad()
+    def seen_faces(self) -> torch.Tensor:
+        """(F,) bool triangles that are the visible surface of at least one foreground pixel (the mesh
+        raster's mask eroded by one pixel) of the training views at rest (at most
+        ``teacher_max_views`` of them)."""
+        av = self.avatar
+        seen = torch.zeros(int(av.faces.shape[0]), dtype=torch.bool, device=av.device)
+        for fr in _subset(self.frames, self.cfg.teacher_max_views):
+            cam = RenderCamera.from_camera(fr.camera, self.device)
+            ras = rasterize_mesh(av.pose_mesh(self.inputs(fr.timestep)), av.faces, cam.K, cam.w2c, cam.width, cam.height)
+            fid = ras.face_id[0]
+            inner = (-torch.nn.functional.max_pool2d(-(fid >= 0).float()[None, None], 3, stride=1, padding=1))[0, 0] > 0.5
+            seen[fid[inner]] = True
+        return seen
 
     def trainable_parameters(self) -> list[torch.nn.Parameter]:
         """Every parameter the optimizer updates."""
@@ -269,12 +339,14 @@ class Phase2Trainer:
         return int(torch.randint(n, (1,), generator=self.generator)[0])
 
     # ------------------------------------------------------------------ rendering
-    def render(self, camera: RenderCamera, flame_inputs: dict[str, torch.Tensor]) -> tuple[Any, Any]:
-        """Pose (with correction when enabled) and rasterize. Returns (SurfelRender, PosedSurfels)."""
+    def render(self, camera: RenderCamera, flame_inputs: dict[str, torch.Tensor], shade: bool = True) -> tuple[Any, Any]:
+        """Pose (with correction when enabled) and rasterize. Returns (SurfelRender, PosedSurfels).
+        shade: False renders the albedo of an avatar with world shading (the self-supervised terms
+        compare albedos, the light is fixed)."""
         c, av = self.cfg, self.avatar
         w2c = camera.w2c.to(av.canonical_vertices)
         centre = -(w2c[:3, :3].T @ w2c[:3, 3])
-        p, _ = self.posing.posed(flame_inputs, centre)
+        p, _ = self.posing.posed(flame_inputs, centre, shade=shade)
         img = rasterize_surfels(p.means, p.quats, p.scales, p.opacities, p.colors, camera, c.background,
                                 near=c.near, far=c.far, return_statistics=False)  # fmt: skip
         return img, p
@@ -285,6 +357,7 @@ class Phase2Trainer:
 
         Returns colours (R, 3) and a validity mask (R,) (rays that hit the posed mesh)."""
         c, av = self.cfg, self.avatar
+        assert self.teacher_app is not None and self.teacher_variance is not None
         rays = warp_pixels_to_canonical(posed_vertices, av.faces, (av.R_c, av.T_c, av.k_c), camera.K, camera.w2c,
                                         camera.width, camera.height, pix, raster=raster)  # fmt: skip
         out = render_neus(
@@ -312,8 +385,9 @@ class Phase2Trainer:
         fr = self.frames[self._randint(len(self.frames))]
         cam = RenderCamera.from_camera(fr.camera, self.device)
         sample = self.sampler.sample(1, generator=self.generator)
-        inputs = compose_inputs(self.inputs(fr.timestep), sample)
-        render, posed = self.render(cam, inputs)
+        at_rest = c.rest_fraction > 0 and float(torch.rand((), generator=self.generator)) < c.rest_fraction
+        inputs = self.inputs(fr.timestep) if at_rest else compose_inputs(self.inputs(fr.timestep), sample)
+        render, posed = self.render(cam, inputs, shade=False)
 
         terms: dict[str, torch.Tensor] = {}
         total = render.color.new_zeros(())
@@ -322,10 +396,16 @@ class Phase2Trainer:
         terms["distortion"] = L.distortion_loss(render.distortion)
         total = total + c.w_normal_consistency * terms["normal_consistency"] + c.w_distortion * terms["distortion"]
 
-        if c.w_appearance > 0 and c.rays_per_step > 0:
+        appearance = c.w_appearance > 0 and c.rays_per_step > 0
+        if appearance or self.wrinkle_stats is not None:
             with torch.no_grad():
                 verts = posed.vertices.detach()
                 raster = rasterize_mesh(verts, av.faces, cam.K, cam.w2c, cam.width, cam.height)
+                if self.wrinkle_stats is not None:
+                    comp = face_compression(verts, av.canonical_vertices, av.faces, c.wrinkle_full_compression)
+                    self.wrinkle_stats.update(raster.face_id, render.distortion.detach(), comp)
+        if appearance:
+            with torch.no_grad():
                 fid = raster.face_id.reshape(-1)
                 ok = fid >= 0
                 ok &= ~self.hair_faces[fid.clamp_min(0)]
@@ -335,15 +415,13 @@ class Phase2Trainer:
             if pix.numel() > 0:
                 if self.rest_teacher is not None:
                     target, valid = self.rest_lookup(verts, cam, pix, raster)
-                    prior = self.prior_faces[fid[pix]] & ~valid
                 else:
                     target, valid = self.teacher(verts, cam, pix, raster)
-                    prior = self.prior_faces[fid[pix]]
-                target = torch.where(prior[:, None], self.prior_colors[fid[pix]].to(target), target)
-                valid = valid | prior
-                pred = render.color.reshape(-1, 3)[pix]
-                terms["appearance"] = ((pred - target) ** 2).sum(-1)[valid].mean()
-                total = total + c.w_appearance * terms["appearance"]
+                valid = valid & ~self.prior_faces[fid[pix]]
+                if bool(valid.any()):
+                    pred = render.color.reshape(-1, 3)[pix]
+                    terms["appearance"] = ((pred - target) ** 2).sum(-1)[valid].mean()
+                    total = total + c.w_appearance * terms["appearance"]
 
         if c.w_photometric > 0 and c.photometric_every > 0 and self.step_count % c.photometric_every == 0:
             fr2 = self.frames[self._randint(len(self.frames))]
@@ -362,6 +440,31 @@ class Phase2Trainer:
         if len(self.distortion_curve) < c.curve_steps and self.step_count == len(self.distortion_curve) + 1:
             self.distortion_curve.append(out["distortion"])
         return out
+
+    @torch.no_grad()
+    def finish_wrinkles(self) -> dict[str, float]:
+        """Set the avatar's wrinkle shading from the accumulated distortion statistics (hair and
+        mouth-interior triangles excluded) and return summary numbers: the share of surfels that can
+        darken, their mean amplitude, and the Pearson correlation between the triangles' mean
+        distortion and mean compression over the triangles seen."""
+        assert self.wrinkle_stats is not None
+        c, av, st = self.cfg, self.avatar, self.wrinkle_stats
+        excluded = self.hair_faces | self.prior_faces
+        lo, hi = (float(q) for q in c.wrinkle_quantiles)
+        if c.wrinkle_region == "distortion":
+            amp = wrinkle_amplitude(st.mean(), st.count, excluded, c.wrinkle_strength, (lo, hi))
+        else:
+            amp = (~excluded).to(st.sum) * float(c.wrinkle_strength)
+        b = av.surfels.binding
+        a = amp.to(av.canonical_vertices)[b]
+        av.surfels.set_wrinkle(torch.stack([a, torch.full_like(a, c.wrinkle_full_compression)], -1))
+        seen = (st.count > 0) & ~excluded.to(st.count.device)
+        d, k = st.mean()[seen], st.mean_compression()[seen]
+        corr = float("nan")
+        if d.numel() > 2 and float(d.std()) > 0 and float(k.std()) > 0:
+            corr = float(((d - d.mean()) * (k - k.mean())).mean() / (d.std(unbiased=False) * k.std(unbiased=False)))
+        return {"surfels_darkening": float((a > 0).double().mean()), "mean_amplitude": float(a[a > 0].mean()) if bool((a > 0).any()) else 0.0,
+                "distortion_compression_corr": corr, "faces_seen": int(seen.sum())}  # fmt: skip
 
     def _image(self, fr: IngestedFrame) -> torch.Tensor:
         key = (fr.timestep, fr.camera_index)
@@ -384,8 +487,9 @@ class Phase2Trainer:
             "format": STATE_FORMAT,
             "step": self.step_count,
             "avatar": {k: v.detach().clone() for k, v in self.avatar.state_dict().items() if not k.startswith("flame.")},
-            "teacher_app": {k: v.detach().clone() for k, v in self.teacher_app.state_dict().items()},
-            "teacher_variance": {k: v.detach().clone() for k, v in self.teacher_variance.state_dict().items()},
+            "teacher_app": _module_state(self.teacher_app),
+            "teacher_variance": _module_state(self.teacher_variance),
+            "wrinkle_stats": None if self.wrinkle_stats is None else self.wrinkle_stats.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "rng": rng_state(),
@@ -396,14 +500,22 @@ class Phase2Trainer:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict` (same surfel count)."""
         self.avatar.load_state_dict(state["avatar"], strict=False)
-        self.teacher_app.load_state_dict(state["teacher_app"])
-        self.teacher_variance.load_state_dict(state["teacher_variance"])
+        if self.teacher_app is not None and state.get("teacher_app"):
+            self.teacher_app.load_state_dict(state["teacher_app"])
+        if self.teacher_variance is not None and state.get("teacher_variance"):
+            self.teacher_variance.load_state_dict(state["teacher_variance"])
+        if self.wrinkle_stats is not None and state.get("wrinkle_stats") is not None:
+            self.wrinkle_stats.load_state_dict(state["wrinkle_stats"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         set_rng_state(state["rng"])
         self.step_count = int(state["step"])
         self.distortion_curve = list(state.get("distortion_curve", []))
         self.posing.load_cache_state(state.get("curvature_cache"))
+
+
+def _module_state(module: torch.nn.Module | None) -> dict[str, torch.Tensor] | None:
+    return None if module is None else {k: v.detach().clone() for k, v in module.state_dict().items()}
 
 
 def _subset(frames: list[IngestedFrame], n: int) -> list[IngestedFrame]:
@@ -459,20 +571,16 @@ def run_phase2(
 
     metrics: dict[str, Any] = {"correction": cfg.correction, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
                                "iterations": cfg.iterations}  # fmt: skip
-    trainer = Phase2Trainer(avatar, data, cfg, device, gen, init_dir)
-    resumed = False
-    if checkpoint_dir is not None:
-        ck = latest_checkpoint(checkpoint_dir)
-        if ck is not None:
-            trainer.load_state_dict(load_checkpoint(ck, map_location=device)["state"]["trainer"])
-            resumed = True
+    ck = latest_checkpoint(checkpoint_dir) if checkpoint_dir is not None else None
+    resumed = ck is not None
+    # phase 1 is evaluated before the trainer adds the mouth prior to the avatar
     if cfg.eval_phase1 and test_frames and not resumed:
         if progress is not None:
             progress(0, cfg.iterations, "evaluating phase 1")
         with torch.no_grad():
             def render_p1(fr: IngestedFrame) -> torch.Tensor:
                 cam = RenderCamera.from_camera(fr.camera, device)
-                img, _ = avatar.render(cam, trainer.inputs(fr.timestep), cfg.background, near=cfg.near, far=cfg.far,
+                img, _ = avatar.render(cam, avatar.frame_inputs(fr.timestep), cfg.background, near=cfg.near, far=cfg.far,
                                        return_statistics=False)  # fmt: skip
                 return img.color.clamp(0, 1)
 
@@ -482,6 +590,10 @@ def run_phase2(
         d = json.loads((Path(out_dir) / "eval_phase1_test" / "metrics.json").read_text())
         metrics["phase1_test"] = {"overall": d["overall"], "frontal": d["frontal"], "counts": d["counts"],
                                   "lpips_available": d["lpips_available"]}  # fmt: skip
+
+    trainer = Phase2Trainer(avatar, data, cfg, device, gen, init_dir)
+    if ck is not None:
+        trainer.load_state_dict(load_checkpoint(ck, map_location=device)["state"]["trainer"])
 
     total = cfg.iterations
     start = trainer.step_count
@@ -497,6 +609,8 @@ def run_phase2(
             save_checkpoint(checkpoint_dir, step, {"trainer": trainer.state_dict()})
     train_time = time.perf_counter() - t0
     steps_run = trainer.step_count - start
+    if trainer.wrinkle_stats is not None:
+        metrics["wrinkles"] = trainer.finish_wrinkles()
 
     if progress is not None:
         progress(total, total, "evaluating")

@@ -68,6 +68,7 @@ CORRECTION_KEYS: dict[str, str] = {
     "correction_max_neighbours": "max_neighbours",
     "correction_w_s": "w_s",
     "correction_umbilic_tol": "umbilic_tol",
+    "correction_anisotropy_tol": "anisotropy_tol",
 }
 """Stage-config fields of the surfel correction -> ``CorrectedPosing`` keyword arguments."""
 
