@@ -511,6 +511,7 @@ class Phase2Config:
     mouth_prior: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): the cavity mouth_cavity_color, the teeth teeth_color.")
     mouth_cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.")
     teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.")
+    mouth_prior_visibility: str = _f("faces", "Which mouth surfels take the prior: faces (those bound to mouth-interior or teeth triangles that no training view sees at rest) or surfels (those bound to mouth triangles that themselves contribute less than half a pixel to the training views at rest; keeps mouth surfels fitted at rest, e.g. on the lips).")
     mouth_occlusion_jaw: float = _f(0.2, "Darken the mouth prior by its ambient visibility (1 - ambient occlusion) computed with the jaw opened this far (rad); 0: no darkening.")
     teacher_depth_tol: float = _f(0.01, "Rest teacher: relative depth slack of the visibility test.")
     wrinkle_shading: bool = _f(False, "Wrinkle shading (SAGE §6): darken surfels of persistently high-distortion triangles where an expression compresses the surface (stored in the avatar).")

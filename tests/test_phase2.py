@@ -406,3 +406,32 @@ def test_mouth_prior_colours_unseen_mouth_surfels_only(phase1_avatar_path, p2_da
     assert vis.shape == (int(on.sum()),) and float(vis.min()) >= 0 and float(vis.max()) <= 1 and float(vis.min()) < 1
     off = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
     assert off.avatar.surfels.color_prior is None
+
+
+def test_mouth_prior_by_surfel_visibility_spares_seen_surfels(phase1_avatar_path, p2_data, p2_init_dir):
+    from sage_core.errors import ConfigError
+    from sage_core.flame.regions import Regions
+
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_occlusion_jaw=0.0)
+    av = tr.avatar
+    regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
+    mouth = torch.as_tensor(regions.face_mask("mouth_interior") | regions.face_mask("teeth"))[av.surfels.binding]
+    seen = tr.seen_surfels()
+    assert bool(seen.any()) and not bool(tr.seen_surfels(min_weight=1e9).any())
+    on = av.surfels.color_prior[:, 3] > 0
+    assert torch.equal(on, mouth & ~seen)
+    # the weights behind it sum to the rendered alpha over the eroded foreground of the views
+    w = tr.surfel_view_weights()
+    expect = 0.0
+    for fr in p2_data.train:
+        cam = RenderCamera.from_camera(fr.camera, "cpu")
+        with torch.no_grad():
+            img, p = av.render(cam, tr.inputs(fr.timestep), 0.0, near=tr.cfg.near, far=tr.cfg.far, return_statistics=False)
+            from sage_core.render.mesh_raster import rasterize_mesh
+
+            fid = rasterize_mesh(p.vertices, av.faces, cam.K, cam.w2c, cam.width, cam.height).face_id[0]
+            inner = -torch.nn.functional.max_pool2d(-(fid >= 0).float()[None, None], 3, stride=1, padding=1)[0, 0]
+        expect += float((img.alpha * inner).sum())
+    assert float(w.sum()) == pytest.approx(expect, rel=1e-3)
+    with pytest.raises(ConfigError):
+        _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="pixels")

@@ -139,24 +139,22 @@ class SurfelSet(nn.Module):
         obj.load_state_dict(state)
         return obj
 
+    def _set_optional_rows(self, name: str, value: torch.Tensor | None, width: int) -> None:
+        """Set the optional per-surfel buffer ``name`` to value (N, width), or remove it with None."""
+        if value is not None:
+            if tuple(value.shape) != (len(self), width):
+                raise ValueError(f"{name} must be ({len(self)}, {width}), got {tuple(value.shape)}")
+            value = value.detach().to(device=self.binding.device, dtype=self.mu_loc.dtype).clone()
+        setattr(self, name, value)
+
     def set_wrinkle(self, wrinkle: torch.Tensor | None) -> None:
         """Set (or with None remove) the wrinkle shading buffer: (N, 2) amplitude in [0, 1] and full
         compression in (0, 1] per surfel (see :mod:`sage_core.avatar.wrinkles`)."""
-        if wrinkle is None:
-            self.wrinkle = None
-            return
-        if tuple(wrinkle.shape) != (len(self), 2):
-            raise ValueError(f"wrinkle must be ({len(self)}, 2), got {tuple(wrinkle.shape)}")
-        self.wrinkle = wrinkle.detach().to(device=self.binding.device, dtype=self.mu_loc.dtype).clone()
+        self._set_optional_rows("wrinkle", wrinkle, 2)
 
     def set_color_prior(self, prior: torch.Tensor | None) -> None:
         """Set (or with None remove) the colour prior: (N, 4) RGB and blend weight per surfel."""
-        if prior is None:
-            self.color_prior = None
-            return
-        if tuple(prior.shape) != (len(self), 4):
-            raise ValueError(f"color_prior must be ({len(self)}, 4), got {tuple(prior.shape)}")
-        self.color_prior = prior.detach().to(device=self.binding.device, dtype=self.mu_loc.dtype).clone()
+        self._set_optional_rows("color_prior", prior, 4)
 
     def blend_color_prior(self, colors: torch.Tensor) -> torch.Tensor:
         """colors (N, 3) blended with the colour prior where it has weight (unchanged without one)."""

@@ -238,13 +238,19 @@ class Phase2Trainer:
         self._images: dict[tuple[int, int], torch.Tensor] = {}
         self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
         self.distortion_curve: list[float] = []
-        self.prior_colors, self.prior_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
+        if cfg.mouth_prior_visibility not in ("faces", "surfels"):
+            raise ConfigError(f"phase2 mouth_prior_visibility must be faces or surfels, got {cfg.mouth_prior_visibility!r}")
+        self.prior_colors, mouth_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
         if not cfg.mouth_prior:
-            self.prior_faces = torch.zeros_like(self.prior_faces)
-        if bool(self.prior_faces.any()):
+            mouth_faces = torch.zeros_like(mouth_faces)
+        self.prior_faces = mouth_faces.clone()
+        if bool(mouth_faces.any()):
             self.prior_faces &= ~self.seen_faces()
             b = avatar.surfels.binding
-            on = self.prior_faces[b]
+            if cfg.mouth_prior_visibility == "faces":
+                on = self.prior_faces[b]
+            else:
+                on = mouth_faces[b] & ~self.seen_surfels()
             rgb = self.prior_colors[b].clone()
             if cfg.mouth_occlusion_jaw > 0 and bool(on.any()):
                 rgb[on] *= self.prior_visibility(on, cfg.mouth_occlusion_jaw)[:, None].to(rgb)
@@ -309,6 +315,32 @@ class Phase2Trainer:
         eps = 1e-4 * float(np.linalg.norm(V.max(0) - V.min(0)))
         vis = np.maximum(ambient_visibility(V, Fc, x, n, samples, eps), ambient_visibility(V, Fc, x, -n, samples, eps))
         return torch.as_tensor(vis, device=av.device)
+
+    def seen_surfels(self, min_weight: float = 0.5) -> torch.Tensor:
+        """(N,) bool surfels that the training views at rest see: :meth:`surfel_view_weights` at least
+        ``min_weight`` (pixels)."""
+        return self.surfel_view_weights() >= min_weight
+
+    def surfel_view_weights(self) -> torch.Tensor:
+        """(N,) float64 blending weight of every surfel summed over the foreground pixels (the mesh
+        raster's mask eroded by one pixel) of the training views at rest (at most
+        ``teacher_max_views``). The weight of surfel i is the gradient of Σ_p mask_p·C_p with respect
+        to its colour, one backward pass per view; over all surfels it sums to Σ_p mask_p·A_p."""
+        av, c = self.avatar, self.cfg
+        total = torch.zeros(len(av.surfels), dtype=torch.float64, device=av.device)
+        canon = av.canonical_state(with_sdf=av.attributes == "mlp")
+        for fr in _subset(self.frames, c.teacher_max_views):
+            cam = RenderCamera.from_camera(fr.camera, self.device)
+            with torch.no_grad():
+                p = av.posed(self.inputs(fr.timestep), None, canonical=canon, shade=False)
+                fid = rasterize_mesh(p.vertices, av.faces, cam.K, cam.w2c, cam.width, cam.height).face_id[0]
+                inner = (-torch.nn.functional.max_pool2d(-(fid >= 0).float()[None, None], 3, stride=1, padding=1))[0, 0]
+            cols = torch.zeros_like(p.colors).requires_grad_(True)
+            img = rasterize_surfels(p.means.detach(), p.quats.detach(), p.scales.detach(), p.opacities.detach(), cols, cam, 0.0,
+                                    near=c.near, far=c.far, return_statistics=False)  # fmt: skip
+            (grad,) = torch.autograd.grad((img.color[..., 0] * inner).sum(), cols)
+            total += grad[:, 0].detach().to(total)
+        return total
 
     @torch.no_grad()
     def seen_faces(self) -> torch.Tensor:
