@@ -47,3 +47,14 @@ def tiny_ws(tiny_capture, tmp_path_factory):
     )
     assert res.exit_code == 0, res.output
     return ws
+
+
+@pytest.fixture
+def one_thread():
+    """Small ops: one torch thread is faster than two on a busy 2-core machine."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -125,15 +125,6 @@ def test_hessian_fd_exact_for_quadratic():
     torch.testing.assert_close(h, a.expand(5, 3, 3))
 
 
-@pytest.fixture
-def one_thread():
-    """Small ops: one thread is faster than two on a busy 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_curvature_of_network_fitted_to_sphere(one_thread):
     torch.manual_seed(0)
     net = tiny_net(3, n_levels=4, max_res=32, hidden=32)

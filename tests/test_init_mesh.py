@@ -17,14 +17,6 @@ from sage_core.data.dataset import IngestedData
 from sage_core.train.init_mesh import load_sdf, run_init_mesh
 
 
-@pytest.fixture
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _cfg(steps):
     return resolve_config(
         "init-mesh", "tiny", None, {"pretrain.steps": steps, "pretrain.bank_size": 6000, "pretrain.batch_size": 1536, "mc_resolution": 48, "checkpoint_every": 10, "pretrain.eval_samples": 3000}

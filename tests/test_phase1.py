@@ -33,14 +33,6 @@ _SMALL = {
 }
 
 
-@pytest.fixture
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def init_ws(tiny_ws, tmp_path_factory):
     """A workspace with init-mesh done (few pretraining steps)."""

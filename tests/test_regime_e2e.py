@@ -22,14 +22,6 @@ _P1 = ["--preset", "tiny", "--device", "cpu", "--iterations", "3", "--surfels", 
 ]  # fmt: skip
 
 
-@pytest.fixture
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _ok(res) -> None:
     assert res.exit_code == 0, res.output
 

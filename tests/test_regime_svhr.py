@@ -179,14 +179,6 @@ def _trainer(ws, views=None, mirror=None, **over):
     return Phase1Trainer(av, data, cfg, "cpu", g, pseudo_views=views, mirror_index=mirror)
 
 
-@pytest.fixture
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def test_svhr_steps_with_exposure_and_pose_refinement_resume_exactly(svhr_ws, one_thread):
     tr = _trainer(svhr_ws, pose_refine=True, pose_refine_from=2, exposure="rgb")
     assert tr.exposure is not None and tr.exposure.per_channel and tr.pose is not None and tr.sym_plane is not None

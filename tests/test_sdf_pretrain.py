@@ -120,15 +120,6 @@ def test_chamfer_and_normal_error():
 # ---- pretraining -------------------------------------------------------------------------
 
 
-@pytest.fixture
-def one_thread():
-    """Small ops: one thread is faster than two on a busy 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_pretraining_fits_ellipsoid(one_thread):
     v, f = ellipsoid()
     net = tiny_sdf()

@@ -140,15 +140,6 @@ def test_perturbed_sampling_is_repeatable_with_generator():
     assert (a.depth - c.depth).abs().max() > 0
 
 
-@pytest.fixture
-def one_thread():
-    """Small ops: one thread is faster than two on a busy 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_gradients_reach_networks_and_eikonal_samples(one_thread):
     torch.manual_seed(0)
     box = ([-0.2] * 3, [0.2] * 3)
