@@ -58,3 +58,22 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="session")
+def tiny_init_dir(tiny_ws, tmp_path_factory):
+    """init-mesh outputs (quick SDF pretraining) of ``tiny_ws``, built once and shared read-only."""
+    import torch
+
+    from sage_core.config import resolve_config
+    from sage_core.data.dataset import IngestedData
+    from sage_core.train.init_mesh import run_init_mesh
+
+    flags = {"pretrain.steps": 20, "pretrain.bank_size": 4000, "pretrain.batch_size": 1024, "mc_resolution": 32,
+             "pretrain.eval_samples": 2000}  # fmt: skip
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("tiny_init")
+    run_init_mesh(IngestedData.open(tiny_ws / "data"), out, resolve_config("init-mesh", "tiny", None, flags), seed=0)
+    torch.set_num_threads(before)
+    return out

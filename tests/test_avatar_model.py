@@ -11,19 +11,12 @@ from sage_core.data.dataset import IngestedData
 from sage_core.flame.frames import surfel_frames
 from sage_core.geometry.rotations import axis_angle_to_matrix, quat_to_matrix
 from sage_core.render import RenderCamera
-from sage_core.train.init_mesh import run_init_mesh
 from sage_core.train.phase1 import CanonicalRays
 
 
 @pytest.fixture(scope="module")
-def init_dir(tiny_ws, tmp_path_factory):
-    cfg = resolve_config(
-        "init-mesh", "tiny", None,
-        {"pretrain.steps": 20, "pretrain.bank_size": 4000, "pretrain.batch_size": 1024, "mc_resolution": 32, "pretrain.eval_samples": 2000},
-    )  # fmt: skip
-    out = tmp_path_factory.mktemp("init")
-    run_init_mesh(IngestedData.open(tiny_ws / "data"), out, cfg, seed=0)
-    return out
+def init_dir(tiny_init_dir):
+    return tiny_init_dir
 
 
 @pytest.fixture(scope="module")

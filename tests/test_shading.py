@@ -19,7 +19,6 @@ from sage_core.export.ply import decode_ply
 from sage_core.flame.canonical import canonical_inputs
 from sage_core.flame.frames import surfel_frames
 from sage_core.geometry.rotations import axis_angle_to_matrix, quat_to_matrix
-from sage_core.train.init_mesh import run_init_mesh
 
 _Y1 = 0.4886025119029199
 
@@ -112,17 +111,8 @@ def data(tiny_ws):
 
 
 @pytest.fixture(scope="module")
-def init_dir(tiny_ws, tmp_path_factory):
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    cfg = resolve_config(
-        "init-mesh", "tiny", None,
-        {"pretrain.steps": 20, "pretrain.bank_size": 4000, "pretrain.batch_size": 1024, "mc_resolution": 32, "pretrain.eval_samples": 2000},
-    )  # fmt: skip
-    out = tmp_path_factory.mktemp("init")
-    run_init_mesh(IngestedData.open(tiny_ws / "data"), out, cfg, seed=0)
-    torch.set_num_threads(n)
-    return out
+def init_dir(tiny_init_dir):
+    return tiny_init_dir
 
 
 def _avatar(init_dir, data, mode="mlp", shading=None, n=300):

@@ -78,7 +78,7 @@ from ..workspace import rng_state, set_rng_state
 from . import losses as L
 from ._groups import surfel_param_groups
 from .expressions import ExpressionSampler, component_ranges_from_dirs
-from .rest_teacher import RestTeacher
+from .rest_teacher import RestTeacher, erode_mask
 from .warp import pixel_rays, warp_pixels_to_canonical
 
 TEACHERS: tuple[str, ...] = ("rest", "neus")
@@ -334,7 +334,7 @@ class Phase2Trainer:
             with torch.no_grad():
                 p = av.posed(self.inputs(fr.timestep), None, canonical=canon, shade=False)
                 fid = rasterize_mesh(p.vertices, av.faces, cam.K, cam.w2c, cam.width, cam.height).face_id[0]
-                inner = (-torch.nn.functional.max_pool2d(-(fid >= 0).float()[None, None], 3, stride=1, padding=1))[0, 0]
+                inner = erode_mask(fid >= 0)[0, 0]
             cols = torch.zeros_like(p.colors).requires_grad_(True)
             img = rasterize_surfels(p.means.detach(), p.quats.detach(), p.scales.detach(), p.opacities.detach(), cols, cam, 0.0,
                                     near=c.near, far=c.far, return_statistics=False)  # fmt: skip
@@ -353,7 +353,7 @@ class Phase2Trainer:
             cam = RenderCamera.from_camera(fr.camera, self.device)
             ras = rasterize_mesh(av.pose_mesh(self.inputs(fr.timestep)), av.faces, cam.K, cam.w2c, cam.width, cam.height)
             fid = ras.face_id[0]
-            inner = (-torch.nn.functional.max_pool2d(-(fid >= 0).float()[None, None], 3, stride=1, padding=1))[0, 0] > 0.5
+            inner = erode_mask(fid >= 0)[0, 0] > 0.5
             seen[fid[inner]] = True
         return seen
 

@@ -78,7 +78,7 @@ class TeacherLookup:
     view: torch.Tensor
 
 
-def _erode(mask: torch.Tensor) -> torch.Tensor:
+def erode_mask(mask: torch.Tensor) -> torch.Tensor:
     """(H, W) bool -> (1, 1, H, W) float: 1 where the pixel and its 8 neighbours are foreground."""
     m = mask.to(torch.float32)[None, None]
     return (-F.max_pool2d(-m, 3, stride=1, padding=1)).clamp_min(0)
@@ -131,7 +131,7 @@ class RestTeacher:
             ras = rasterize_mesh(verts, faces, K, w2c, width, height)
             views.append(RestView(
                 K=K, w2c=w2c, width=int(width), height=int(height), color=color.permute(2, 0, 1)[None].contiguous(),
-                interior=_erode(ras.mask[0]), depth=ras.depth[0], vertices=verts, frames=surfel_frames(verts, faces),
+                interior=erode_mask(ras.mask[0]), depth=ras.depth[0], vertices=verts, frames=surfel_frames(verts, faces),
             ))  # fmt: skip
         return cls(views, depth_tol)
 
