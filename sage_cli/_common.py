@@ -33,12 +33,16 @@ SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override any
 
 
 def parse_sets(values: list[str] | None) -> dict[str, Any]:
-    """``["a.b=1", "c=x"]`` -> ``{"a.b": "1", "c": "x"}`` (types are coerced by the config layer)."""
+    """``["a.b=1", "c=x"]`` -> ``{"a.b": "1", "c": "x"}`` (types are coerced by the config layer).
+
+    A value without ``=`` or with an empty key is a ConfigError (exit code 3)."""
+    from sage_core.errors import ConfigError
+
     out: dict[str, Any] = {}
     for v in values or []:
-        if "=" not in v:
-            raise typer.BadParameter(f"--set expects key=value, got {v!r}")
-        k, val = v.split("=", 1)
+        k, eq, val = v.partition("=")
+        if not eq or not k.strip():
+            raise ConfigError(f"--set expects key=value (e.g. --set iterations=500), got {v!r}")
         out[k.strip()] = val.strip()
     return out
 

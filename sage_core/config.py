@@ -23,12 +23,36 @@ from .errors import ConfigError
 
 PRESETS = ("tiny", "default")
 
+RENDER_BACKENDS = ("auto", "torch", "cpp", "triton")
+"""Values of the ``render_backend`` field of the stages that render surfels."""
 
-def _f(default: Any, help: str, **kw: Any) -> Any:
-    """A dataclass field with a help text."""
+
+def _f(
+    default: Any,
+    help: str,
+    *,
+    choices: tuple[str, ...] | None = None,
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    lt: float | None = None,
+    length: int | None = None,
+    **kw: Any,
+) -> Any:
+    """A dataclass field with its help text and its allowed values.
+
+    choices: the allowed strings of an enum-like field. ge / gt / le / lt: inclusive / exclusive
+    lower and upper bounds of a numeric field (of every element of a list field). length: the
+    number of elements of a list field. ``None`` passes the checks of an optional field. The
+    checks run once, in :func:`resolve_config` (:func:`validate_config`).
+    """
+    meta: dict[str, Any] = {"help": help}
+    for key, val in (("choices", choices), ("ge", ge), ("gt", gt), ("le", le), ("lt", lt), ("length", length)):
+        if val is not None:
+            meta[key] = tuple(val) if key == "choices" else val
     if isinstance(default, (list, dict)):
-        return field(default_factory=lambda d=default: json.loads(json.dumps(d)), metadata={"help": help}, **kw)
-    return field(default=default, metadata={"help": help}, **kw)
+        return field(default_factory=lambda d=default: json.loads(json.dumps(d)), metadata=meta, **kw)
+    return field(default=default, metadata=meta, **kw)
 
 
 def _sub(cls: type, help: str) -> Any:
@@ -44,50 +68,50 @@ def _sub(cls: type, help: str) -> Any:
 class IngestConfig:
     """``sage ingest``: read a VHAP/GaussianAvatars capture into the workspace."""
 
-    regime: str = _f("mv-sf", "Reconstruction regime: mv-sf (one multiview timestep), mv-mf (all training timesteps), sv-hr (one camera, head turns), one-shot (one image).")
-    timestep: int | None = _f(None, "Training timestep for mv-sf (default: the train timestep closest to a neutral face with the mouth slightly open).")
-    camera: int | None = _f(None, "Camera index for sv-hr and one-shot when the capture has several cameras.")
-    height: int | None = _f(None, "Resize images to this height (width keeps the aspect). Exclusive with downsample.")
-    downsample: float | None = _f(None, "Divide the image size by this factor. Exclusive with height.")
-    background: str = _f("white", "Background of the stored images: white (as exported) or black (recomposited with the mask).")
+    regime: str = _f("mv-sf", "Reconstruction regime: mv-sf (one multiview timestep), mv-mf (all training timesteps), sv-hr (one camera, head turns), one-shot (one image).", choices=("mv-sf", "mv-mf", "sv-hr", "one-shot"))
+    timestep: int | None = _f(None, "Training timestep for mv-sf (default: the train timestep closest to a neutral face with the mouth slightly open).", ge=0)
+    camera: int | None = _f(None, "Camera index for sv-hr and one-shot when the capture has several cameras.", ge=0)
+    height: int | None = _f(None, "Resize images to this height (width keeps the aspect). Exclusive with downsample.", ge=8)
+    downsample: float | None = _f(None, "Divide the image size by this factor. Exclusive with height.", gt=0)
+    background: str = _f("white", "Background of the stored images: white (as exported) or black (recomposited with the mask).", choices=("white", "black"))
 
 
 @dataclass
 class HashGridConfig:
     """Multi-resolution hash encoding (instant-ngp conventions)."""
 
-    n_levels: int = _f(16, "Number of levels L.")
-    n_features: int = _f(2, "Features per level F.")
-    log2_table: int = _f(19, "log2 of the hash table size T per level.")
-    base_res: int = _f(16, "Coarsest resolution N_min.")
-    max_res: int = _f(2048, "Finest resolution N_max.")
+    n_levels: int = _f(16, "Number of levels L.", ge=1)
+    n_features: int = _f(2, "Features per level F.", ge=1)
+    log2_table: int = _f(19, "log2 of the hash table size T per level.", ge=1, le=30)
+    base_res: int = _f(16, "Coarsest resolution N_min.", ge=1)
+    max_res: int = _f(2048, "Finest resolution N_max.", ge=1)
 
 
 @dataclass
 class SDFNetConfig:
     """SDF MLP on [x, enc(x)]."""
 
-    hidden: int = _f(64, "Hidden width of the SDF MLP.")
-    n_hidden_layers: int = _f(1, "Number of hidden layers.")
-    feature_dim: int = _f(13, "Size of the latent feature vector z passed to the appearance network.")
+    hidden: int = _f(64, "Hidden width of the SDF MLP.", ge=1)
+    n_hidden_layers: int = _f(1, "Number of hidden layers.", ge=1)
+    feature_dim: int = _f(13, "Size of the latent feature vector z passed to the appearance network.", ge=1)
 
 
 @dataclass
 class PretrainConfig:
     """SDF pretraining on the canonical FLAME mesh (rendering.md §8)."""
 
-    steps: int = _f(3000, "Optimisation steps.")
-    batch_size: int = _f(8192, "Sample points per step, split evenly over surface / near-surface / uniform samples.")
-    bank_size: int = _f(200000, "Samples precomputed once per kind (surface, near, uniform).")
-    lr_grid: float = _f(1e-2, "Adam learning rate of the hash table.")
-    lr_mlp: float = _f(1e-3, "Adam learning rate of the MLP.")
-    near_sigmas: list[float] = _f([0.005, 0.02], "Near-surface noise std, as fractions of the head size (two values).")
-    truncation: float | None = _f(0.1, "Truncate |d| at this fraction of the head size in the value loss (none: no truncation).")
-    w_value: float = _f(1.0, "Weight of the L1 signed-distance term.")
-    w_normal: float = _f(1.0, "Weight of the normal term (1 - cos between the gradient and the mesh normal) on surface samples.")
-    w_eikonal: float = _f(0.1, "Weight of the eikonal term.")
-    confidence_band: float = _f(0.25, "Winding-number band around 0.5 over which a sample's sign weight rises from 0 to 1 (open meshes).")
-    eval_samples: int = _f(20000, "Surface samples per mesh for the Chamfer distance.")
+    steps: int = _f(3000, "Optimisation steps.", ge=1)
+    batch_size: int = _f(8192, "Sample points per step, split evenly over surface / near-surface / uniform samples.", ge=3)
+    bank_size: int = _f(200000, "Samples precomputed once per kind (surface, near, uniform).", ge=1)
+    lr_grid: float = _f(1e-2, "Adam learning rate of the hash table.", ge=0)
+    lr_mlp: float = _f(1e-3, "Adam learning rate of the MLP.", ge=0)
+    near_sigmas: list[float] = _f([0.005, 0.02], "Near-surface noise std, as fractions of the head size (two values).", gt=0, length=2)
+    truncation: float | None = _f(0.1, "Truncate |d| at this fraction of the head size in the value loss (none: no truncation).", gt=0)
+    w_value: float = _f(1.0, "Weight of the L1 signed-distance term.", ge=0)
+    w_normal: float = _f(1.0, "Weight of the normal term (1 - cos between the gradient and the mesh normal) on surface samples.", ge=0)
+    w_eikonal: float = _f(0.1, "Weight of the eikonal term.", ge=0)
+    confidence_band: float = _f(0.25, "Winding-number band around 0.5 over which a sample's sign weight rises from 0 to 1 (open meshes).", gt=0, le=1)
+    eval_samples: int = _f(20000, "Surface samples per mesh for the Chamfer distance.", ge=1)
 
 
 @dataclass
@@ -95,111 +119,199 @@ class InitMeshConfig:
     """``sage init-mesh``: canonical mesh, mouth interior, SDF pretrained on the mesh."""
 
     mouth_interior: bool = _f(True, "Add the mouth-interior mesh (cavity and teeth) rigged to the jaw.")
-    bbox_padding: float = _f(0.25, "The SDF box is a cube around the canonical mesh whose half size is the mesh's largest half size times (1 + bbox_padding).")
-    sphere_radius: float = _f(0.8, "Radius of the SDF's initial sphere relative to the box half size.")
+    bbox_padding: float = _f(0.25, "The SDF box is a cube around the canonical mesh whose half size is the mesh's largest half size times (1 + bbox_padding).", ge=0)
+    sphere_radius: float = _f(0.8, "Radius of the SDF's initial sphere relative to the box half size.", gt=0)
     grid: HashGridConfig = _sub(HashGridConfig, "Hash grid of the SDF.")
     sdf: SDFNetConfig = _sub(SDFNetConfig, "SDF network.")
     pretrain: PretrainConfig = _sub(PretrainConfig, "Pretraining schedule.")
-    mc_resolution: int = _f(256, "Marching-cubes grid resolution for the extracted zero level set.")
-    checkpoint_every: int = _f(500, "Checkpoint interval in steps.")
+    mc_resolution: int = _f(256, "Marching-cubes grid resolution for the extracted zero level set.", ge=2)
+    checkpoint_every: int = _f(500, "Checkpoint interval in steps.", ge=1)
 
 
 @dataclass
 class Phase1Config:
     """``sage phase1``: joint optimisation of the surfels, the canonical SDF and the attribute networks."""
 
-    attributes: str = _f("mlp", "Surfel attributes: mlp (appearance and shape networks, SAGE) or free (per-surfel colour, opacity, rotation, scale).")
-    iterations: int = _f(30000, "Optimisation steps.")
-    n_surfels: int = _f(150000, "Number of surfels spread over the canonical mesh (no densification).")
-    sh_degree: int = _f(0, "SH degree of the free per-surfel colour (attributes=free).")
-    init_opacity: float = _f(0.5, "Initial opacity of free surfels.")
-    init_scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.")
-    face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.")
-    mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.")
-    hair_weight: float = _f(0.5, "Surfel density multiplier on the hair.")
-    neck_weight: float = _f(0.5, "Surfel density multiplier on the neck.")
-    camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera.")
-    app_hidden: int = _f(64, "Appearance network width.")
-    app_layers: int = _f(2, "Appearance network hidden layers.")
-    app_sh_degree: int = _f(3, "SH degree of the appearance network's view-direction encoding.")
-    shape_hidden: int = _f(64, "Shape network width.")
-    shape_layers: int = _f(2, "Shape network hidden layers.")
-    lr_sdf: float = _f(1e-4, "Adam learning rate of the SDF MLP (paper: 1e-4).")
-    lr_grid: float = _f(1e-4, "Adam learning rate of the hash grid (paper: 1e-4).")
-    lr_networks: float = _f(1e-4, "Adam learning rate of the appearance and shape networks (paper: 1e-4).")
-    lr_variance: float = _f(1e-3, "Adam learning rate of the NeuS s-variance.")
-    lr_position: float = _f(5e-3, "Initial learning rate of the surfel offsets mu_loc (k-normalised triangle units), decayed exponentially to lr_position_final.")
-    lr_position_final: float = _f(5e-5, "Final learning rate of mu_loc.")
-    lr_color: float = _f(2.5e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).")
-    lr_opacity: float = _f(5e-2, "Learning rate of free opacity logits.")
-    lr_scale: float = _f(1.7e-2, "Learning rate of free log scales s_loc.")
-    lr_rotation: float = _f(1e-3, "Learning rate of free rotations q_loc.")
-    ssim_weight: float = _f(0.2, "L_rgb = (1 - w) L1 + w (1 - SSIM).")
-    w_pt: float = _f(1.0, "lambda_pt: mean |f(x_G)| at canonical surfel centres, in units of the SDF box half extent.")
-    w_align: float = _f(0.1, "lambda_align: mean |1 - |t3 . n(x_G)||.")
-    w_depth: float = _f(0.1, "lambda_D: L1 between NeuS and surfel depth along canonical rays, in units of the SDF box half extent (MonoSDF depth weight).")
-    w_normal: float = _f(0.05, "lambda_N: MonoSDF normal loss (L1 + angular) between NeuS and surfel normals (MonoSDF weight).")
-    w_eikonal: float = _f(0.1, "Eikonal weight on NeuS samples and surfel centres.")
-    w_smooth: float = _f(0.005, "SDF normal smoothness ||n(x) - n(x + delta)|| (MonoSDF).")
-    smooth_points: int = _f(1024, "Surfel centres per step for the smoothness term.")
-    smooth_delta: float = _f(0.005, "Half width of the smoothness offset delta, relative to the SDF box half extent.")
-    w_neus_rgb: float = _f(1.0, "L1 of the NeuS rendering of sampled rays against the image.")
-    w_normal_consistency: float = _f(0.05, "2DGS normal consistency lambda_n.")
-    normal_consistency_from: int = _f(7000, "First step of the normal-consistency loss.")
-    w_distortion: float = _f(100.0, "2DGS depth distortion weight (on the normalised depth of near/far).")
-    distortion_from: int = _f(3000, "First step of the distortion loss.")
-    near: float = _f(0.2, "Near plane (m): culls surfels and sets the distortion's normalised depth.")
-    far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth (heads at about 1 m).")
-    sdf_from: int = _f(0, "First step of the SDF terms (L_pt, L_align, L_D, L_N, NeuS).")
-    rays_per_step: int = _f(1024, "Foreground rays per step for NeuS.")
-    neus_samples: int = _f(32, "Stratified NeuS samples per ray.")
-    neus_importance: int = _f(32, "NeuS importance samples per ray.")
-    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.")
+    attributes: str = _f("mlp", "Surfel attributes: mlp (appearance and shape networks, SAGE) or free (per-surfel colour, opacity, rotation, scale).", choices=("mlp", "free"))
+    iterations: int = _f(30000, "Optimisation steps.", ge=1)
+    n_surfels: int = _f(150000, "Number of surfels spread over the canonical mesh (no densification).", ge=1)
+    sh_degree: int = _f(0, "SH degree of the free per-surfel colour (attributes=free).", ge=0, le=3)
+    init_opacity: float = _f(0.5, "Initial opacity of free surfels.", gt=0, lt=1)
+    init_scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.", gt=0)
+    face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.", ge=0)
+    mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.", ge=0)
+    hair_weight: float = _f(0.5, "Surfel density multiplier on the hair.", ge=0)
+    neck_weight: float = _f(0.5, "Surfel density multiplier on the neck.", ge=0)
+    camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera.", ge=0)
+    app_hidden: int = _f(64, "Appearance network width.", ge=1)
+    app_layers: int = _f(2, "Appearance network hidden layers.", ge=1)
+    app_sh_degree: int = _f(3, "SH degree of the appearance network's view-direction encoding.", ge=0, le=3)
+    shape_hidden: int = _f(64, "Shape network width.", ge=1)
+    shape_layers: int = _f(2, "Shape network hidden layers.", ge=1)
+    lr_sdf: float = _f(1e-4, "Adam learning rate of the SDF MLP (paper: 1e-4).", ge=0)
+    lr_grid: float = _f(1e-4, "Adam learning rate of the hash grid (paper: 1e-4).", ge=0)
+    lr_networks: float = _f(1e-4, "Adam learning rate of the appearance and shape networks (paper: 1e-4).", ge=0)
+    lr_variance: float = _f(1e-3, "Adam learning rate of the NeuS s-variance.", ge=0)
+    lr_position: float = _f(5e-3, "Initial learning rate of the surfel offsets mu_loc (k-normalised triangle units), decayed exponentially to lr_position_final.", ge=0)
+    lr_position_final: float = _f(5e-5, "Final learning rate of mu_loc.", ge=0)
+    lr_color: float = _f(2.5e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).", ge=0)
+    lr_opacity: float = _f(5e-2, "Learning rate of free opacity logits.", ge=0)
+    lr_scale: float = _f(1.7e-2, "Learning rate of free log scales s_loc.", ge=0)
+    lr_rotation: float = _f(1e-3, "Learning rate of free rotations q_loc.", ge=0)
+    ssim_weight: float = _f(0.2, "L_rgb = (1 - w) L1 + w (1 - SSIM).", ge=0, le=1)
+    w_pt: float = _f(1.0, "lambda_pt: mean |f(x_G)| at canonical surfel centres, in units of the SDF box half extent.", ge=0)
+    w_align: float = _f(0.1, "lambda_align: mean |1 - |t3 . n(x_G)||.", ge=0)
+    w_depth: float = _f(0.1, "lambda_D: L1 between NeuS and surfel depth along canonical rays, in units of the SDF box half extent (MonoSDF depth weight).", ge=0)
+    w_normal: float = _f(0.05, "lambda_N: MonoSDF normal loss (L1 + angular) between NeuS and surfel normals (MonoSDF weight).", ge=0)
+    w_eikonal: float = _f(0.1, "Eikonal weight on NeuS samples and surfel centres.", ge=0)
+    w_smooth: float = _f(0.005, "SDF normal smoothness ||n(x) - n(x + delta)|| (MonoSDF).", ge=0)
+    smooth_points: int = _f(1024, "Surfel centres per step for the smoothness term.", ge=1)
+    smooth_delta: float = _f(0.005, "Half width of the smoothness offset delta, relative to the SDF box half extent.", gt=0)
+    w_neus_rgb: float = _f(1.0, "L1 of the NeuS rendering of sampled rays against the image.", ge=0)
+    w_normal_consistency: float = _f(0.05, "2DGS normal consistency lambda_n.", ge=0)
+    normal_consistency_from: int = _f(7000, "First step of the normal-consistency loss.", ge=0)
+    w_distortion: float = _f(100.0, "2DGS depth distortion weight (on the normalised depth of near/far).", ge=0)
+    distortion_from: int = _f(3000, "First step of the distortion loss.", ge=0)
+    near: float = _f(0.2, "Near plane (m): culls surfels and sets the distortion's normalised depth.", gt=0)
+    far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth (heads at about 1 m).", gt=0)
+    sdf_from: int = _f(0, "First step of the SDF terms (L_pt, L_align, L_D, L_N, NeuS).", ge=0)
+    rays_per_step: int = _f(1024, "Foreground rays per step for NeuS.", ge=1)
+    neus_samples: int = _f(32, "Stratified NeuS samples per ray.", ge=1)
+    neus_importance: int = _f(32, "NeuS importance samples per ray.", ge=0)
+    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.", ge=0)
     neus_variance: float = _f(0.4, "Initial NeuS s-variance (inv_s = exp(10 var) per box half extent).")
-    rebind_every: int = _f(1000, "Rebind surfels to their nearest canonical triangle every K steps (0: never).")
-    background: float = _f(1.0, "Background grey level of the renders (the ingested images are on white).")
-    eval_every: int = _f(1000, "Validation PSNR every N steps for the progress display (0: only at the end).")
-    mc_resolution: int = _f(256, "Marching-cubes resolution of the extracted SDF mesh.")
-    checkpoint_every: int = _f(1000, "Checkpoint interval in steps.")
-    canonical_warp: str = _f("auto", "How training pixels become canonical rays for the SDF terms: auto (the exact rigid head map where a frame differs from canonical only by global rotation/translation, else the hit-triangle warp; rays missing the mesh are dropped), rigid (rigid frames only) or triangle (always the hit-triangle warp).")
-    exposure: str = _f("off", "Per-training-frame exposure gain on the surfel and NeuS renders: off, gain (one scalar per frame) or rgb (one gain per channel). Regime default for sv-hr and one-shot: gain.")
-    lr_exposure: float = _f(2e-3, "Adam learning rate of the log exposure gains.")
-    w_exposure_prior: float = _f(0.01, "Weak prior mean((log gain)^2) holding the exposure gains near 1.")
-    w_sym_sdf: float = _f(0.0, "Soft left-right symmetry of the canonical SDF: mean |f(x) - f(Sx)| (box half-extent units), S the reflection across the head's sagittal plane. Regime default for sv-hr and one-shot: 0.1.")
-    w_sym_color: float = _f(0.0, "Soft left-right symmetry of the appearance network colour: mean |c(x) - c(Sx)|. Regime default for sv-hr and one-shot: 0.05.")
-    sym_points: int = _f(512, "Points per step for the symmetry terms (surfel centres and uniform points of the SDF box).")
-    sym_box_fraction: float = _f(0.25, "Fraction of the symmetry points drawn uniformly in the SDF box (the rest are surfel centres).")
-    pseudo_view_prob: float = _f(0.5, "One-shot: probability that a step trains on a synthesized pseudo view instead of the input image (weighted photometric loss, no SDF ray terms).")
+    rebind_every: int = _f(1000, "Rebind surfels to their nearest canonical triangle every K steps (0: never).", ge=0)
+    background: float = _f(1.0, "Background grey level of the renders (the ingested images are on white).", ge=0, le=1)
+    eval_every: int = _f(1000, "Validation PSNR every N steps for the progress display (0: only at the end).", ge=0)
+    mc_resolution: int = _f(256, "Marching-cubes resolution of the extracted SDF mesh.", ge=2)
+    checkpoint_every: int = _f(1000, "Checkpoint interval in steps.", ge=1)
+    canonical_warp: str = _f("auto", "How training pixels become canonical rays for the SDF terms: auto (the exact rigid head map where a frame differs from canonical only by global rotation/translation, else the hit-triangle warp; rays missing the mesh are dropped), rigid (rigid frames only) or triangle (always the hit-triangle warp).", choices=("auto", "rigid", "triangle"))
+    exposure: str = _f("off", "Per-training-frame exposure gain on the surfel and NeuS renders: off, gain (one scalar per frame) or rgb (one gain per channel). Regime default for sv-hr and one-shot: gain.", choices=("off", "gain", "rgb"))
+    lr_exposure: float = _f(2e-3, "Adam learning rate of the log exposure gains.", ge=0)
+    w_exposure_prior: float = _f(0.01, "Weak prior mean((log gain)^2) holding the exposure gains near 1.", ge=0)
+    w_sym_sdf: float = _f(0.0, "Soft left-right symmetry of the canonical SDF: mean |f(x) - f(Sx)| (box half-extent units), S the reflection across the head's sagittal plane. Regime default for sv-hr and one-shot: 0.1.", ge=0)
+    w_sym_color: float = _f(0.0, "Soft left-right symmetry of the appearance network colour: mean |c(x) - c(Sx)|. Regime default for sv-hr and one-shot: 0.05.", ge=0)
+    sym_points: int = _f(512, "Points per step for the symmetry terms (surfel centres and uniform points of the SDF box).", ge=1)
+    sym_box_fraction: float = _f(0.25, "Fraction of the symmetry points drawn uniformly in the SDF box (the rest are surfel centres).", ge=0, le=1)
+    pseudo_view_prob: float = _f(0.5, "One-shot: probability that a step trains on a synthesized pseudo view instead of the input image (weighted photometric loss, no SDF ray terms).", ge=0, le=1)
     pseudo_mirror: bool = _f(True, "One-shot: add the mirror pseudo-view (camera S·c2w·S, flipped image, mirrored mesh).")
-    pseudo_mirror_weight: float = _f(0.5, "One-shot: loss weight of the mirror view relative to the input view.")
-    pseudo_mirror_yaw_full_deg: float = _f(30.0, "One-shot: head yaw (deg) at which the mirror view reaches its full weight.")
-    pseudo_mirror_yaw_floor: float = _f(0.25, "One-shot: fraction of the mirror view's weight kept for a frontal head.")
-    pseudo_mirror_seen_weight: float = _f(0.1, "One-shot: per-pixel mirror weight where the input already sees that surface.")
-    pseudo_mirror_background_weight: float = _f(0.5, "One-shot: per-pixel mirror weight on the background.")
-    pseudo_mirror_tolerance: float = _f(1e-3, "One-shot: mirror-partner tolerance relative to the template's bounding-box diagonal.")
-    pseudo_ring_views: int = _f(8, "One-shot: textured-FLAME views on a yaw/pitch ring around the head (0: none).")
-    pseudo_ring_yaw_deg: float = _f(60.0, "One-shot: largest yaw (deg) of the ring views.")
-    pseudo_ring_pitch_deg: float = _f(20.0, "One-shot: largest pitch (deg) of the ring views.")
-    pseudo_ring_weight: float = _f(0.2, "One-shot: loss weight of each ring view.")
-    pseudo_ring_background_weight: float = _f(0.0, "One-shot: per-pixel ring weight on the background.")
-    pseudo_ring_supersample: int = _f(2, "One-shot: per-axis supersampling of the ring renders.")
-    pseudo_texture_resolution: int = _f(4, "One-shot: barycentric texture samples per face edge of the back-projected texture.")
-    pseudo_texture_mirror_confidence: float = _f(0.5, "One-shot: confidence of texels filled from their mirror partners.")
-    pseudo_texture_inpaint_confidence: float = _f(0.0, "One-shot: confidence of inpainted texels (0: never supervise).")
+    pseudo_mirror_weight: float = _f(0.5, "One-shot: loss weight of the mirror view relative to the input view.", ge=0)
+    pseudo_mirror_yaw_full_deg: float = _f(30.0, "One-shot: head yaw (deg) at which the mirror view reaches its full weight.", gt=0, le=180)
+    pseudo_mirror_yaw_floor: float = _f(0.25, "One-shot: fraction of the mirror view's weight kept for a frontal head.", ge=0, le=1)
+    pseudo_mirror_seen_weight: float = _f(0.1, "One-shot: per-pixel mirror weight where the input already sees that surface.", ge=0, le=1)
+    pseudo_mirror_background_weight: float = _f(0.5, "One-shot: per-pixel mirror weight on the background.", ge=0, le=1)
+    pseudo_mirror_tolerance: float = _f(1e-3, "One-shot: mirror-partner tolerance relative to the template's bounding-box diagonal.", gt=0)
+    pseudo_ring_views: int = _f(8, "One-shot: textured-FLAME views on a yaw/pitch ring around the head (0: none).", ge=0)
+    pseudo_ring_yaw_deg: float = _f(60.0, "One-shot: largest yaw (deg) of the ring views.", ge=0, le=180)
+    pseudo_ring_pitch_deg: float = _f(20.0, "One-shot: largest pitch (deg) of the ring views.", ge=0, lt=90)
+    pseudo_ring_weight: float = _f(0.2, "One-shot: loss weight of each ring view.", ge=0)
+    pseudo_ring_background_weight: float = _f(0.0, "One-shot: per-pixel ring weight on the background.", ge=0, le=1)
+    pseudo_ring_supersample: int = _f(2, "One-shot: per-axis supersampling of the ring renders.", ge=1, le=8)
+    pseudo_texture_resolution: int = _f(4, "One-shot: barycentric texture samples per face edge of the back-projected texture.", ge=1)
+    pseudo_texture_mirror_confidence: float = _f(0.5, "One-shot: confidence of texels filled from their mirror partners.", ge=0, le=1)
+    pseudo_texture_inpaint_confidence: float = _f(0.0, "One-shot: confidence of inpainted texels (0: never supervise).", ge=0, le=1)
     pose_refine: bool = _f(False, "Refine small per-frame corrections of the FLAME global rotation, neck pose and translation of the training timesteps (single-camera clips), from pose_refine_from on; they are saved in checkpoints and baked into the avatar's parameters.")
-    pose_refine_from: int = _f(1000, "First step of the pose refinement (after the geometry has settled).")
-    lr_pose_rotation: float = _f(1e-4, "Adam learning rate of the rotation and neck corrections (axis-angle, rad).")
-    lr_pose_translation: float = _f(1e-5, "Adam learning rate of the translation corrections (m).")
-    w_pose_prior: float = _f(1.0, "Weight of mean(correction^2) (rad^2, and translations in SDF box half extents squared) keeping the pose corrections small.")
-    shading: str = _f("none", "Colour model: none (view-independent colour fixed in head space, the default in every regime) or sh2 (the colour is an albedo times the irradiance of a light fixed in the world, order-2 spherical harmonics of the surfel's outward world normal, so shading follows head turns and expressions; the NeuS colour is shaded the same way with its SDF normal mapped to the world).")
-    lr_light: float = _f(5e-3, "Adam learning rate of the SH light coefficients (shading=sh2).")
-    w_light_prior: float = _f(0.01, "Weak prior mean((mean irradiance - 1)^2) on the light's band-0 term (shading=sh2), fixing the albedo/light brightness scale.")
+    pose_refine_from: int = _f(1000, "First step of the pose refinement (after the geometry has settled).", ge=0)
+    lr_pose_rotation: float = _f(1e-4, "Adam learning rate of the rotation and neck corrections (axis-angle, rad).", ge=0)
+    lr_pose_translation: float = _f(1e-5, "Adam learning rate of the translation corrections (m).", ge=0)
+    w_pose_prior: float = _f(1.0, "Weight of mean(correction^2) (rad^2, and translations in SDF box half extents squared) keeping the pose corrections small.", ge=0)
+    shading: str = _f("none", "Colour model: none (view-independent colour fixed in head space, the default in every regime) or sh2 (the colour is an albedo times the irradiance of a light fixed in the world, order-2 spherical harmonics of the surfel's outward world normal, so shading follows head turns and expressions; the NeuS colour is shaded the same way with its SDF normal mapped to the world).", choices=("none", "sh2"))
+    lr_light: float = _f(5e-3, "Adam learning rate of the SH light coefficients (shading=sh2).", ge=0)
+    w_light_prior: float = _f(0.01, "Weak prior mean((mean irradiance - 1)^2) on the light's band-0 term (shading=sh2), fixing the albedo/light brightness scale.", ge=0)
+    render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
+
+
+@dataclass
+class EvalConfig:
+    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (formats.md §8)."""
+
+    stage: str = _f("auto", "Avatar to evaluate: auto (the latest finished of phase2, phase1), phase1 or phase2.", choices=("auto", "phase1", "phase2"))
+    split: str = _f("test", "Split: test (self-reenactment), val (novel view) or all (both).", choices=("test", "val", "all", "novel"))
+    samples: int = _f(8, "Sample strips (GT | render | error) written per split.", ge=0)
+    psnr_cap: float | None = _f(None, "Cap every per-image PSNR at this value before averaging (none: identical images give inf).", gt=0)
+    render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
+
+
+@dataclass
+class ExportConfig:
+    """``sage export``: world-space 3DGS PLY, meshes and the avatar bundle."""
+
+    stage: str = _f("auto", "Avatar to export: auto (the latest finished of phase2, phase1), phase1 or phase2.", choices=("auto", "phase1", "phase2"))
+    mc_resolution: int = _f(256, "Marching-cubes resolution of the SDF mesh.", ge=2)
+    color_camera: int | None = _f(None, "Bake the view-dependent colours as seen from this camera of the capture (none: each surfel seen along its normal).", ge=0)
+    up_axis: str = _f("y", "Vertical axis written in the PLY comment (VHAP worlds are roughly y-up).", choices=("x", "y", "z", "-x", "-y", "-z"))
+    render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
+
+
+@dataclass
+class Phase2Config:
+    """``sage phase2``: self-supervised fine-tuning under sampled expressions, SDF and hash grid frozen."""
+
+    iterations: int = _f(5000, "Optimisation steps.", ge=1)
+    correction: bool = _f(True, "Surfel correction from stretch and curvature while posing (SAGE §3).")
+    correction_radius_edges: float = _f(2.0, "Ball-query radius of the correction's triangle neighbours, in median canonical edge lengths.", gt=0)
+    correction_max_neighbours: int = _f(16, "Neighbours kept per triangle.", ge=1)
+    correction_w_s: float = _f(1e-3, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|).", ge=0)
+    correction_umbilic_tol: float = _f(1.0, "|k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.", ge=0)
+    correction_anisotropy_tol: float = _f(0.1, "Relative stretch anisotropy (s1 - s2)/s2 above which the curvature-aligned rotation applies in full; it fades to none under isotropic deformation, so surfels keep their fitted orientation at rest (0: always in full).", ge=0)
+    lr_position: float = _f(5e-5, "Learning rate of the surfel offsets mu_loc.", ge=0)
+    lr_networks: float = _f(1e-4, "Learning rate of the appearance network (0: frozen).", ge=0)
+    lr_shape: float = _f(1e-5, "Learning rate of the shape network (mlp attributes; 0: frozen).", ge=0)
+    lr_color: float = _f(1e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).", ge=0)
+    lr_opacity: float = _f(0.0, "Learning rate of free opacity logits (0: frozen; free surfels collapse when the self-supervised terms move their opacity, scale and rotation).", ge=0)
+    lr_scale: float = _f(0.0, "Learning rate of free log scales (0: frozen; the correction adapts scales under deformation).", ge=0)
+    lr_rotation: float = _f(0.0, "Learning rate of free rotations (0: frozen; the correction adapts rotations under deformation).", ge=0)
+    w_normal_consistency: float = _f(0.05, "lambda_n: 2DGS normal consistency under deformation.", ge=0)
+    w_distortion: float = _f(100.0, "lambda_d: 2DGS depth distortion under deformation.", ge=0)
+    w_appearance: float = _f(1.0, "lambda_a: squared error between the surfel colour and the teacher colour on sampled pixels.", ge=0)
+    teacher: str = _f("rest", "Appearance teacher: rest (the phase-1 avatar's own renders of the training views at rest, looked up through the mesh correspondence) or neus (canonical NeuS volume rendering of the warped ray).", choices=("rest", "neus"))
+    teacher_max_views: int = _f(64, "Rest teacher: at most this many training views (evenly spaced).", ge=1)
+    mouth_prior: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): the cavity mouth_cavity_color, the teeth teeth_color.")
+    mouth_cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.", ge=0, le=1, length=3)
+    teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.", ge=0, le=1, length=3)
+    mouth_prior_visibility: str = _f("faces", "Which mouth surfels take the prior: faces (those bound to mouth-interior or teeth triangles that no training view sees at rest) or surfels (those bound to mouth triangles that themselves contribute less than half a pixel to the training views at rest; keeps mouth surfels fitted at rest, e.g. on the lips).", choices=("faces", "surfels"))
+    mouth_occlusion_jaw: float = _f(0.2, "Darken the mouth prior by its ambient visibility (1 - ambient occlusion) computed with the jaw opened this far (rad); 0: no darkening.", ge=0)
+    teacher_depth_tol: float = _f(0.01, "Rest teacher: relative depth slack of the visibility test.", ge=0)
+    wrinkle_shading: bool = _f(False, "Wrinkle shading (SAGE §6): darken surfels of persistently high-distortion triangles where an expression compresses the surface (stored in the avatar).")
+    wrinkle_strength: float = _f(0.3, "Wrinkle shading: darkening of the most distorted triangles at full compression (0..1).", ge=0, le=1)
+    wrinkle_full_compression: float = _f(0.25, "Wrinkle shading: relative one-ring area loss at which the darkening is full.", gt=0, le=1)
+    wrinkle_region: str = _f("distortion", "Wrinkle shading: which triangles may darken: distortion (ramped by their mean distortion during phase 2, SAGE's rule) or skin (every non-hair, non-mouth triangle at full strength).", choices=("distortion", "skin"))
+    wrinkle_quantiles: list[float] = _f([0.5, 0.9], "Wrinkle shading: the triangle weight rises from 0 to 1 between these quantiles of the per-triangle mean distortion.", ge=0, le=1, length=2)
+    w_photometric: float = _f(0.0, "Weight of an optional L_rgb term on a captured training frame (0: phase 2 uses no images).", ge=0)
+    photometric_every: int = _f(1, "Add the photometric term every N steps (when w_photometric > 0).", ge=1)
+    rays_per_step: int = _f(1024, "Pixels per step for the appearance term.", ge=1)
+    error_floor: float = _f(0.5, "Pixel sampling weight = e_n/mean(e_n) + e_d/mean(e_d) + error_floor (errors of the posed render).", ge=0)
+    neus_samples: int = _f(32, "Stratified NeuS samples per ray of the teacher.", ge=1)
+    neus_importance: int = _f(32, "NeuS importance samples per ray.", ge=0)
+    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.", ge=0)
+    expr_target: float = _f(0.01, "Sampled expression component std: a 1-sigma coefficient moves its most-affected vertex by this many metres.", ge=0)
+    expr_active: int = _f(8, "A synthetic expression activates between 1 and this many components.", ge=1)
+    expr_clip_sigma: float = _f(2.5, "Synthetic coefficients and jitters are clipped at this many std.", gt=0)
+    jaw_max: float = _f(0.4, "Largest sampled jaw opening (rad).", ge=0)
+    eye_range: float = _f(0.2, "Largest sampled gaze angle (rad).", ge=0)
+    neck_std: float = _f(0.05, "Neck pose jitter std (rad).", ge=0)
+    rotation_std: float = _f(0.05, "Global rotation jitter std (rad), composed with the training frame's.", ge=0)
+    translation_std: float = _f(0.005, "Global translation jitter std (m).", ge=0)
+    observed_weight: float = _f(0.3, "Probability of starting from one of the capture's training expressions.", ge=0, le=1)
+    observed_noise: float = _f(0.2, "Noise on observed expressions, relative to the component std.", ge=0)
+    rest_fraction: float = _f(0.0, "Probability that a step poses the training frame exactly as captured (no sampled expression or jitter): the appearance term then anchors the avatar to its own phase-1 renders.", ge=0, le=1)
+    near: float = _f(0.2, "Near plane (m) of the surfel renders.", gt=0)
+    far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth.", gt=0)
+    background: float = _f(1.0, "Background grey level.", ge=0, le=1)
+    curve_steps: int = _f(100, "Steps of the distortion curve written to distortion_curve.json.", ge=0)
+    eval_phase1: bool = _f(True, "Also evaluate the phase-1 avatar (no correction) on the test split, for comparison.")
+    eval_frames: int = _f(0, "Evaluate at most this many evenly spaced frames per split (0: all).", ge=0)
+    checkpoint_every: int = _f(500, "Checkpoint interval in steps.", ge=1)
+    render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
 
 
 STAGE_CONFIGS: dict[str, type] = {
     "ingest": IngestConfig,
     "init-mesh": InitMeshConfig,
     "phase1": Phase1Config,
+    "phase2": Phase2Config,
+    "eval": EvalConfig,
+    "export": ExportConfig,
 }
 
 # Preset overrides per stage, as dotted-key mappings applied over the dataclass defaults
@@ -240,6 +352,16 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
             "mc_resolution": 128,
             "checkpoint_every": 250,
         },
+        "phase2": {
+            "iterations": 300,
+            "rays_per_step": 256,
+            "neus_samples": 24,
+            "neus_importance": 16,
+            "lr_networks": 1e-4,
+            "checkpoint_every": 100,
+        },
+        "eval": {},
+        "export": {"mc_resolution": 128},
     },
 }
 
@@ -437,7 +559,67 @@ def resolve_config(
         if v is None:
             continue
         _apply(cfg, k, v, "command line")
+    validate_config(cfg, f"{stage} config")
     return cfg
+
+
+def allowed_text(meta: Any) -> str:
+    """The allowed values of a field, from its metadata: ``one of a, b``, ``>= 1``, ``0 < x <= 1``
+    (list fields: ``3 values, each in [0, 1]``); empty when the field declares none."""
+    if "choices" in meta:
+        return "one of " + ", ".join(meta["choices"])
+    lo = (f"{_num(meta['ge'])} <= " if "ge" in meta else f"{_num(meta['gt'])} < " if "gt" in meta else "")
+    hi = (f" <= {_num(meta['le'])}" if "le" in meta else f" < {_num(meta['lt'])}" if "lt" in meta else "")
+    rng = ""
+    if lo and hi:
+        rng = f"{lo}x{hi}"
+    elif lo:
+        rng = (">= " if "ge" in meta else "> ") + lo.split(" ")[0]
+    elif hi:
+        rng = hi.strip()
+    if "length" in meta:
+        return f"{meta['length']} values" + (f", each {rng}" if rng else "")
+    return rng
+
+
+def _num(v: float) -> str:
+    return f"{v:g}"
+
+
+def _check_value(value: Any, meta: Any, key: str) -> None:
+    """Raise ConfigError naming ``key``, the value and what is allowed, if ``value`` breaks ``meta``."""
+    if value is None:
+        return
+    allowed = allowed_text(meta)
+    if "choices" in meta and value not in meta["choices"]:
+        raise ConfigError(f"{key} = {value!r} is not allowed (allowed: {allowed})")
+    items = value if isinstance(value, (list, tuple)) else [value]
+    if "length" in meta and isinstance(value, (list, tuple)) and len(value) != meta["length"]:
+        raise ConfigError(f"{key} = {value!r} has {len(value)} value(s) (allowed: {allowed})")
+    for x in items:
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            continue
+        bad = x != x  # NaN is never in range
+        bad = bad or ("ge" in meta and not x >= meta["ge"]) or ("gt" in meta and not x > meta["gt"])
+        bad = bad or ("le" in meta and not x <= meta["le"]) or ("lt" in meta and not x < meta["lt"])
+        if bad:
+            raise ConfigError(f"{key} = {value!r} is out of range (allowed: {allowed})")
+
+
+def validate_config(cfg: Any, where: str = "", prefix: str = "") -> None:
+    """Check every field of a (nested) config dataclass against its declared choices and range.
+
+    Raises ConfigError naming the dotted field, the value and the allowed values or range
+    (``init-mesh config: pretrain.steps = 0 is out of range (allowed: >= 1)``).
+    :func:`resolve_config` calls it once, after all sources are merged.
+    """
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            validate_config(value, where, prefix=f"{key}.")
+            continue
+        _check_value(value, f.metadata, f"{where}: {key}" if where else key)
 
 
 def from_dict(cls: type[T], data: dict[str, Any]) -> T:
@@ -461,90 +643,16 @@ def describe(cls: type, prefix: str = "") -> list[tuple[str, str, Any]]:
     return rows
 
 
-@dataclass
-class EvalConfig:
-    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (formats.md §8)."""
-
-    stage: str = _f("auto", "Avatar to evaluate: auto (the latest finished of phase2, phase1), phase1 or phase2.")
-    split: str = _f("test", "Split: test (self-reenactment), val (novel view) or all (both).")
-    samples: int = _f(8, "Sample strips (GT | render | error) written per split.")
-    psnr_cap: float | None = _f(None, "Cap every per-image PSNR at this value before averaging (none: identical images give inf).")
-
-
-@dataclass
-class ExportConfig:
-    """``sage export``: world-space 3DGS PLY, meshes and the avatar bundle."""
-
-    stage: str = _f("auto", "Avatar to export: auto (the latest finished of phase2, phase1), phase1 or phase2.")
-    mc_resolution: int = _f(256, "Marching-cubes resolution of the SDF mesh.")
-    color_camera: int | None = _f(None, "Bake the view-dependent colours as seen from this camera of the capture (none: each surfel seen along its normal).")
-    up_axis: str = _f("y", "Vertical axis written in the PLY comment (VHAP worlds are roughly y-up).")
-
-
-STAGE_CONFIGS.update({"eval": EvalConfig, "export": ExportConfig})
-PRESET_OVERRIDES["tiny"].update({"eval": {}, "export": {"mc_resolution": 128}})
-
-
-@dataclass
-class Phase2Config:
-    """``sage phase2``: self-supervised fine-tuning under sampled expressions, SDF and hash grid frozen."""
-
-    iterations: int = _f(5000, "Optimisation steps.")
-    correction: bool = _f(True, "Surfel correction from stretch and curvature while posing (SAGE §3).")
-    correction_radius_edges: float = _f(2.0, "Ball-query radius of the correction's triangle neighbours, in median canonical edge lengths.")
-    correction_max_neighbours: int = _f(16, "Neighbours kept per triangle.")
-    correction_w_s: float = _f(1e-3, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|).")
-    correction_umbilic_tol: float = _f(1.0, "|k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.")
-    correction_anisotropy_tol: float = _f(0.1, "Relative stretch anisotropy (s1 - s2)/s2 above which the curvature-aligned rotation applies in full; it fades to none under isotropic deformation, so surfels keep their fitted orientation at rest (0: always in full).")
-    lr_position: float = _f(5e-5, "Learning rate of the surfel offsets mu_loc.")
-    lr_networks: float = _f(1e-4, "Learning rate of the appearance network (0: frozen).")
-    lr_shape: float = _f(1e-5, "Learning rate of the shape network (mlp attributes; 0: frozen).")
-    lr_color: float = _f(1e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).")
-    lr_opacity: float = _f(0.0, "Learning rate of free opacity logits (0: frozen; free surfels collapse when the self-supervised terms move their opacity, scale and rotation).")
-    lr_scale: float = _f(0.0, "Learning rate of free log scales (0: frozen; the correction adapts scales under deformation).")
-    lr_rotation: float = _f(0.0, "Learning rate of free rotations (0: frozen; the correction adapts rotations under deformation).")
-    w_normal_consistency: float = _f(0.05, "lambda_n: 2DGS normal consistency under deformation.")
-    w_distortion: float = _f(100.0, "lambda_d: 2DGS depth distortion under deformation.")
-    w_appearance: float = _f(1.0, "lambda_a: squared error between the surfel colour and the teacher colour on sampled pixels.")
-    teacher: str = _f("rest", "Appearance teacher: rest (the phase-1 avatar's own renders of the training views at rest, looked up through the mesh correspondence) or neus (canonical NeuS volume rendering of the warped ray).")
-    teacher_max_views: int = _f(64, "Rest teacher: at most this many training views (evenly spaced).")
-    mouth_prior: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): the cavity mouth_cavity_color, the teeth teeth_color.")
-    mouth_cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.")
-    teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.")
-    mouth_prior_visibility: str = _f("faces", "Which mouth surfels take the prior: faces (those bound to mouth-interior or teeth triangles that no training view sees at rest) or surfels (those bound to mouth triangles that themselves contribute less than half a pixel to the training views at rest; keeps mouth surfels fitted at rest, e.g. on the lips).")
-    mouth_occlusion_jaw: float = _f(0.2, "Darken the mouth prior by its ambient visibility (1 - ambient occlusion) computed with the jaw opened this far (rad); 0: no darkening.")
-    teacher_depth_tol: float = _f(0.01, "Rest teacher: relative depth slack of the visibility test.")
-    wrinkle_shading: bool = _f(False, "Wrinkle shading (SAGE §6): darken surfels of persistently high-distortion triangles where an expression compresses the surface (stored in the avatar).")
-    wrinkle_strength: float = _f(0.3, "Wrinkle shading: darkening of the most distorted triangles at full compression (0..1).")
-    wrinkle_full_compression: float = _f(0.25, "Wrinkle shading: relative one-ring area loss at which the darkening is full.")
-    wrinkle_region: str = _f("distortion", "Wrinkle shading: which triangles may darken: distortion (ramped by their mean distortion during phase 2, SAGE's rule) or skin (every non-hair, non-mouth triangle at full strength).")
-    wrinkle_quantiles: list[float] = _f([0.5, 0.9], "Wrinkle shading: the triangle weight rises from 0 to 1 between these quantiles of the per-triangle mean distortion.")
-    w_photometric: float = _f(0.0, "Weight of an optional L_rgb term on a captured training frame (0: phase 2 uses no images).")
-    photometric_every: int = _f(1, "Add the photometric term every N steps (when w_photometric > 0).")
-    rays_per_step: int = _f(1024, "Pixels per step for the appearance term.")
-    error_floor: float = _f(0.5, "Pixel sampling weight = e_n/mean(e_n) + e_d/mean(e_d) + error_floor (errors of the posed render).")
-    neus_samples: int = _f(32, "Stratified NeuS samples per ray of the teacher.")
-    neus_importance: int = _f(32, "NeuS importance samples per ray.")
-    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.")
-    expr_target: float = _f(0.01, "Sampled expression component std: a 1-sigma coefficient moves its most-affected vertex by this many metres.")
-    expr_active: int = _f(8, "A synthetic expression activates between 1 and this many components.")
-    expr_clip_sigma: float = _f(2.5, "Synthetic coefficients and jitters are clipped at this many std.")
-    jaw_max: float = _f(0.4, "Largest sampled jaw opening (rad).")
-    eye_range: float = _f(0.2, "Largest sampled gaze angle (rad).")
-    neck_std: float = _f(0.05, "Neck pose jitter std (rad).")
-    rotation_std: float = _f(0.05, "Global rotation jitter std (rad), composed with the training frame's.")
-    translation_std: float = _f(0.005, "Global translation jitter std (m).")
-    observed_weight: float = _f(0.3, "Probability of starting from one of the capture's training expressions.")
-    observed_noise: float = _f(0.2, "Noise on observed expressions, relative to the component std.")
-    rest_fraction: float = _f(0.0, "Probability that a step poses the training frame exactly as captured (no sampled expression or jitter): the appearance term then anchors the avatar to its own phase-1 renders.")
-    near: float = _f(0.2, "Near plane (m) of the surfel renders.")
-    far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth.")
-    background: float = _f(1.0, "Background grey level.")
-    curve_steps: int = _f(100, "Steps of the distortion curve written to distortion_curve.json.")
-    eval_phase1: bool = _f(True, "Also evaluate the phase-1 avatar (no correction) on the test split, for comparison.")
-    eval_frames: int = _f(0, "Evaluate at most this many evenly spaced frames per split (0: all).")
-    checkpoint_every: int = _f(500, "Checkpoint interval in steps.")
-
-
-STAGE_CONFIGS["phase2"] = Phase2Config
-PRESET_OVERRIDES["tiny"]["phase2"] = {"iterations": 300, "rays_per_step": 256, "neus_samples": 24, "neus_importance": 16, "lr_networks": 1e-4, "checkpoint_every": 100}
+def describe_allowed(cls: type, prefix: str = "") -> dict[str, str]:
+    """Dotted field name -> its allowed values (:func:`allowed_text`; empty when unconstrained)."""
+    out: dict[str, str] = {}
+    for f in dataclasses.fields(cls):
+        tp = _field_types(cls)[f.name]
+        if dataclasses.is_dataclass(tp):
+            out.update(describe_allowed(tp, prefix=f"{prefix}{f.name}."))
+        else:
+            text = allowed_text(f.metadata)
+            if text and typing.get_origin(tp) in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+                text += " or none"
+            out[f"{prefix}{f.name}"] = text
+    return out

@@ -15,14 +15,14 @@ def config(
     preset: PresetOpt = "default",
     config: ConfigOpt = None,
     set_: SetOpt = None,
-    explain: Annotated[bool, typer.Option("--explain", help="List every field with its help text instead of YAML.")] = False,
+    explain: Annotated[bool, typer.Option("--explain", help="List every field with its value, allowed values or range and help text instead of YAML.")] = False,
     regime: Annotated[Optional[str], typer.Option("--regime", help="Apply a regime's defaults (mv-sf, mv-mf, sv-hr, one-shot), as a workspace ingested with it does.")] = None,
 ) -> None:
     """Print the configuration a stage would run with, as YAML (usable as a --config file)."""
     with cli_errors():
         import yaml
 
-        from sage_core.config import STAGE_CONFIGS, describe, section_name, to_dict
+        from sage_core.config import STAGE_CONFIGS, describe, describe_allowed, section_name, to_dict
         from sage_core.errors import ConfigError
 
         if stage not in STAGE_CONFIGS:
@@ -39,12 +39,14 @@ def config(
             t = Table(title=f"{stage} ({preset} preset)")
             t.add_column("option", no_wrap=True)
             t.add_column("value")
+            t.add_column("allowed")
             t.add_column("meaning")
+            allowed = describe_allowed(type(cfg))
             for name, help_text, _ in describe(type(cfg)):
                 obj = cfg
                 for part in name.split("."):
                     obj = getattr(obj, part)
-                t.add_row(name, str(obj), help_text)
+                t.add_row(name, str(obj), allowed.get(name, ""), help_text)
             console.print(t)
             return
         typer.echo(yaml.safe_dump({section_name(stage): to_dict(cfg)}, sort_keys=False).rstrip())

@@ -38,7 +38,6 @@ from .._common import (
 )
 from .._stage import StageOptions, execute_stage
 
-SPLITS = ("test", "val", "all", "novel")
 _LPIPS_HINT = "unavailable: no weights (give --lpips-weights, set $SAGE_LPIPS_WEIGHTS or place ~/.cache/sage/lpips_alex_v0.1.pth)"
 
 
@@ -91,14 +90,10 @@ def eval_(
 ) -> None:
     """Evaluate the avatar: PSNR, SSIM and LPIPS per image, per camera, frontal and overall; results accumulate in WS/eval/<stage>/<split>/."""
     with cli_errors():
-        from sage_core.errors import ConfigError, InputError
+        from sage_core.errors import InputError
 
         flags = {"split": split, "stage": stage, "samples": samples, **parse_sets(set_)}
         cfg = resolve_stage_config("eval", preset, config, flags)
-        if cfg.split not in SPLITS:
-            raise ConfigError(f"--split must be test, val, all or novel, got {cfg.split!r}")
-        if cfg.samples < 0:
-            raise ConfigError(f"--samples must be >= 0, got {cfg.samples}")
         if not ws.is_dir():
             raise InputError(ws, "workspace folder not found")
         run_eval(ws, cfg, lpips_weights, StageOptions(ws, preset, config, seed, device, force, verbose))

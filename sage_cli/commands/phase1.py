@@ -38,10 +38,8 @@ def phase1(
 ) -> None:
     """Train the avatar: surfels bound to FLAME, jointly with the canonical SDF (phase 1)."""
     with cli_errors():
-        from sage_core.errors import ConfigError, InputError
+        from sage_core.errors import InputError
 
-        if attributes is not None and attributes not in ("mlp", "free"):
-            raise ConfigError(f"--attributes must be mlp or free, got {attributes!r}")
         flags = {"attributes": attributes, "iterations": iterations, "n_surfels": surfels, **parse_sets(set_)}
         if not ws.is_dir():
             raise InputError(ws, "workspace folder not found (run `sage ingest` and `sage init-mesh` first)")
@@ -52,14 +50,6 @@ def phase1(
         file_data = load_config_file(config) if config is not None else None
         cfg = resolve_config("phase1", preset, file_data, flags, file_label=str(config) if config else "config file",
                              regime=regime if isinstance(regime, str) else None)
-        if cfg.attributes not in ("mlp", "free"):
-            raise ConfigError(f"attributes must be mlp or free, got {cfg.attributes!r}")
-        if cfg.exposure not in ("off", "gain", "rgb"):
-            raise ConfigError(f"exposure must be off, gain or rgb, got {cfg.exposure!r}")
-        if cfg.canonical_warp not in ("auto", "rigid", "triangle"):
-            raise ConfigError(f"canonical_warp must be auto, rigid or triangle, got {cfg.canonical_warp!r}")
-        if not 0.0 <= cfg.pseudo_view_prob <= 1.0:
-            raise ConfigError(f"pseudo_view_prob must lie in [0, 1], got {cfg.pseudo_view_prob}")
         _print_coverage(ingest_summary, verbose)
 
         def body(run, progress) -> None:

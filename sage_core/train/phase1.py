@@ -55,10 +55,9 @@ from torch import nn
 
 from ..avatar.init import REGION_MOUTH
 from ..avatar.model import Avatar
-from ..avatar.shading import SHADING_MODES, shade_foreground
+from ..avatar.shading import shade_foreground
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
-from ..errors import ConfigError
 from ..evaluate.metrics import psnr, ssim, ssim_map
 from ..render import RenderCamera
 from ..render.mesh_raster import ray_directions
@@ -76,8 +75,6 @@ STATE_FORMAT = 1
 
 def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, device: str | torch.device, generator: torch.Generator) -> Avatar:
     """The phase-1 avatar from the init-mesh outputs and the config."""
-    if cfg.shading not in SHADING_MODES:
-        raise ConfigError(f"shading must be one of {', '.join(SHADING_MODES)}, got {cfg.shading!r}")
     return Avatar.build(
         init_dir, data, cfg.n_surfels, cfg.attributes,
         app_args={"hidden": cfg.app_hidden, "n_layers": cfg.app_layers, "sh_degree": cfg.app_sh_degree},
@@ -221,8 +218,6 @@ class Phase1Trainer:
         self.length_unit = float(avatar.sdf.half_extent)
         self.exposure: ExposureGain | None = None
         if cfg.exposure != "off":
-            if cfg.exposure not in ("gain", "rgb"):
-                raise ValueError(f"exposure must be off, gain or rgb, got {cfg.exposure!r}")
             self.exposure = ExposureGain(len(self.frames), per_channel=cfg.exposure == "rgb").to(self.device)
         self.pose: PoseRefinement | None = None
         if cfg.pose_refine:

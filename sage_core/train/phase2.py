@@ -68,7 +68,7 @@ from ..avatar.model import Avatar
 from ..avatar.wrinkles import FaceDistortionStats, face_compression, wrinkle_amplitude
 from ..config import Phase2Config
 from ..data.dataset import IngestedData, IngestedFrame
-from ..errors import ConfigError, InputError
+from ..errors import InputError
 from ..flame.frames import surfel_frames
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..render import RenderCamera, rasterize_surfels
@@ -220,8 +220,6 @@ class Phase2Trainer:
             p.requires_grad_(False)
         for p in avatar.variance.parameters():
             p.requires_grad_(False)
-        if cfg.teacher not in TEACHERS:
-            raise ConfigError(f"phase2 teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
         self.teacher_app: torch.nn.Module | None = None
         self.teacher_variance: torch.nn.Module | None = None
         if cfg.teacher == "neus":
@@ -238,8 +236,6 @@ class Phase2Trainer:
         self._images: dict[tuple[int, int], torch.Tensor] = {}
         self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
         self.distortion_curve: list[float] = []
-        if cfg.mouth_prior_visibility not in ("faces", "surfels"):
-            raise ConfigError(f"phase2 mouth_prior_visibility must be faces or surfels, got {cfg.mouth_prior_visibility!r}")
         self.prior_colors, mouth_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
         if not cfg.mouth_prior:
             mouth_faces = torch.zeros_like(mouth_faces)
@@ -259,8 +255,6 @@ class Phase2Trainer:
         if cfg.teacher == "rest" and cfg.w_appearance > 0:
             self.rest_teacher = self._build_rest_teacher()
         self.wrinkle_stats: FaceDistortionStats | None = None
-        if cfg.wrinkle_region not in ("distortion", "skin"):
-            raise ConfigError(f"phase2 wrinkle_region must be distortion or skin, got {cfg.wrinkle_region!r}")
         if cfg.wrinkle_shading:
             self.wrinkle_stats = FaceDistortionStats(int(avatar.faces.shape[0]), self.device)
 
