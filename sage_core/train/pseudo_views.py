@@ -50,6 +50,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..config import Phase1Config, describe
 from ..data.cameras import Camera
 from ..render.mesh_raster import rasterize_mesh
 
@@ -59,26 +60,11 @@ if TYPE_CHECKING:
 
 _S = (-1.0, 1.0, 1.0)
 
-# Config fields read with getattr (name -> default).
 CONFIG_DEFAULTS: dict[str, Any] = {
-    "pseudo_mirror": True,
-    "pseudo_mirror_weight": 0.5,
-    "pseudo_mirror_yaw_full_deg": 30.0,
-    "pseudo_mirror_yaw_floor": 0.25,
-    "pseudo_mirror_seen_weight": 0.1,
-    "pseudo_mirror_background_weight": 0.5,
-    "pseudo_mirror_tolerance": 1e-3,
-    "pseudo_ring_views": 8,
-    "pseudo_ring_yaw_deg": 60.0,
-    "pseudo_ring_pitch_deg": 20.0,
-    "pseudo_ring_weight": 0.2,
-    "pseudo_ring_background_weight": 0.0,
-    "pseudo_ring_supersample": 2,
-    "pseudo_texture_resolution": 4,
-    "pseudo_texture_mirror_confidence": 0.5,
-    "pseudo_texture_inpaint_confidence": 0.0,
+    name: value for name, _, value in describe(Phase1Config) if name.startswith(("pseudo_mirror", "pseudo_ring", "pseudo_texture"))
 }
-"""Phase-1 config fields the providers read (with these defaults when the config lacks them)."""
+"""The phase-1 config fields the providers read, with their :class:`Phase1Config` defaults (used
+when no config is given); read from the config dataclass, the one table of defaults."""
 
 _COS_LO, _COS_HI = 0.1, 0.5
 _SILHOUETTE_RAMP = 0.02
