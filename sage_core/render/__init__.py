@@ -14,7 +14,14 @@ from .mesh_raster import (
     warp_points_to_canonical,
     warp_rays_to_canonical,
 )
-from .surfels import BACKENDS, SurfelRender, depth_to_normal, depth_to_points, rasterize_surfels
+from .surfels import (
+    BACKENDS,
+    SurfelRender,
+    depth_to_normal,
+    depth_to_points,
+    rasterize_surfels,
+    resolve_backend,
+)
 from .volume import NeuSOutput, SVariance, render_neus
 
 __all__ = [
@@ -36,5 +43,6 @@ __all__ = [
     "eval_sh_colors",
     "num_sh_coeffs",
     "rasterize_surfels",
+    "resolve_backend",
     "sh_basis",
 ]

@@ -25,7 +25,7 @@ from ._packed import composite_packed
 from ._project import candidate_pixel_boxes, project_surfels
 from ..geometry.sh import eval_sh_colors
 
-BACKENDS = ("torch", "triton", "auto")
+BACKENDS = ("torch", "cpp", "triton", "auto")
 
 
 @dataclass
@@ -129,12 +129,12 @@ def _validate(
 
 
 def _triton_module(backend: str, device: torch.device) -> ModuleType | None:
-    """The Triton backend module when ``backend`` selects it for ``device``, else None (torch path).
+    """The Triton backend module when ``backend`` selects it for ``device``, else None.
 
     "triton" raises ValueError when triton is missing or cannot run on ``device``; "auto" picks
     triton only for CUDA tensors with compiled (not interpreted) kernels.
     """
-    if backend == "torch" or (backend == "auto" and device.type != "cuda"):
+    if backend not in ("triton", "auto") or (backend == "auto" and device.type != "cuda"):
         return None
     try:
         from . import _triton_surfels
@@ -150,6 +150,36 @@ def _triton_module(backend: str, device: torch.device) -> ModuleType | None:
             "Triton's interpreter (TRITON_INTERPRET=1 set before the first triton render)"
         )
     return _triton_surfels
+
+
+def resolve_backend(name: str, device: torch.device | str) -> str:
+    """The backend that ``rasterize_surfels(..., backend=name)`` runs for tensors on ``device``.
+
+    Returns "torch", "cpp" or "triton". "auto" is triton on CUDA (compiled kernels), the native CPU
+    backend on CPU when its extension builds (the first call may compile it; if it cannot, one
+    warning is issued and "torch" is returned), else torch. An explicit "cpp" or "triton" that
+    cannot run on ``device`` raises ValueError with the reason.
+    """
+    if name not in BACKENDS:
+        raise ValueError(f"rasterize_surfels: unknown backend {name!r}; available: {', '.join(BACKENDS)}")
+    dev = torch.device(device)
+    if name == "torch":
+        return "torch"
+    if name == "triton" or (name == "auto" and dev.type == "cuda"):
+        return "triton" if _triton_module(name, dev) is not None else "torch"
+    if dev.type != "cpu":
+        if name == "cpp":
+            raise ValueError(f"rasterize_surfels: backend='cpp' runs on CPU tensors (got {dev})")
+        return "torch"
+    from . import _cpp_surfels
+
+    ok, reason = _cpp_surfels.available()
+    if ok:
+        return "cpp"
+    if name == "cpp":
+        raise ValueError(f"rasterize_surfels: backend='cpp' is unavailable: {reason}")
+    _cpp_surfels.warn_unavailable_once(reason)
+    return "torch"
 
 
 def rasterize_surfels(
@@ -177,15 +207,26 @@ def rasterize_surfels(
     near: cull plane for surfel centres and per-pixel skip depth; near and far also define the
     distortion's normalized depth. chunk_pairs bounds the candidate pairs evaluated at once in the
     no-grad stage (peak memory). progress(i, n) is called after each candidate chunk.
-    backend: "torch" (packed pure torch), "triton" (tile kernels of ``_triton_surfels``; CUDA
-    tensors, or CPU under Triton's interpreter) or "auto" (triton for CUDA tensors when it imports).
-    All outputs have the dtype and device of ``means``. Raises ValueError on bad shapes or NaN/Inf.
+    backend: "torch" (packed pure torch), "cpp" (native C++/OpenMP tile backend of ``_cpp_surfels``;
+    CPU tensors, float32/float64, compiled on first use), "triton" (tile kernels of
+    ``_triton_surfels``; CUDA tensors, or CPU under Triton's interpreter) or "auto" (see
+    :func:`resolve_backend`: triton on CUDA, cpp on CPU when it builds, else torch).
+    All outputs have the dtype and device of ``means``. Raises ValueError on bad shapes or NaN/Inf,
+    or when an explicitly requested backend cannot run here.
     """
     if backend not in BACKENDS:
         raise ValueError(f"rasterize_surfels: unknown backend {backend!r}; available: {', '.join(BACKENDS)}")
     _validate(means, quats, scales, opacities, colors, camera, near, far)
     dtype, device = means.dtype, means.device
-    tri = _triton_module(backend, device)
+    chosen = resolve_backend(backend, device)
+    if chosen == "cpp" and dtype not in (torch.float32, torch.float64):
+        if backend == "cpp":
+            raise ValueError(f"rasterize_surfels: backend='cpp' supports float32 and float64, got {dtype}")
+        chosen = "torch"
+    tri = _triton_module(backend, device) if chosen == "triton" else None
+    cpp = None
+    if chosen == "cpp":
+        from . import _cpp_surfels as cpp
     cam = camera.to(device=device, dtype=dtype)
     Ks = cam.K if cam.batched else cam.K[None]
     w2cs = cam.w2c if cam.batched else cam.w2c[None]
@@ -232,6 +273,8 @@ def rasterize_surfels(
         boxes = candidate_pixel_boxes(M, centre2d, op, proj.rect[c].index_select(0, vid), W, H)
         if tri is not None:
             img = tri.composite_triton(table, payload, boxes, W, H, near, far, progress)
+        elif cpp is not None:
+            img = cpp.composite_cpp(table, payload, boxes, W, H, near, far, progress)
         else:
             img = composite_packed(table, payload, boxes, W, H, near, far, chunk_pairs, progress)
         num_pairs.append(img.num_pairs)
