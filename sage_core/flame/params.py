@@ -167,6 +167,32 @@ class FlameParams:
         return out
 
 
+EXPR_DROP_TOL = 1e-6
+"""Largest |coefficient| beyond a model's expression count that may be dropped without a word."""
+
+
+def expr_overflow(params: FlameParams, n_expr: int) -> str | None:
+    """Why ``params.expr`` does not fit a FLAME model with ``n_expr`` expression components, or None.
+
+    The model zero-pads fewer coefficients and cuts extra ones. Extra columns that are all zero
+    (|c| <= :data:`EXPR_DROP_TOL`, e.g. a tracker's fixed-width array) lose nothing and fit;
+    extra columns with non-zero values would be dropped silently, changing the expressions, so
+    they are reported (the caller raises InputError naming its file). params.expr: (T, E).
+    """
+    e = params.expr
+    if e.ndim != 2 or e.shape[1] <= n_expr:
+        return None
+    extra = np.abs(np.asarray(e[:, n_expr:], dtype=np.float64))
+    if extra.size == 0 or float(extra.max()) <= EXPR_DROP_TOL:
+        return None
+    cols = np.nonzero(extra.max(axis=0) > EXPR_DROP_TOL)[0] + n_expr
+    return (
+        f"'expr' has {e.shape[1]} coefficients but the FLAME model has {n_expr} expression components; "
+        f"coefficients {int(cols[0])}..{int(cols[-1])} are non-zero (largest |value| {float(extra.max()):.4g}) and the "
+        f"model would ignore them: use a FLAME model with at least {int(cols[-1]) + 1} expression components, or zero them"
+    )
+
+
 def _shape_str(shape: tuple[int, ...]) -> str:
     return "(" + ",".join(str(s) for s in shape) + ")"
 

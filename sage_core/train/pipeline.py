@@ -133,13 +133,20 @@ def with_identity(avatar: Avatar, inputs: dict[str, torch.Tensor]) -> dict[str, 
 def check_motion_for_avatar(avatar: Avatar, motion: Any) -> None:
     """Validate a :class:`sage_core.export.Motion` against the avatar before rendering anything.
 
-    Checks T >= 1, finite values, and that ``dynamic_offset`` has between the model's base vertex
-    count and its full vertex count rows (fewer rows are zero-padded at the end, as for the teeth).
+    Checks T >= 1, finite values, that ``expr`` has no non-zero coefficient beyond the model's
+    expression components (:func:`sage_core.flame.params.expr_overflow`), and that ``dynamic_offset``
+    has between the model's base vertex count and its full vertex count rows (fewer rows are
+    zero-padded at the end, as for the teeth).
     Raises InputError naming the motion source.
     """
+    from ..flame.params import expr_overflow
+
     p = motion.params
     if p.n_timesteps < 1:
         raise InputError(motion.source, "the motion holds no frames")
+    problem = expr_overflow(p, int(avatar.model_data.n_expr))
+    if problem is not None:
+        raise InputError(motion.source, problem)
     for key in ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation"):
         a = np.asarray(getattr(p, key))
         if a.shape[0] != p.n_timesteps:
