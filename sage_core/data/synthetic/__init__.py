@@ -1,17 +1,19 @@
-"""Synthetic FLAME-format heads and captures with exact ground truth (``sage synth``).
+"""Synthetic FLAME-format heads and captures with ground truth (``sage synth``).
 
 A procedural head is written in FLAME's own file layout (pickle, npz, region masks), posed with the
 project's FLAME LBS, shaded with a procedural albedo and rendered by an independent z-buffer
-rasterizer into a VHAP/GaussianAvatars-layout capture (formats.md §1–2).
+rasterizer into a VHAP/GaussianAvatars-layout capture (formats.md §1–2). ``tracking="exact"``
+writes the truth's own parameters; ``"fitted"`` a truth beyond the written model with tracker-like
+parameters (:mod:`.truth`, :mod:`.tracking`).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from .appearance import Appearance, Render, crease_weights, render_head, sample_appearance
+from .appearance import Appearance, Render, Specular, crease_weights, render_head, sample_appearance
 from .capture import Progress, canonical_vertices, make_subject, neck_line_mask, write_capture
-from .config import PRESETS, REGIMES, SynthConfig, preset
+from .config import PRESETS, REGIMES, TRACKING_MODES, SynthConfig, preset
 from .head import EXPRESSION_NAMES, IDENTITY_NAMES, HeadModel, build_head
 from .mesh_render import Fragments, rasterize, vertex_normals
 from .model_files import MASKS_NAME, NPZ_NAME, PICKLE_NAME, flame_model_data, flame_pickle_dict, write_model_files
@@ -58,12 +60,14 @@ __all__ = [
     "IDENTITY_NAMES",
     "PRESETS",
     "REGIMES",
+    "TRACKING_MODES",
     "Appearance",
     "CapturePath",
     "Fragments",
     "HeadModel",
     "Progress",
     "Render",
+    "Specular",
     "SynthConfig",
     "build_head",
     "capture_model_path",

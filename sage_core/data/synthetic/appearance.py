@@ -2,7 +2,8 @@
 
 The albedo is a function of the *template* position (and, on the eyeballs, of the direction from
 the eyeball centre), interpolated per pixel, so it sticks to the skin whatever the identity,
-expression or pose. Shading is Lambert plus ambient under one light fixed in the world.
+expression or pose. Shading is Lambert plus ambient under one light fixed in the world,
+optionally with Blinn-Phong highlights on skin and eyes (the ground truth of tracked captures).
 Expression creases darken the skin where the surface is compressed relative to the neutral face
 (per-vertex area ratio), in fine line patterns on the forehead and around the mouth.
 """
@@ -149,6 +150,40 @@ def _eye_albedo(eye_dir: np.ndarray, app: Appearance) -> np.ndarray:
     return _mix(eye, np.full_like(eye, 0.03), smoothstep(ang, 0.21, 0.18))
 
 
+@dataclass(frozen=True)
+class Specular:
+    """Blinn-Phong highlights under the world light (added on top of the shaded albedo).
+
+    Attributes:
+        skin, skin_shininess: strength and exponent on skin (none on scalp hair or in the mouth).
+        eye, eye_shininess: strength and exponent on the eyeballs.
+    """
+
+    skin: float = 0.08
+    skin_shininess: float = 18.0
+    eye: float = 0.45
+    eye_shininess: float = 90.0
+
+    def scaled(self, k: float) -> "Specular":
+        """The same highlights with both strengths multiplied by ``k``."""
+        return Specular(self.skin * k, self.skin_shininess, self.eye * k, self.eye_shininess)
+
+
+def highlights(spec: Specular, template_pos: np.ndarray, part_w: np.ndarray, normal: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
+    """Specular intensity (M,) at M surface points.
+
+    template_pos: (M, 3); part_w: (M, 3) one-hot (eyeball, mouth interior, skin); normal: (M, 3)
+    unit normals facing the camera; view_dirs: (M, 3) unit ray directions from the camera.
+    """
+    h = LIGHT_DIR[None] - view_dirs
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+    nh = np.clip(np.einsum("ij,ij->i", normal, h), 0.0, 1.0)
+    lit = (normal @ LIGHT_DIR > 0).astype(np.float64)
+    skin = spec.skin * part_w[:, 2] * (1.0 - hair_weight(template_pos)) * nh**spec.skin_shininess
+    eye = spec.eye * part_w[:, 0] * nh**spec.eye_shininess
+    return (skin + eye) * lit
+
+
 @dataclass
 class Render:
     """A shaded view.
@@ -168,12 +203,13 @@ class Render:
 
 def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appearance,
                 crease: np.ndarray | None = None, background: tuple[float, float, float] = (1.0, 1.0, 1.0),
-                supersample: int = 1, geometry: bool = False) -> Render:
+                supersample: int = 1, geometry: bool = False, specular: Specular | None = None) -> Render:
     """Render the posed head.
 
     vertices: (V, 3) posed world vertices of ``head``'s topology; crease: (V,) from
     :func:`crease_weights` (None = none); supersample: per-axis factor for anti-aliasing;
-    geometry: also return depth and normals (rasterized once more at the native resolution).
+    geometry: also return depth and normals (rasterized once more at the native resolution);
+    specular: view-dependent highlights (None = Lambert + ambient only).
     """
     faces = head.faces
     V = head.n_vertices
@@ -202,7 +238,10 @@ def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appe
         flip = np.einsum("ij,ij->i", n, dirs) > 0
         n[flip] *= -1.0
         shade = AMBIENT + DIFFUSE * np.clip(n @ LIGHT_DIR, 0.0, None)
-        img[m] = np.clip(alb * shade[:, None], 0.0, 1.0)
+        if specular is None:
+            img[m] = np.clip(alb * shade[:, None], 0.0, 1.0)
+        else:
+            img[m] = np.clip(alb * shade[:, None] + highlights(specular, a[:, 0:3], pw, n, dirs)[:, None], 0.0, 1.0)
     rgb = downsample(img, supersample).astype(np.float32)
     alpha = downsample(m.astype(np.float64), supersample).astype(np.float32)
     out = Render(rgb=rgb, alpha=alpha)

@@ -11,6 +11,12 @@ Layout of ``OUT``::
     gt/      canonical.ply, meshes/{ti:05d}.ply, info.json, [novel/ held-out views and expressions]
     [preview.png]
 
+``tracking="exact"``: the written model and parameters are the ground truth. ``"fitted"``: the
+ground truth (images and ``gt/`` meshes) is the full head with non-linear correctives, geometric
+creases and specular highlights; the written model keeps the leading expression components and
+the written parameters are a least-squares fit plus pose noise (:mod:`.tracking`);
+``gt/info.json`` reports the tracking error per timestep.
+
 Everything is deterministic in the config (same seed ⇒ same bytes). The capture is assembled in
 a temporary sibling folder and moved into place at the end, so a failure leaves nothing half-written.
 """
@@ -29,7 +35,7 @@ from ...errors import ConfigError
 from ..cameras import Camera, camera_to_nerf_frame
 from ..imageio import write_image
 from ._files import write_json, write_npz, write_ply
-from .appearance import Appearance, crease_weights, render_head, sample_appearance
+from .appearance import Appearance, Specular, crease_weights, render_head, sample_appearance
 from .config import SynthConfig
 from .head import EXPRESSION_NAMES, IDENTITY_NAMES, HeadModel, build_head
 from .model_files import MASKS_NAME, NPZ_NAME, PICKLE_NAME, flame_model_data, write_model_files
@@ -43,6 +49,7 @@ from .motion import (
     sample_identity,
     shift_camera,
 )
+from .tracking import TrackedHead, add_pose_noise, fit_frames, make_tracked_head, pose_truth, vertex_errors, written_vertices
 
 Progress = Callable[[int, int, str], None]
 TRAIN_RATIO = 0.7
@@ -54,6 +61,13 @@ class _Subject:
     shape: np.ndarray
     static_offset: np.ndarray
     app: Appearance
+    tracked: TrackedHead | None = None
+    specular: Specular | None = None
+
+    @property
+    def written_head(self) -> HeadModel:
+        """The FLAME-format model written with the capture (truncated when tracked)."""
+        return self.head if self.tracked is None else self.tracked.written_head
 
 
 @dataclass
@@ -63,7 +77,12 @@ class _Posed:
 
 
 def _pose(subject: _Subject, frames: list[Frame]) -> _Posed:
-    """Posed vertices (T, V, 3) through ``sage_core.flame.FlameModel`` (float64) and crease weights."""
+    """Ground-truth posed vertices (T, V, 3) through ``sage_core.flame.FlameModel`` (float64) and
+    crease weights (T, V); tracked subjects add the truth's correctives and creases."""
+    if subject.tracked is not None:
+        tp = pose_truth(subject.tracked, subject.shape, subject.static_offset, frames)
+        crease = np.stack([crease_weights(tp.v_shaped[t], tp.neutral, subject.head.faces) for t in range(len(frames))])
+        return _Posed(tp.vertices, crease)
     import torch
 
     from ...flame import FlameModel
@@ -159,18 +178,48 @@ def _transforms(frames: list[dict]) -> dict:
     return out
 
 
+@dataclass
+class _Sequence:
+    vertices: np.ndarray  # (T, V, 3) ground truth
+    error_mean_mm: np.ndarray | None = None  # (T,) tracking error (fitted captures)
+    error_max_mm: np.ndarray | None = None
+    error_face_mm: np.ndarray | None = None  # (T,) mean over the face region
+
+
+def _tracked_params(subject: _Subject, frames: list[Frame], truth: np.ndarray, cfg: SynthConfig,
+                    rng: np.random.Generator) -> tuple[list[Frame], np.ndarray, np.ndarray, np.ndarray]:
+    """What a tracker hands over for ``frames``: the written model fitted to the truth (T, V, 3),
+    plus pose noise. Returns (written frames, mean error mm (T,), max error mm (T,), mean error
+    over the face region mm (T,))."""
+    assert subject.tracked is not None
+    th = subject.tracked
+    fitted = fit_frames(th, subject.shape, subject.static_offset, frames, truth, cfg.fit_iterations)
+    written = add_pose_noise(fitted, rng, cfg.pose_noise_deg, cfg.trans_noise_mm)
+    posed = written_vertices(th, subject.shape, subject.static_offset, written)
+    mean, mx = vertex_errors(posed, truth)
+    face, _ = vertex_errors(posed, truth, subject.head.masks["face"])
+    return written, mean, mx, face
+
+
 def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras: list[Camera],
-                    splits: dict[str, list[tuple[int, int]]], cfg: SynthConfig, tick: Callable[[str], None]) -> np.ndarray:
-    """Render and write images, masks, FLAME params and transforms; returns posed vertices (T, V, 3)."""
+                    splits: dict[str, list[tuple[int, int]]], cfg: SynthConfig, tick: Callable[[str], None],
+                    noise_rng: np.random.Generator | None = None) -> _Sequence:
+    """Render and write images, masks, FLAME params and transforms; returns the ground truth
+    (and, for tracked subjects, the tracking error of the written parameters)."""
     posed = _pose(subject, frames)
-    for ti, f in enumerate(frames):
+    seq = _Sequence(posed.vertices)
+    written = frames
+    if subject.tracked is not None:
+        assert noise_rng is not None
+        written, seq.error_mean_mm, seq.error_max_mm, seq.error_face_mm = _tracked_params(subject, frames, posed.vertices, cfg, noise_rng)
+    for ti, f in enumerate(written):
         write_npz(root / "flame_param" / f"{ti:05d}.npz", _frame_npz(subject, f))
     by_index = {c.index: c for c in cameras}
     pairs = sorted({p for ps in splits.values() for p in ps})
     for ti, ci in pairs:
         cam = by_index[ci]
         v = posed.vertices[ti]
-        r = render_head(subject.head, v, cam, subject.app, posed.crease[ti], supersample=cfg.supersample)
+        r = render_head(subject.head, v, cam, subject.app, posed.crease[ti], supersample=cfg.supersample, specular=subject.specular)
         neck = neck_line_mask(subject.head, v, cam)
         img = r.rgb * neck[..., None] + (1.0 - neck[..., None])
         write_image(root / "images" / f"{ti:05d}_{ci:02d}.png", img)
@@ -184,7 +233,7 @@ def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras:
     all_frames.sort(key=lambda d: (d["timestep_index"], d["camera_index"]))
     write_json(root / "transforms.json", _transforms(all_frames))
     write_npz(root / "canonical_flame_param.npz", _canonical_npz(subject))
-    return posed.vertices
+    return seq
 
 
 def _write_meshes(folder: Path, head: HeadModel, verts: np.ndarray) -> list[str]:
@@ -208,17 +257,22 @@ def _preview(path: Path, subject: _Subject, frames: list[Frame], cameras: list[C
     tiles = []
     for r in range(len(rows)):
         tiles.append(np.concatenate([render_head(subject.head, posed.vertices[r], cameras[c], subject.app, posed.crease[r],
-                                                 supersample=cfg.supersample).rgb for c in cols], 1))
+                                                 supersample=cfg.supersample, specular=subject.specular).rgb for c in cols], 1))
     write_image(path, np.concatenate(tiles, 0))
 
 
 def make_subject(cfg: SynthConfig) -> _Subject:
-    """The head model, identity and appearance determined by the config (resolution + seed)."""
+    """The head model, identity and appearance determined by the config (resolution + seed), and
+    for ``tracking="fitted"`` the truth / written-model pair and the truth's highlights."""
     head = build_head(cfg.head_rows, cfg.head_cols, cfg.eye_rows, cfg.eye_cols)
     rng = np.random.default_rng([cfg.seed, 1])
     shape, static_offset = sample_identity(head, rng)
     app = sample_appearance(rng)
-    return _Subject(head, shape, static_offset, app)
+    if cfg.tracking == "exact":
+        return _Subject(head, shape, static_offset, app)
+    tracked = make_tracked_head(head, cfg.expr_keep, cfg.corrective_scale, cfg.crease_depth_mm)
+    specular = Specular().scaled(cfg.specular) if cfg.specular > 0 else None
+    return _Subject(head, shape, static_offset, app, tracked, specular)
 
 
 def write_capture(out_dir: str | Path, cfg: SynthConfig, progress: Progress | None = None,
@@ -298,8 +352,9 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
         if progress is not None:
             progress(done[0], n_images, what)
 
-    model_paths = write_model_files(head, root / "model")
-    verts = _write_sequence(root, subject, frames, cameras, splits, cfg, tick)
+    model_paths = write_model_files(subject.written_head, root / "model")
+    seq = _write_sequence(root, subject, frames, cameras, splits, cfg, tick, np.random.default_rng([cfg.seed, 4]))
+    verts = seq.vertices
     canon = canonical_vertices(subject)
     write_ply(root / "gt" / "canonical.ply", canon, head.faces)
     mesh_names = _write_meshes(root / "gt" / "meshes", head, verts)
@@ -320,14 +375,15 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
         "timesteps": [{"timestep_index": i, "split": "train" if i < n_train else "test", "description": f.label} for i, f in enumerate(frames)],
         "world_recentring_offset": [float(x) for x in -t_mean],
     }
+    nseq: _Sequence | None = None
     if novel:
         nroot = root / "gt" / "novel"
         nsplits = {
             "val": [(0, c.index) for c in novel_cams],
             "test": [(t, c.index) for t in range(1, len(novel)) for c in novel_cams],
         }
-        nverts = _write_sequence(nroot, subject, novel, novel_cams, nsplits, cfg, tick)
-        _write_meshes(nroot / "meshes", head, nverts)
+        nseq = _write_sequence(nroot, subject, novel, novel_cams, nsplits, cfg, tick, np.random.default_rng([cfg.seed, 5]))
+        _write_meshes(nroot / "meshes", head, nseq.vertices)
         info["novel"] = {
             "folder": "gt/novel",
             "description": "held-out ground truth in the same VHAP layout and world frame: transforms_val.json = "
@@ -335,8 +391,51 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
             "cameras": len(novel_cams),
             "timesteps": [{"timestep_index": i, "description": f.label} for i, f in enumerate(novel)],
         }
+    if subject.tracked is not None:
+        info["model"]["expression_components"] = list(EXPRESSION_NAMES[: subject.tracked.n_keep])
+        info["tracking"] = _tracking_info(subject.tracked, seq, n_train, nseq)
     if preview:
         _preview(root / "preview.png", subject, frames if cfg.regime != "oneshot" else novel or frames,
                  cameras if len(cameras) > 1 else novel_cams, cfg)
     info["files"] = {k: str(Path(v).relative_to(root)) for k, v in model_paths.items()}
     write_json(root / "gt" / "info.json", info)
+
+
+def _error_rows(seq: _Sequence, split_of: Callable[[int], str]) -> list[dict]:
+    assert seq.error_mean_mm is not None and seq.error_max_mm is not None and seq.error_face_mm is not None
+    return [{"timestep_index": i, "split": split_of(i), "mean_mm": round(float(m), 4), "max_mm": round(float(x), 4),
+             "face_mean_mm": round(float(fm), 4)}
+            for i, (m, x, fm) in enumerate(zip(seq.error_mean_mm, seq.error_max_mm, seq.error_face_mm))]
+
+
+def _summary(rows: list[dict]) -> dict:
+    if not rows:
+        return {}
+    return {"timesteps": len(rows), "mean_mm": round(float(np.mean([r["mean_mm"] for r in rows])), 4),
+            "max_mm": round(float(np.max([r["max_mm"] for r in rows])), 4),
+            "face_mean_mm": round(float(np.mean([r["face_mean_mm"] for r in rows])), 4)}
+
+
+def _tracking_info(th: TrackedHead, seq: _Sequence, n_train: int, nseq: _Sequence | None) -> dict:
+    """The ``tracking`` section of gt/info.json: what the written model lacks and the tracking error
+    (vertex distance between the written model posed with the written parameters and the truth)."""
+    rows = _error_rows(seq, lambda i: "train" if i < n_train else "test")
+    out: dict = {
+        "mode": "fitted",
+        "description": "images and gt/ meshes are the truth (full head + non-linear correctives + geometric creases, "
+                       "specular highlights); model/ keeps the leading expression components; flame_param/ is a "
+                       "least-squares fit of that model to the truth plus pose noise",
+        "expression_components_written": list(EXPRESSION_NAMES[: th.n_keep]),
+        "expression_components_truth": list(EXPRESSION_NAMES),
+        "error_definition": "per timestep: mean / max over all vertices, and mean over the face region (FLAME_masks "
+                            "'face'), of the distance in mm between the written model posed with flame_param/ and "
+                            "the ground-truth mesh gt/meshes/ (gt/novel/meshes/ for novel_timesteps)",
+        "error": {"all": _summary(rows), "train": _summary([r for r in rows if r["split"] == "train"]),
+                  "test": _summary([r for r in rows if r["split"] == "test"])},
+        "timesteps": rows,
+    }
+    if nseq is not None:
+        nrows = _error_rows(nseq, lambda i: "val" if i == 0 else "test")
+        out["error"]["novel"] = _summary(nrows)
+        out["novel_timesteps"] = nrows
+    return out

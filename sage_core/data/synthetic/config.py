@@ -8,6 +8,10 @@ from typing import Any
 from ...errors import ConfigError
 
 REGIMES = ("multiview", "monocular", "oneshot")
+TRACKING_MODES = ("exact", "fitted")
+TRACKED_FIELDS = ("expr_keep", "corrective_scale", "crease_depth_mm", "specular", "pose_noise_deg", "trans_noise_mm",
+                  "fit_iterations")
+"""Fields that only matter for ``tracking="fitted"`` (left out of :meth:`SynthConfig.to_dict` for exact captures)."""
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,21 @@ class SynthConfig:
         mono_focal: normalised monocular focal length (fl = mono_focal·max(w, h), formats.md §1.8).
         novel_views: cameras of the held-out ground truth written to gt/ (monocular, oneshot).
         novel_expressions: held-out expressions of that ground truth (monocular, oneshot).
+        tracking: "exact" — the written FLAME-format model and parameters are the ground truth;
+            "fitted" — the ground truth deforms with more than the written model can express and
+            the written parameters are a tracker-like least-squares fit plus pose noise.
+        expr_keep: (fitted) fraction of the expression components kept in the written model
+            (the leading ones; at least one).
+        corrective_scale: (fitted) scale of the truth's non-linear correctives (lip roll, lip
+            thinning with the jaw, cheek bulge, brow bunching); 0 disables them.
+        crease_depth_mm: (fitted) inward displacement of the truth's expression creases at full
+            compression (forehead lines, glabella, nasolabial folds), in millimetres.
+        specular: (fitted) scale of the truth's Blinn-Phong highlights on skin and eyes; 0 = none.
+        pose_noise_deg: (fitted) standard deviation of the tracker's rotation noise per axis of the
+            head rotation, in degrees.
+        trans_noise_mm: (fitted) typical length of the tracker's translation error in millimetres
+            (per-axis standard deviation ``trans_noise_mm / √3``).
+        fit_iterations: (fitted) Gauss–Newton iterations of the fit of the written model.
     """
 
     regime: str = "multiview"
@@ -54,6 +73,14 @@ class SynthConfig:
     mono_focal: float = 2.6
     novel_views: int = 8
     novel_expressions: int = 4
+    tracking: str = "exact"
+    expr_keep: float = 0.6
+    corrective_scale: float = 1.0
+    crease_depth_mm: float = 2.0
+    specular: float = 1.0
+    pose_noise_deg: float = 0.4
+    trans_noise_mm: float = 1.2
+    fit_iterations: int = 3
 
     def validate(self) -> "SynthConfig":
         """Raise ConfigError for impossible values; returns self."""
@@ -81,11 +108,24 @@ class SynthConfig:
             raise ConfigError("camera_distance, view_height_m and mono_focal must be positive and sensible")
         if self.novel_views < 1 or self.novel_expressions < 1:
             raise ConfigError("novel_views and novel_expressions must be at least 1")
+        if self.tracking not in TRACKING_MODES:
+            raise ConfigError(f"tracking must be one of {', '.join(TRACKING_MODES)}, got '{self.tracking}'")
+        if not 0.0 < self.expr_keep <= 1.0:
+            raise ConfigError(f"expr_keep must be in (0, 1], got {self.expr_keep}")
+        if min(self.corrective_scale, self.crease_depth_mm, self.specular, self.pose_noise_deg, self.trans_noise_mm) < 0:
+            raise ConfigError("corrective_scale, crease_depth_mm, specular, pose_noise_deg and trans_noise_mm must be >= 0")
+        if not 1 <= self.fit_iterations <= 50:
+            raise ConfigError(f"fit_iterations must be 1..50, got {self.fit_iterations}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-data form (JSON-safe)."""
-        return asdict(self)
+        """Plain-data form (JSON-safe). Exact captures leave out the fitted-only fields (and the
+        mode), so their files stay those of captures written before the tracked mode existed."""
+        d = asdict(self)
+        if self.tracking == "exact":
+            for k in ("tracking", *TRACKED_FIELDS):
+                d.pop(k)
+        return d
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "SynthConfig":
