@@ -30,6 +30,8 @@ ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML/JSON c
 ForceOpt = Annotated[bool, typer.Option("--force", help="Redo the stage even if it finished with the same config and inputs.")]
 VerboseOpt = Annotated[bool, typer.Option("--verbose/--quiet", help="Show detailed progress (default) or only errors and the final panel.")]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override any config field: --set key.sub=value (repeatable).")]
+RenderBackendOpt = Annotated[Optional[str], typer.Option("--render-backend", help="Surfel rasterizer: auto (default), torch, cpp or triton (config field render_backend).")]
+ThreadsOpt = Annotated[Optional[int], typer.Option("--threads", help="CPU threads of this process (default: $SAGE_THREADS, else every core; `sage batch` shares the cores out). Recorded in the manifest.")]
 
 
 def parse_sets(values: list[str] | None) -> dict[str, Any]:
@@ -98,12 +100,43 @@ def setup_logging(ws_root: Path | None, stage: str, verbose: bool) -> Path | Non
     return path
 
 
-class ProgressDisplay:
-    """A rich progress bar fed by the engine's ``progress(done, total, message=..., **stats)`` callback."""
+LONG_STAGE_S = 2 * 3600.0
+"""A stage expected to train longer than this on a CPU gets a hint naming the preset that fits."""
 
-    def __init__(self, title: str, enabled: bool = True) -> None:
+
+def estimate_lines(title: str, estimate_s: float, s_per_step: float, device: str | None, preset: str | None) -> list[str]:
+    """What the CLI prints when a training loop reports its duration estimate: one line with the
+    estimate, and on a CPU a warning naming the preset when it is ``default`` (the paper's GPU
+    settings) or the stage would take longer than :data:`LONG_STAGE_S`, with the preset that fits."""
+    from sage_core.config import PRESETS
+    from sage_core.runtime import format_duration
+
+    where = f"on this device ({device})" if device else "on this device"
+    lines = [f"[bold]{title}[/]: about {format_duration(estimate_s)} {where} ({s_per_step:.2f} s/step, from its first steps)"]
+    if device != "cpu" or preset is None:
+        return lines
+    size = {"tiny": 0, "small": 1, "default": 2}
+    smaller = [p for p in ("small", "tiny") if p in PRESETS and size[p] < size.get(preset, 0)]
+    fits = smaller[0] if smaller else None
+    if preset == "default" or estimate_s > LONG_STAGE_S:
+        hint = f"--preset {fits} fits a CPU" if fits else "lower --iterations or the surfel count to finish sooner"
+        lines.append(f"[yellow]warning:[/] preset '{preset}' on a CPU: {title} will take about {format_duration(estimate_s)}; {hint}")
+    return lines
+
+
+class ProgressDisplay:
+    """A rich progress bar fed by the engine's ``progress(done, total, message=..., **stats)`` callback.
+
+    A call carrying ``estimate_s`` (and ``s_per_step``; :meth:`sage_core.runtime.Estimate.as_stats`)
+    prints the stage's expected duration once, with :func:`estimate_lines`; ``device`` and ``preset``
+    say which hint applies.
+    """
+
+    def __init__(self, title: str, enabled: bool = True, device: str | None = None, preset: str | None = None) -> None:
         self.title = title
         self.enabled = enabled
+        self.device = device
+        self.preset = preset
         self._progress: Progress | None = None
         self._task: Any = None
         self._log = logging.getLogger("sage")
@@ -132,6 +165,14 @@ class ProgressDisplay:
             self._progress.__exit__(*exc)
 
     def __call__(self, done: int, total: int | None = None, message: str = "", **stats: Any) -> None:
+        if "estimate_s" in stats:
+            lines = estimate_lines(message or self.title, float(stats["estimate_s"]), float(stats.get("s_per_step", float("nan"))),
+                                   self.device, self.preset)  # fmt: skip
+            for line in lines:
+                self._log.info("%s", line.replace("[bold]", "").replace("[/]", "").replace("[yellow]", ""))
+                if self.enabled or "warning" in line:
+                    console.print(line, soft_wrap=True)
+            return
         info = message
         if stats:
             info = (message + "  " if message else "") + "  ".join(_fmt_stat(k, v) for k, v in stats.items())

@@ -22,6 +22,7 @@ class StageOptions:
     device: str
     force: bool
     verbose: bool
+    threads: int | None = None  # --threads (None: $SAGE_THREADS, else every core)
 
 
 def execute_stage(
@@ -49,7 +50,11 @@ def execute_stage(
     from sage_core.config import config_hash, to_dict
     from sage_core.workspace import Workspace, begin_stage, resolve_device
 
+    from sage_core.runtime import apply_threads, resolve_render_backend
+
     device = resolve_device(opts.device)
+    threads = apply_threads(opts.threads)
+    backend = resolve_render_backend(cfg.render_backend, device) if hasattr(cfg, "render_backend") else None
     if validate is not None:
         validate()
     existed = opts.ws.exists()
@@ -75,13 +80,17 @@ def execute_stage(
                     f"(finished {m.get('finished_at', '?')}); skipping. Use --force to redo it."
                 )
                 return None
+            run.metrics["threads"] = threads
+            if backend is not None:
+                run.metrics["render_backend"] = backend
             log_path = setup_logging(ws.root, stage, opts.verbose)
             log = logging.getLogger("sage")
-            log.info("stage %s started: config %s, seed %s, device %s, resumed %s", stage, run.config_hash, opts.seed, device, run.resumed)
+            log.info("stage %s started: config %s, seed %s, device %s, resumed %s, threads %s, render backend %s",
+                     stage, run.config_hash, opts.seed, device, run.resumed, threads, backend)  # fmt: skip
             if run.resumed:
                 console.print(f"[yellow]{stage}[/]: resuming an interrupted run")
             try:
-                with ProgressDisplay(title or stage, enabled=opts.verbose) as progress:
+                with ProgressDisplay(title or stage, enabled=opts.verbose, device=device, preset=opts.preset) as progress:
                     body(run, progress)
             except BaseException as e:
                 log.exception("stage %s failed", stage)

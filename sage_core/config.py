@@ -179,7 +179,7 @@ class Phase1Config:
     neus_samples: int = _f(32, "Stratified NeuS samples per ray.", ge=1)
     neus_importance: int = _f(32, "NeuS importance samples per ray.", ge=0)
     neus_up_steps: int = _f(2, "NeuS up-sampling rounds.", ge=0)
-    neus_variance: float = _f(0.4, "Initial NeuS s-variance (inv_s = exp(10 var) per box half extent).")
+    neus_variance: float = _f(0.4, "Initial NeuS s-variance (inv_s = exp(10 var) per box half extent).", ge=-2, le=2)
     rebind_every: int = _f(1000, "Rebind surfels to their nearest canonical triangle every K steps (0: never).", ge=0)
     background: float = _f(1.0, "Background grey level of the renders (the ingested images are on white).", ge=0, le=1)
     eval_every: int = _f(1000, "Validation PSNR every N steps for the progress display (0: only at the end).", ge=0)
@@ -237,7 +237,7 @@ class ExportConfig:
     """``sage export``: world-space 3DGS PLY, meshes and the avatar bundle."""
 
     stage: str = _f("auto", "Avatar to export: auto (the latest finished of phase2, phase1), phase1 or phase2.", choices=("auto", "phase1", "phase2"))
-    mc_resolution: int = _f(256, "Marching-cubes resolution of the SDF mesh.", ge=2)
+    mc_resolution: int = _f(256, "Marching-cubes resolution of the SDF mesh.", ge=8)
     color_camera: int | None = _f(None, "Bake the view-dependent colours as seen from this camera of the capture (none: each surfel seen along its normal).", ge=0)
     up_axis: str = _f("y", "Vertical axis written in the PLY comment (VHAP worlds are roughly y-up).", choices=("x", "y", "z", "-x", "-y", "-z"))
     render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
@@ -567,7 +567,7 @@ def allowed_text(meta: Any) -> str:
     """The allowed values of a field, from its metadata: ``one of a, b``, ``>= 1``, ``0 < x <= 1``
     (list fields: ``3 values, each in [0, 1]``); empty when the field declares none."""
     if "choices" in meta:
-        return "one of " + ", ".join(meta["choices"])
+        return "one of " + ", ".join(str(c) for c in meta["choices"])
     lo = (f"{_num(meta['ge'])} <= " if "ge" in meta else f"{_num(meta['gt'])} < " if "gt" in meta else "")
     hi = (f" <= {_num(meta['le'])}" if "le" in meta else f" < {_num(meta['lt'])}" if "lt" in meta else "")
     rng = ""

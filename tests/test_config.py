@@ -97,3 +97,117 @@ def test_every_field_of_every_stage_is_documented_and_presets_resolve():
         for preset in PRESETS:
             cfg = resolve_config(stage, preset)
             assert from_dict(cls, to_dict(cfg)) == cfg
+
+
+# ---- declared choices and ranges ------------------------------------------------------------
+
+
+def _meta(cls, name):
+    import dataclasses
+
+    return next(f.metadata for f in dataclasses.fields(cls) if f.name == name)
+
+
+def test_every_enum_and_numeric_field_declares_what_it_allows():
+    import dataclasses
+    import typing
+
+    from sage_core.config import STAGE_CONFIGS
+
+    def walk(cls, prefix=""):
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            tp = hints[f.name]
+            if dataclasses.is_dataclass(tp):
+                yield from walk(tp, f"{prefix}{f.name}.")
+            else:
+                yield f"{prefix}{f.name}", tp, f.metadata
+
+    for stage, cls in STAGE_CONFIGS.items():
+        for name, tp, meta in walk(cls):
+            base = [a for a in typing.get_args(tp) if a is not type(None)] or [tp]
+            inner = typing.get_origin(base[0]) in (list, tuple) and typing.get_args(base[0])[0] or base[0]
+            if inner in (int, float):
+                assert {"ge", "gt", "le", "lt", "choices"} & set(meta), f"{stage}: {name} declares no range"
+            if inner is str:
+                assert "choices" in meta, f"{stage}: {name} declares no choices"
+
+
+@pytest.mark.parametrize(
+    "stage,key,value,allowed",
+    [
+        ("phase1", "iterations", "-5", ">= 1"),  # int, inclusive lower bound
+        ("phase1", "checkpoint_every", "0", ">= 1"),  # 0 no longer turns checkpoints off silently
+        ("phase1", "init_opacity", "1", "0 < x < 1"),  # exclusive bounds
+        ("phase1", "pseudo_view_prob", "1.5", "0 <= x <= 1"),  # inclusive bounds
+        ("phase1", "near", "0", "> 0"),
+        ("phase1", "exposure", "bright", "one of off, gain, rgb"),  # choices
+        ("phase1", "render_backend", "cuda", "one of auto, torch, cpp, triton"),
+        ("phase2", "teacher", "mesh", "one of rest, neus"),
+        ("phase2", "teeth_color", "0.5,2,0.5", "3 values, each 0 <= x <= 1"),  # list elements
+        ("phase2", "wrinkle_quantiles", "0.5", "2 values"),  # list length
+        ("init-mesh", "pretrain.steps", "0", ">= 1"),  # nested field: dotted path
+        ("init-mesh", "pretrain.truncation", "-0.1", "> 0 or none"[:3]),  # optional float
+        ("eval", "split", "train", "one of test, val, all, novel"),
+        ("ingest", "regime", "mv", "one of mv-sf, mv-mf, sv-hr, one-shot"),
+        ("ingest", "height", "4", ">= 8"),
+    ],
+)
+def test_out_of_range_and_unknown_choices_name_field_value_and_allowed(stage, key, value, allowed):
+    with pytest.raises(ConfigError) as e:
+        resolve_config(stage, "default", None, {key: value})
+    msg = str(e.value)
+    assert f"{stage} config: {key} = " in msg and allowed in msg, msg
+
+
+def test_validation_sees_every_source_and_accepts_bounds_and_none(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("phase1:\n  iterations: 0\n")
+    with pytest.raises(ConfigError, match="iterations = 0"):
+        resolve_config("phase1", "tiny", load_config_file(f))
+    # a flag repairs what the file broke: validation runs once, on the merged config
+    assert resolve_config("phase1", "tiny", load_config_file(f), {"iterations": 3}).iterations == 3
+    cfg = resolve_config("phase1", "default", None, {"pseudo_view_prob": 1, "sh_degree": 3, "rebind_every": 0})
+    assert cfg.pseudo_view_prob == 1.0 and cfg.sh_degree == 3 and cfg.rebind_every == 0
+    assert resolve_config("init-mesh", "default", None, {"pretrain.truncation": "none"}).pretrain.truncation is None
+
+
+def test_allowed_values_are_described_and_match_the_engine():
+    from sage_core.avatar.shading import SHADING_MODES
+    from sage_core.avatar.surfels import ATTRIBUTE_MODES
+    from sage_core.config import EvalConfig, Phase1Config, Phase2Config, describe_allowed
+    from sage_core.data.ingest import REGIMES
+    from sage_core.render import BACKENDS
+    from sage_core.train.phase2 import TEACHERS
+
+    assert set(_meta(Phase1Config, "shading")["choices"]) == set(SHADING_MODES)
+    assert set(_meta(Phase1Config, "attributes")["choices"]) == set(ATTRIBUTE_MODES)
+    assert set(_meta(Phase2Config, "teacher")["choices"]) == set(TEACHERS)
+    assert set(_meta(Phase1Config, "render_backend")["choices"]) == set(BACKENDS)
+    from sage_core.config import IngestConfig
+
+    assert set(_meta(IngestConfig, "regime")["choices"]) == set(REGIMES)
+    allowed = describe_allowed(InitMeshConfig)
+    assert allowed["pretrain.steps"] == ">= 1" and allowed["pretrain.truncation"] == "> 0 or none"
+    assert describe_allowed(EvalConfig)["split"] == "one of test, val, all, novel"
+
+
+def test_presets_are_declared_in_one_table():
+    import inspect
+
+    import sage_core.config as config
+
+    import re
+
+    src = inspect.getsource(config)
+    assert not re.search(r"^(PRESET_OVERRIDES|STAGE_CONFIGS)(\[[^\]]*\])+\s*=|^(PRESET_OVERRIDES|STAGE_CONFIGS)\S*\.update\(", src, re.M)
+    assert set(config.PRESET_OVERRIDES["tiny"]) == set(config.STAGE_CONFIGS)
+    assert resolve_config("phase2", "tiny").iterations == 300
+
+
+def test_pseudo_view_defaults_come_from_the_config_dataclass():
+    from sage_core.config import Phase1Config
+    from sage_core.train.pseudo_views import CONFIG_DEFAULTS
+
+    d = Phase1Config()
+    assert CONFIG_DEFAULTS and all(v == getattr(d, k) for k, v in CONFIG_DEFAULTS.items())

@@ -160,9 +160,9 @@ def worker_main(argv: list[str] | None = None) -> int:
     from sage_core.errors import SageError
 
     if a.cpus > 0:
-        import torch
+        from sage_core.runtime import THREADS_ENV, apply_threads
 
-        torch.set_num_threads(a.cpus)
+        os.environ[THREADS_ENV] = str(apply_threads(a.cpus))
     _watch_parent()
     t0 = time.time()
     write_status(ws, state="running", stage=None, done=0, total=None, message="", psnr=None, started_at=t0, pid=os.getpid(),
@@ -379,8 +379,9 @@ class _BatchRun:
             max_parallel: int | None, max_retries: int, device: str) -> None:  # fmt: skip
         from sage_core.batch import run_local, run_ray
         from sage_core.errors import ConfigError
+        from sage_core.runtime import available_cores, threads_per_worker
 
-        ncpu = os.cpu_count() or 1
+        ncpu = available_cores()
         if self.verbose:
             from rich.live import Live
 
@@ -397,14 +398,14 @@ class _BatchRun:
                 raise ConfigError("--gpus-per-subject must be a whole number of at least 1 for the local engine on GPUs")
             slots = max(1, len(gpus) // g)
             n = min(max_parallel or slots, slots)
-            c = cpus_per_subject or max(1, ncpu // n)
+            c = cpus_per_subject or threads_per_worker(n, ncpu)
         else:
             g = 1
             if cpus_per_subject is None and max_parallel is None:
                 c = min(4, ncpu)
                 n = max(1, ncpu // c)
             else:
-                c = cpus_per_subject or max(1, ncpu // (max_parallel or 1))
+                c = cpus_per_subject or threads_per_worker(max_parallel or 1, ncpu)
                 n = max_parallel or max(1, ncpu // c)
         run_local(jobs, max_parallel=n, cpus_per_subject=c, gpus=gpus, gpus_per_subject=g, on_result=self.on_result, on_poll=self.poll)
 

@@ -23,7 +23,7 @@ from typing import Annotated, Any, Optional
 import numpy as np
 import typer
 
-from .._common import DeviceOpt, ProgressDisplay, SeedOpt, VerboseOpt, cli_errors, console, summary_panel
+from .._common import DeviceOpt, ProgressDisplay, RenderBackendOpt, SeedOpt, ThreadsOpt, VerboseOpt, cli_errors, console, summary_panel
 
 FAST_SETS: dict[str, list[str]] = {
     "ingest": [],
@@ -113,6 +113,8 @@ def demo(
     seed: SeedOpt = 0,
     device: DeviceOpt = "auto",
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
+    render_backend: RenderBackendOpt = None,
 ) -> None:
     """Synthesize a tiny subject, train it with the tiny preset, evaluate, export and reenact novel expressions to MP4."""
     with cli_errors():
@@ -133,7 +135,7 @@ def demo(
         sets = {k: list(v) for k, v in FAST_SETS.items()} if fast else None
         res: PipelineResult = run_pipeline(
             capture, ws, capture_model_path(capture, "npz"), preset="tiny", sets=sets, seed=seed, device=device,
-            lpips_weights=lpips_weights, verbose=verbose,
+            lpips_weights=lpips_weights, verbose=verbose, threads=threads, render_backend=render_backend,
         )  # fmt: skip
         console.rule("[bold]reenact")
         t = time.time()

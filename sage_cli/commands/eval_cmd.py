@@ -28,6 +28,8 @@ from .._common import (
     PresetOpt,
     SeedOpt,
     SetOpt,
+    RenderBackendOpt,
+    ThreadsOpt,
     VerboseOpt,
     cli_errors,
     console,
@@ -87,16 +89,18 @@ def eval_(
     device: DeviceOpt = "auto",
     force: ForceOpt = False,
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
+    render_backend: RenderBackendOpt = None,
 ) -> None:
     """Evaluate the avatar: PSNR, SSIM and LPIPS per image, per camera, frontal and overall; results accumulate in WS/eval/<stage>/<split>/."""
     with cli_errors():
         from sage_core.errors import InputError
 
-        flags = {"split": split, "stage": stage, "samples": samples, **parse_sets(set_)}
+        flags = {"split": split, "stage": stage, "samples": samples, "render_backend": render_backend, **parse_sets(set_)}
         cfg = resolve_stage_config("eval", preset, config, flags)
         if not ws.is_dir():
             raise InputError(ws, "workspace folder not found")
-        run_eval(ws, cfg, lpips_weights, StageOptions(ws, preset, config, seed, device, force, verbose))
+        run_eval(ws, cfg, lpips_weights, StageOptions(ws, preset, config, seed, device, force, verbose, threads))
 
 
 @dataclass
@@ -171,7 +175,7 @@ def _run_stage(t: _Target, opts: StageOptions, todo: list[str], evaluate: Evalua
 
         carry_results(run.ws, "eval", run.work_dir, keep)
         loaded = load_stage_avatar(run.ws, t.av_stage, t.data, run.device)
-        renderer = AvatarRenderer(loaded.avatar, loaded.render)
+        renderer = AvatarRenderer(loaded.avatar, loaded.render, backend=t.cfg.render_backend)
         lpips = LPIPS.from_path(t.lp_path, device=run.device) if t.lp_path is not None else None
         entries, extra_metrics = evaluate(run, loaded, renderer, lpips, progress)
         results = dict(keep)
@@ -187,7 +191,7 @@ def _run_stage(t: _Target, opts: StageOptions, todo: list[str], evaluate: Evalua
         run.metrics.update(extra_metrics)
         holder["results"] = results
 
-    run_opts = StageOptions(opts.ws, opts.preset, opts.config_file, opts.seed, opts.device, True, opts.verbose)
+    run_opts = StageOptions(opts.ws, opts.preset, opts.config_file, opts.seed, opts.device, True, opts.verbose, opts.threads)
     manifest = execute_stage(
         "eval", run_opts, t.cfg, body, requires=tuple(requires),
         external_inputs={"lpips_weights": t.lp_fp or "none", **external}, title=title, discard_work_on_failure=True,

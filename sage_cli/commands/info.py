@@ -35,10 +35,27 @@ KEY_METRICS: dict[str, tuple[str, ...]] = {
 }
 
 
-def _metrics(stage: str, m: dict | None, limit: int = 3) -> str:
+RUNTIME_KEYS = ("threads", "render_backend")
+"""Manifest ``metrics`` entries that describe how the stage ran (the "ran on" column), not results."""
+
+
+def _ran_on(m: dict | None) -> str:
+    """``cpu · 2 threads · cpp``: device, thread count and resolved render backend of a manifest."""
     if not m:
         return ""
     metrics = m.get("metrics") or {}
+    parts = [str(m["device"])] if m.get("device") else []
+    if isinstance(metrics.get("threads"), int):
+        parts.append(f"{metrics['threads']} thread{'s' if metrics['threads'] != 1 else ''}")
+    if metrics.get("render_backend"):
+        parts.append(f"{metrics['render_backend']} rasterizer")
+    return " · ".join(parts)
+
+
+def _metrics(stage: str, m: dict | None, limit: int = 3) -> str:
+    if not m:
+        return ""
+    metrics = {k: v for k, v in (m.get("metrics") or {}).items() if k not in RUNTIME_KEYS}
     order = [k for k in KEY_METRICS.get(stage, ()) if k in metrics] + sorted(k for k in metrics if k not in KEY_METRICS.get(stage, ()))
     parts = []
     for k in order:
@@ -52,7 +69,7 @@ def _metrics(stage: str, m: dict | None, limit: int = 3) -> str:
 
 
 def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
-    """Show every stage of a workspace: status, age, wall time and key metrics (seed and device are in each manifest)."""
+    """Show every stage of a workspace: status, age, wall time, device / threads / render backend, and key metrics."""
     from rich.table import Table
 
     from sage_core.errors import InputError
@@ -67,6 +84,7 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
         t.add_column("status", min_width=8)
         t.add_column("finished", min_width=9)
         t.add_column("wall time", no_wrap=True)
+        t.add_column("ran on", overflow="fold")
         t.add_column("key metrics", overflow="fold")
         colours = {"complete": "green", "stale": "yellow", "missing": "dim", "interrupted": "yellow", "failed": "red"}
         for st in w.stages():
@@ -78,6 +96,7 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
                 f"[{colours.get(st.status, 'white')}]{status}[/]",
                 _age(m.get("finished_at")),
                 f"{wall:.1f} s" if isinstance(wall, (int, float)) else "",
+                _ran_on(st.manifest),
                 _metrics(st.stage, m),
             )
         console.print(t)

@@ -14,6 +14,7 @@ from .._common import (
     PresetOpt,
     SeedOpt,
     SetOpt,
+    ThreadsOpt,
     VerboseOpt,
     cli_errors,
     parse_sets,
@@ -41,6 +42,7 @@ def ingest(
     device: DeviceOpt = "auto",
     force: ForceOpt = False,
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Read a capture: cameras (OpenCV), frames and splits, FLAME parameters, resized images and masks, and the FLAME model."""
     with cli_errors():
@@ -104,7 +106,7 @@ def ingest(
             run.metrics.update(s.metrics())
             run.outputs.update({"data": str(run.ws.stage_dir("ingest"))})
 
-        opts = StageOptions(ws, preset, config, seed, device, force, verbose)
+        opts = StageOptions(ws, preset, config, seed, device, force, verbose, threads)
         manifest = execute_stage(
             "ingest",
             opts,

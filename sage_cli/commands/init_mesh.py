@@ -14,6 +14,7 @@ from .._common import (
     PresetOpt,
     SeedOpt,
     SetOpt,
+    ThreadsOpt,
     VerboseOpt,
     cli_errors,
     parse_sets,
@@ -35,6 +36,7 @@ def init_mesh(
     device: DeviceOpt = "auto",
     force: ForceOpt = False,
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Build the canonical FLAME mesh (+ mouth interior), pretrain the SDF on it, extract its zero level set."""
     with cli_errors():
@@ -56,7 +58,7 @@ def init_mesh(
             run.metrics.update(metrics)
             run.outputs.update({n: str(run.ws.stage_dir("init-mesh") / n) for n in ("canonical_mesh.ply", "sdf_mesh.ply", "sdf.pt")})
 
-        opts = StageOptions(ws, preset, config, seed, device, force, verbose)
+        opts = StageOptions(ws, preset, config, seed, device, force, verbose, threads)
         manifest = execute_stage("init-mesh", opts, cfg, body, requires=("ingest",), title="init-mesh")
         if manifest is None:
             return

@@ -15,6 +15,8 @@ from .._common import (
     PresetOpt,
     SeedOpt,
     SetOpt,
+    RenderBackendOpt,
+    ThreadsOpt,
     VerboseOpt,
     cli_errors,
     parse_sets,
@@ -35,12 +37,14 @@ def phase1(
     device: DeviceOpt = "auto",
     force: ForceOpt = False,
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
+    render_backend: RenderBackendOpt = None,
 ) -> None:
     """Train the avatar: surfels bound to FLAME, jointly with the canonical SDF (phase 1)."""
     with cli_errors():
         from sage_core.errors import InputError
 
-        flags = {"attributes": attributes, "iterations": iterations, "n_surfels": surfels, **parse_sets(set_)}
+        flags = {"attributes": attributes, "iterations": iterations, "n_surfels": surfels, "render_backend": render_backend, **parse_sets(set_)}
         if not ws.is_dir():
             raise InputError(ws, "workspace folder not found (run `sage ingest` and `sage init-mesh` first)")
         ingest_summary = _ingest_summary(ws)
@@ -65,7 +69,7 @@ def phase1(
             out = run.ws.stage_dir("phase1")
             run.outputs.update({n: str(out / n) for n in ("avatar.pt", "sdf_mesh.ply", "metrics.json", "renders")})
 
-        opts = StageOptions(ws, preset, config, seed, device, force, verbose)
+        opts = StageOptions(ws, preset, config, seed, device, force, verbose, threads)
         manifest = execute_stage("phase1", opts, cfg, body, requires=("init-mesh",), title="phase 1")
         if manifest is None:
             return

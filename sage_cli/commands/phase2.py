@@ -15,6 +15,8 @@ from .._common import (
     PresetOpt,
     SeedOpt,
     SetOpt,
+    RenderBackendOpt,
+    ThreadsOpt,
     VerboseOpt,
     cli_errors,
     fmt_metric,
@@ -44,6 +46,8 @@ def phase2(
     device: DeviceOpt = "auto",
     force: ForceOpt = False,
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
+    render_backend: RenderBackendOpt = None,
 ) -> None:
     """Self-supervised phase 2: sampled expressions, normal consistency, distortion and appearance
     consistency with the canonical volume rendering; the SDF and hash grid stay frozen."""
@@ -55,7 +59,7 @@ def phase2(
             if correction.lower() not in ("on", "off"):
                 raise ConfigError(f"--correction must be on or off, got {correction!r}")
             corr = correction.lower() == "on"
-        flags = {"correction": corr, "iterations": iterations, **parse_sets(set_)}
+        flags = {"correction": corr, "iterations": iterations, "render_backend": render_backend, **parse_sets(set_)}
         cfg = resolve_stage_config("phase2", preset, config, flags)
         if not ws.is_dir():
             raise InputError(ws, "workspace folder not found (run `sage ingest`, `sage init-mesh` and `sage phase1` first)")
@@ -80,7 +84,7 @@ def phase2(
             out = run.ws.stage_dir("phase2")
             run.outputs.update({n: str(out / n) for n in ("avatar.pt", "metrics.json", "distortion_curve.json", "eval_test", "eval_val")})
 
-        opts = StageOptions(ws, preset, config, seed, device, force, verbose)
+        opts = StageOptions(ws, preset, config, seed, device, force, verbose, threads)
         manifest = execute_stage("phase2", opts, cfg, body, requires=("phase1",), external_inputs=external, title="phase 2")
         if manifest is None:
             return

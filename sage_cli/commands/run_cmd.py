@@ -24,8 +24,10 @@ from .._common import (
     DeviceOpt,
     ForceOpt,
     PresetOpt,
+    RenderBackendOpt,
     SeedOpt,
     SetOpt,
+    ThreadsOpt,
     VerboseOpt,
     cli_errors,
     console,
@@ -41,6 +43,10 @@ STAGE_PREFIXES: dict[str, tuple[str, ...]] = {
     "eval": ("eval",),
     "export": ("export",),
 }
+
+
+RENDER_STAGES: tuple[str, ...] = ("phase1", "phase2", "eval", "export")
+"""Stages of ``sage run`` whose config has ``render_backend``."""
 
 
 def split_sets(values: list[str] | None) -> dict[str, list[str]]:
@@ -100,14 +106,31 @@ def run_pipeline(
     device: str = "auto",
     force: bool = False,
     verbose: bool = True,
+    threads: int | None = None,
+    render_backend: str | None = None,
 ) -> PipelineResult:
-    """Run the stage chain by calling each stage command (see the module doc)."""
+    """Run the stage chain by calling each stage command (see the module doc).
+
+    threads: CPU threads of every stage (None: $SAGE_THREADS, else every core); it is also put in
+    $SAGE_THREADS for the rest of this process, so stage commands without the option use it too.
+    render_backend: the ``render_backend`` of every stage that renders (None: their configs').
+    """
+    import os
+
+    from sage_core.runtime import THREADS_ENV
     from sage_core.workspace import Workspace
 
     from . import eval_cmd, export_cmd, ingest, init_mesh, phase1
 
-    sets = sets or {s: [] for s in STAGE_PREFIXES}
-    common = {"preset": preset, "config": config, "seed": seed, "device": device, "force": force, "verbose": verbose}
+    sets = {s: list(v) for s, v in (sets or {s: [] for s in STAGE_PREFIXES}).items()}
+    if render_backend is not None:
+        for s in RENDER_STAGES:
+            sets.setdefault(s, []).append(f"render_backend={render_backend}")
+    if threads is not None:
+        from sage_core.runtime import apply_threads
+
+        os.environ[THREADS_ENV] = str(apply_threads(threads))
+    common = {"preset": preset, "config": config, "seed": seed, "device": device, "force": force, "verbose": verbose, "threads": threads}
     t0 = time.time()
     res = PipelineResult(ws=ws)
     w = Workspace(ws)
@@ -191,6 +214,8 @@ def run(
     device: DeviceOpt = "auto",
     force: ForceOpt = False,
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
+    render_backend: RenderBackendOpt = None,
 ) -> None:
     """Run every stage: ingest, init-mesh, phase1, phase2, eval (test and val), export (PLY + bundle); finished stages are skipped, interrupted ones resume."""
     with cli_errors():
@@ -199,7 +224,7 @@ def run(
         res = run_pipeline(
             dataset, ws, flame_model, flame_masks=flame_masks, ingest_flags=ingest_flags, skip_phase2=skip_phase2,
             lpips_weights=lpips_weights, preset=preset, config=config, sets=sets, seed=seed, device=device, force=force,
-            verbose=verbose,
+            verbose=verbose, threads=threads, render_backend=render_backend,
         )  # fmt: skip
         rows, paths = pipeline_rows(res)
         summary_panel("sage run", rows, paths)

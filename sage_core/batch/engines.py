@@ -5,7 +5,7 @@ appended to ``job.log_path``. The ``argv`` items ``{python}``, ``{device}`` and 
 replaced by the interpreter of the machine that runs the job, the subject's device (``cpu``,
 ``cuda:i`` locally, ``cuda`` inside a Ray task whose GPUs Ray exposes through
 ``CUDA_VISIBLE_DEVICES``) and its CPU count (also exported as ``OMP_NUM_THREADS`` /
-``MKL_NUM_THREADS``). Results come back through ``on_result`` as they finish; ``on_poll`` is
+``MKL_NUM_THREADS`` and as ``SAGE_THREADS``, the thread count every stage of the job applies). Results come back through ``on_result`` as they finish; ``on_poll`` is
 called about every ``poll_interval`` seconds while subjects run.
 
 Ray is imported only inside :func:`run_ray`.
@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from ..errors import ConfigError
+from ..runtime import THREADS_ENV
 
 ResultFn = Callable[["JobResult"], None]
 PollFn = Callable[[], None]
@@ -110,7 +111,7 @@ def run_job(job: Job, device: str, cpus: int, procs: _Processes | None = None) -
     """Run one job's subprocess to completion (in the calling thread / Ray worker)."""
     subst = {"{device}": device, "{cpus}": str(cpus), "{python}": sys.executable}
     argv = [subst.get(a, a) for a in job.argv]
-    env = {**os.environ, **job.env, "OMP_NUM_THREADS": str(cpus), "MKL_NUM_THREADS": str(cpus), "COLUMNS": "160"}
+    env = {**os.environ, **job.env, "OMP_NUM_THREADS": str(cpus), "MKL_NUM_THREADS": str(cpus), THREADS_ENV: str(cpus), "COLUMNS": "160"}
     env.setdefault("PYTHONUNBUFFERED", "1")
     job.log_path.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()

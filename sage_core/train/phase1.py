@@ -56,6 +56,7 @@ from torch import nn
 from ..avatar.init import REGION_MOUTH
 from ..avatar.model import Avatar
 from ..avatar.shading import shade_foreground
+from ..runtime import StepClock, resolve_render_backend
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
 from ..evaluate.metrics import psnr, ssim, ssim_map
@@ -215,6 +216,7 @@ class Phase1Trainer:
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
         self.warp = make_warp(cfg.canonical_warp)
+        self.render_backend = resolve_render_backend(cfg.render_backend, str(self.device))
         self.length_unit = float(avatar.sdf.half_extent)
         self.exposure: ExposureGain | None = None
         if cfg.exposure != "off":
@@ -362,7 +364,7 @@ class Phase1Trainer:
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
         render, _ = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
-                              vertex_transform=transform, light_transform=light_transform)
+                              vertex_transform=transform, light_transform=light_transform, backend=self.render_backend)
         color = render.color
         if self.exposure is not None and i is not None:
             color = self.exposure.apply(color, render.alpha, i, c.background)
@@ -514,7 +516,8 @@ class Phase1Trainer:
         """Render one ingested frame: (render (H, W, 3), ground truth (H, W, 3)). Training frames get
         their exposure gain; every timestep its pose correction, when these are enabled."""
         cam = RenderCamera.from_camera(fr.camera, self.device)
-        img, _ = self.avatar.render(cam, self._eval_inputs(fr.timestep), self.cfg.background, near=self.cfg.near, far=self.cfg.far, return_statistics=False)
+        img, _ = self.avatar.render(cam, self._eval_inputs(fr.timestep), self.cfg.background, near=self.cfg.near, far=self.cfg.far,
+                                    return_statistics=False, backend=self.render_backend)  # fmt: skip
         color = img.color
         if self.exposure is not None and fr.role == "train":
             for j, t in enumerate(self.frames):
@@ -654,9 +657,13 @@ def run_phase1(
             progress(step, total, "phase 1", val_psnr=val_psnr, **stats)
         if checkpoint_dir is not None and cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0 and step < total:
             save_checkpoint(checkpoint_dir, step, {"trainer": trainer.state_dict()})
+    clock = StepClock(total, start_step)
     train_time = time.perf_counter() - t0
     steps_run = trainer.step_count - start_step
 
+        estimate = clock.tick(step)
+        if estimate is not None and progress is not None:
+            progress(step, total, "phase 1", **estimate.as_stats())
     if progress is not None:
         progress(total, total, "evaluating")
     val = trainer.evaluate("val", return_images=True)
@@ -704,6 +711,7 @@ def run_phase1(
         "normal_error_deg": nerr,
         "head_diagonal_m": diag,
         "surfel_mean_abs_sdf_m": mean_abs_sdf,
+        "render_backend": trainer.render_backend,
         "iterations_per_s": steps_run / train_time if train_time > 0 and steps_run > 0 else float("nan"),
         "train_time_s": train_time,
         "final_losses": last,

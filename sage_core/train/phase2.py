@@ -74,6 +74,7 @@ from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..render import RenderCamera, rasterize_surfels
 from ..render.mesh_raster import rasterize_mesh
 from ..render.volume import render_neus
+from ..runtime import StepClock, resolve_render_backend
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
 from ._groups import surfel_param_groups
@@ -211,6 +212,7 @@ class Phase2Trainer:
         self.data = data
         self.cfg = cfg
         self.device = torch.device(device)
+        self.render_backend = resolve_render_backend(cfg.render_backend, str(self.device))
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.step_count = 0
         self.frames: list[IngestedFrame] = list(data.train)
@@ -281,7 +283,7 @@ class Phase2Trainer:
 
         def render_fn(i: int, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
             img, _ = av.render(cams[i], inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
-                               shade=False)  # fmt: skip
+                               shade=False, backend=self.render_backend)  # fmt: skip
             return img.color
 
         return RestTeacher.build(
@@ -331,7 +333,7 @@ class Phase2Trainer:
                 inner = erode_mask(fid >= 0)[0, 0]
             cols = torch.zeros_like(p.colors).requires_grad_(True)
             img = rasterize_surfels(p.means.detach(), p.quats.detach(), p.scales.detach(), p.opacities.detach(), cols, cam, 0.0,
-                                    near=c.near, far=c.far, return_statistics=False)  # fmt: skip
+                                    near=c.near, far=c.far, return_statistics=False, backend=self.render_backend)  # fmt: skip
             (grad,) = torch.autograd.grad((img.color[..., 0] * inner).sum(), cols)
             total += grad[:, 0].detach().to(total)
         return total
@@ -374,7 +376,7 @@ class Phase2Trainer:
         centre = -(w2c[:3, :3].T @ w2c[:3, 3])
         p, _ = self.posing.posed(flame_inputs, centre, shade=shade)
         img = rasterize_surfels(p.means, p.quats, p.scales, p.opacities, p.colors, camera, c.background,
-                                near=c.near, far=c.far, return_statistics=False)  # fmt: skip
+                                near=c.near, far=c.far, return_statistics=False, backend=self.render_backend)  # fmt: skip
         return img, p
 
     @torch.no_grad()
@@ -595,8 +597,9 @@ def run_phase2(
     lpips = load_lpips_or_none(lpips_weights, device=device)
     test_frames, val_frames = _subset(list(data.test), cfg.eval_frames), _subset(list(data.val), cfg.eval_frames)
 
+    backend = resolve_render_backend(cfg.render_backend, str(device))
     metrics: dict[str, Any] = {"correction": cfg.correction, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
-                               "iterations": cfg.iterations}  # fmt: skip
+                               "iterations": cfg.iterations, "render_backend": backend}  # fmt: skip
     ck = latest_checkpoint(checkpoint_dir) if checkpoint_dir is not None else None
     resumed = ck is not None
     # phase 1 is evaluated before the trainer adds the mouth prior to the avatar
@@ -607,7 +610,7 @@ def run_phase2(
             def render_p1(fr: IngestedFrame) -> torch.Tensor:
                 cam = RenderCamera.from_camera(fr.camera, device)
                 img, _ = avatar.render(cam, avatar.frame_inputs(fr.timestep), cfg.background, near=cfg.near, far=cfg.far,
-                                       return_statistics=False)  # fmt: skip
+                                       return_statistics=False, backend=backend)  # fmt: skip
                 return img.color.clamp(0, 1)
 
             rep = evaluate_frames(render_p1, data, test_frames, lpips=lpips, out_dir=out_dir / "eval_phase1_test")
@@ -625,9 +628,13 @@ def run_phase2(
     start = trainer.step_count
     t0 = time.perf_counter()
     last: dict[str, float] = {}
+    clock = StepClock(total, start)
     while trainer.step_count < total:
         last = trainer.step()
         step = trainer.step_count
+        estimate = clock.tick(step)
+        if estimate is not None and progress is not None:
+            progress(step, total, "phase 2", **estimate.as_stats())
         if progress is not None:
             stats = {k: v for k, v in last.items() if k in ("loss", "normal_consistency", "distortion", "appearance", "rgb")}
             progress(step, total, "phase 2", **stats)

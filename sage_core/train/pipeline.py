@@ -174,11 +174,17 @@ class AvatarRenderer:
 
     With ``settings.correction`` the surfels are posed with the stretch- and curvature-driven
     correction (:class:`sage_core.avatar.corrected.CorrectedPosing`), as phase 2 renders them.
+    backend: the ``render_backend`` of the stage that renders (auto, torch, cpp, triton), resolved
+    once for the avatar's device (:func:`sage_core.runtime.resolve_render_backend`, ConfigError
+    when an explicit backend cannot run there); the result is ``self.backend``.
     """
 
-    def __init__(self, avatar: Avatar, settings: RenderSettings) -> None:
+    def __init__(self, avatar: Avatar, settings: RenderSettings, backend: str = "auto") -> None:
+        from ..runtime import resolve_render_backend
+
         self.avatar = avatar
         self.settings = settings
+        self.backend = resolve_render_backend(backend, str(avatar.device))
         self.posing = None
         if settings.correction is not None:
             from ..avatar.corrected import CorrectedPosing
@@ -207,7 +213,7 @@ class AvatarRenderer:
         s = self.settings
         with torch.no_grad():
             out = rasterize_surfels(p.means, p.quats, p.scales, p.opacities, p.colors, cam, s.background,
-                                    near=s.near, far=s.far, return_statistics=False)  # fmt: skip
+                                    near=s.near, far=s.far, return_statistics=False, backend=self.backend)  # fmt: skip
         return out.color
 
 
