@@ -37,3 +37,17 @@ class StageError(SageError):
     """A stage cannot run: a missing, failed or stale earlier stage, or a locked workspace."""
 
     exit_code = 4
+
+
+class UnsafeFileError(InputError):
+    """A file in a format whose loading could run code (an old pickle-based sage file); it is
+    refused without being loaded. The message says how to convert a trusted one."""
+
+    exit_code = 2
+
+
+class WorkspaceError(InputError):
+    """The workspace folder cannot be used: its path is a file or lies under a file, or it is not
+    writable."""
+
+    exit_code = 2

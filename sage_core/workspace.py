@@ -8,10 +8,18 @@ success, its outputs are promoted to ``WS/<stage folder>/`` by a directory renam
 the previous good output untouched.
 
 Freshness: every manifest records its stage's config hash and the fingerprints of the inputs it
-read (upstream manifests' fingerprints and external files). A stage's own fingerprint is the hash
-of both. Re-running with the same config and inputs skips; an upstream stage that was re-run
-with different inputs changes its fingerprint, which makes every stage that read the old one
-stale, and later stages refuse to run on it.
+read (upstream manifests' fingerprints and external files, by content). A stage's own fingerprint
+is the hash of both. Re-running with the same config and inputs skips; an upstream stage that was
+re-run with different inputs changes its fingerprint, which makes every stage that read the old
+one stale, and later stages refuse to run on it. The manifest also lists every file of the stage
+folder with its size; a stage whose listed files are gone or changed size is "incomplete".
+
+Promotion cannot lose a finished run: the manifest is written into the work folder first, the
+work folder is renamed into place, and only then are its checkpoints removed. A promotion that was
+cut short is completed by the next run (:meth:`Workspace.recover`).
+
+Checkpoints, like every binary file sage reads, are safetensors files (:mod:`sage_core.serialization`)
+that cannot run code when loaded; a damaged newest checkpoint falls back to the one before it.
 """
 
 from __future__ import annotations
@@ -19,6 +27,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
+import logging
 import os
 import shutil
 import socket
@@ -28,7 +37,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from . import __version__
-from .errors import StageError
+from .errors import InputError, StageError, WorkspaceError
 
 # stage name -> folder name, in pipeline order
 STAGE_FOLDERS: dict[str, str] = {
@@ -40,7 +49,15 @@ STAGE_FOLDERS: dict[str, str] = {
     "export": "export",
 }
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2
+"""Format 1 was a torch.save pickle (refused now); 2 is a safetensors file (sage_core.serialization)."""
+CHECKPOINT_KIND = "sage-checkpoint"
+HASH_CACHE = ".cache/content-hashes.json"
+"""Per-workspace cache of file content hashes keyed by path, size and mtime (see :func:`content_hashes`)."""
+# files of a work folder that are not outputs of the stage
+_RUN_FILES = ("RUN", "FAILED", "manifest.json")
+
+log = logging.getLogger("sage")
 
 
 # --------------------------------------------------------------------------------------------
@@ -125,6 +142,59 @@ def file_fingerprint(path: str | Path, content: bool = True) -> str:
     return h.hexdigest()[:16]
 
 
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def content_hashes(paths: list[Path], cache_file: str | Path | None = None) -> dict[str, str]:
+    """sha256 of each file's content, {str(resolved path): hex}; a missing file hashes to "<missing>".
+
+    cache_file: a JSON cache {path: [size, mtime_ns, sha256]} (e.g. ``WS/.cache/content-hashes.json``)
+    so that files whose size and mtime did not change are not read again; it is updated atomically
+    (best effort: a cache that cannot be written is simply not kept).
+    """
+    cache: dict[str, Any] = {}
+    cpath = Path(cache_file) if cache_file is not None else None
+    if cpath is not None and cpath.is_file():
+        try:
+            loaded = read_json(cpath)
+            cache = loaded if isinstance(loaded, dict) else {}
+        except (OSError, ValueError):
+            cache = {}
+    out: dict[str, str] = {}
+    changed = False
+    for p in paths:
+        key = str(Path(p).resolve())
+        try:
+            st = os.stat(key)
+        except OSError:
+            out[key] = "<missing>"
+            continue
+        hit = cache.get(key)
+        if isinstance(hit, list) and len(hit) == 3 and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+            out[key] = str(hit[2])
+            continue
+        digest = _sha256_file(Path(key))
+        out[key] = digest
+        cache[key] = [st.st_size, st.st_mtime_ns, digest]
+        changed = True
+    if cpath is not None and changed:
+        try:
+            atomic_write_json(cpath, cache)
+        except OSError:
+            pass
+    return out
+
+
+def combined_hash(hashes: dict[str, str]) -> str:
+    """One 16-hex fingerprint of a {name: hash} map (order-independent)."""
+    return hashlib.sha256(json.dumps(hashes, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def now_iso() -> str:
     """UTC timestamp, ISO 8601, seconds."""
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
@@ -150,8 +220,12 @@ class WorkspaceLock:
         if self._depth:
             self._depth += 1
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fh = open(self.path, "a+")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fh = open(self.path, "a+")
+        except OSError as e:
+            raise WorkspaceError(self.path.parent, f"cannot write to the workspace ({e.strerror or e}); check its permissions "
+                                                   "or choose another folder") from None
         try:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -198,7 +272,7 @@ class StageStatus:
 
     stage: str
     folder: Path
-    status: str  # "missing" | "complete" | "stale" | "interrupted" | "failed"
+    status: str  # "missing" | "complete" | "stale" | "incomplete" | "corrupt" | "interrupted" | "failed"
     manifest: dict[str, Any] | None
     reason: str = ""
 
@@ -208,6 +282,7 @@ class Workspace:
 
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root).resolve()
+        check_workspace_path(self.root)
         self.lock = WorkspaceLock(self.root)
 
     # paths -------------------------------------------------------------------------------
@@ -229,25 +304,72 @@ class Workspace:
         return self.stage_dir(stage) / "manifest.json"
 
     def manifest(self, stage: str) -> dict[str, Any] | None:
-        """The stage's manifest, or None when it has never completed."""
+        """The stage's manifest, or None when it has never completed or is unreadable
+        (:meth:`manifest_problem` says why)."""
         p = self.manifest_path(stage)
         if not p.is_file():
             return None
         try:
-            return read_json(p)
-        except (OSError, json.JSONDecodeError):
+            m = read_json(p)
+        except (OSError, ValueError):
             return None
+        return m if isinstance(m, dict) else None
+
+    def manifest_problem(self, stage: str) -> str | None:
+        """Why an existing ``manifest.json`` cannot be used ("is not a JSON object", ...: the
+        problem, without the path), or None when it is absent or fine."""
+        p = self.manifest_path(stage)
+        if not p.is_file():
+            return None
+        try:
+            m = read_json(p)
+        except OSError as e:
+            return f"cannot be read ({e.strerror or e})"
+        except ValueError as e:
+            return f"is not valid JSON ({e})"
+        if not isinstance(m, dict):
+            return f"is not a JSON object but a {type(m).__name__}"
+        if not isinstance(m.get("status"), str):
+            return "has no status"
+        return None
+
+    def missing_outputs(self, stage: str, m: dict[str, Any]) -> list[str]:
+        """Files the manifest lists (``files``: relative path -> size) that are gone or changed size."""
+        folder = self.stage_dir(stage)
+        files = m.get("files")
+        if not isinstance(files, dict):
+            return []
+        bad: list[str] = []
+        for rel, size in files.items():
+            try:
+                st = (folder / rel).stat()
+            except OSError:
+                bad.append(f"{rel} is missing")
+                continue
+            if isinstance(size, int) and st.st_size != size:
+                bad.append(f"{rel} changed size ({st.st_size} bytes, {size} when written)")
+        return bad
 
     # freshness ---------------------------------------------------------------------------
     def status(self, stage: str) -> StageStatus:
-        """Complete / stale / missing / interrupted state of a stage."""
+        """Complete / stale / incomplete / corrupt / missing / interrupted / failed state of a stage."""
         m = self.manifest(stage)
         folder = self.stage_dir(stage)
+        problem = self.manifest_problem(stage)
+        if problem is not None:
+            return StageStatus(stage, folder, "corrupt", None, f"{self.manifest_path(stage)} {problem}")
+        if (self.work_dir(stage) / "manifest.json").is_file():
+            return StageStatus(stage, folder, "interrupted", m, "a finished run was not moved into place; the next run of "
+                                                                "this stage completes the move")
         if m is None or m.get("status") != "complete":
             if self.work_dir(stage).exists():
                 st = "failed" if (self.work_dir(stage) / "FAILED").exists() else "interrupted"
                 return StageStatus(stage, folder, st, m, "an earlier run did not finish")
             return StageStatus(stage, folder, "missing", m)
+        gone = self.missing_outputs(stage, m)
+        if gone:
+            more = f" (and {len(gone) - 1} more)" if len(gone) > 1 else ""
+            return StageStatus(stage, folder, "incomplete", m, f"output {gone[0]}{more}")
         for up, fp in (m.get("inputs", {}).get("stages") or {}).items():
             um = self.manifest(up)
             if um is None or um.get("status") != "complete":
@@ -267,11 +389,102 @@ class Workspace:
             return st.manifest
         if st.status == "stale":
             raise StageError(f"'{by}' needs stage '{stage}', which is stale ({st.reason}): re-run `sage {stage} {self.root}`")
+        if st.status in ("incomplete", "corrupt"):
+            raise StageError(f"'{by}' needs stage '{stage}', which is {st.status} ({st.reason}): re-run `sage {stage} {self.root}`")
         raise StageError(f"'{by}' needs stage '{stage}', which has not completed: run `sage {stage} {self.root}` first")
 
     def stages(self) -> Iterator[StageStatus]:
         for s in STAGE_FOLDERS:
             yield self.status(s)
+
+    # writing -----------------------------------------------------------------------------
+    def check_writable(self) -> None:
+        """WorkspaceError unless a file can be created in ``WS/.work`` (checked before a stage
+        starts, so that a long run cannot end in an unwritable folder)."""
+        check_workspace_path(self.root)
+        try:
+            _probe_write(self.root / ".work")
+        except OSError as e:
+            raise WorkspaceError(self.root, f"the workspace is not writable ({e.strerror or e}); check its permissions "
+                                            "or choose another folder") from None
+
+    def recover(self, stage: str) -> bool:
+        """Complete a promotion that was cut short (the work folder holds a finished run with its
+        manifest). Returns True when it promoted. The caller holds the lock."""
+        work = self.work_dir(stage)
+        m_path = work / "manifest.json"
+        if not m_path.is_file():
+            return False
+        try:
+            m = read_json(m_path)
+        except (OSError, ValueError):
+            m = None
+        if not isinstance(m, dict) or m.get("status") != "complete":
+            m_path.unlink(missing_ok=True)
+            return False
+        _promote(self, stage, work, keep_checkpoints=False)
+        return True
+
+
+def check_workspace_path(root: Path) -> None:
+    """WorkspaceError when ``root`` exists and is not a folder, or lies under a file."""
+    if root.exists() and not root.is_dir():
+        raise WorkspaceError(root, "is a file, not a workspace folder; choose a folder path")
+    for anc in root.parents:
+        if anc.exists():
+            if not anc.is_dir():
+                raise WorkspaceError(root, f"cannot be created: {anc} is a file, not a folder")
+            break
+
+
+def _probe_write(folder: Path) -> None:
+    """Create ``folder`` and a file in it, then remove the file (OSError when not writable)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    probe = folder / f".write-probe-{os.getpid()}"
+    with open(probe, "wb") as fh:
+        fh.write(b"ok")
+    probe.unlink()
+
+
+def _inventory(folder: Path) -> dict[str, int]:
+    """{relative path: size} of every output file of a finished work folder (checkpoints and run
+    markers excluded)."""
+    out: dict[str, int] = {}
+    for f in sorted(folder.rglob("*")):
+        rel = f.relative_to(folder)
+        if not f.is_file() or rel.parts[0] == "checkpoints" or str(rel) in _RUN_FILES:
+            continue
+        out[rel.as_posix()] = f.stat().st_size
+    return out
+
+
+def _promote(ws: Workspace, stage: str, work: Path, keep_checkpoints: bool) -> None:
+    """Rename ``work`` (which already holds its manifest) into the stage folder, then clean up.
+
+    The previous output is moved aside first and put back if the rename fails; checkpoints and run
+    markers are removed only once the new output is in place.
+    """
+    final = ws.stage_dir(stage)
+    trash = ws.root / ".work" / f".old-{final.name}-{os.getpid()}"
+    if trash.exists():
+        shutil.rmtree(trash)
+    moved = False
+    try:
+        if final.exists():
+            os.replace(final, trash)
+            moved = True
+        os.replace(work, final)
+    except OSError as e:
+        if moved and not final.exists():
+            os.replace(trash, final)
+        raise WorkspaceError(final, f"cannot move the finished run into place ({e.strerror or e}); it is kept in "
+                                    f"{work} and the next run of this stage completes the move") from None
+    if not keep_checkpoints:
+        shutil.rmtree(final / "checkpoints", ignore_errors=True)
+    for marker in ("RUN", "FAILED"):
+        (final / marker).unlink(missing_ok=True)
+    if trash.exists():
+        shutil.rmtree(trash, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -312,18 +525,11 @@ class StageRun:
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def finish(self, keep_checkpoints: bool = False) -> dict[str, Any]:
-        """Promote ``work_dir`` to the stage folder and write the manifest last. Returns it."""
-        if not keep_checkpoints and self.checkpoint_dir.exists():
-            shutil.rmtree(self.checkpoint_dir)
-        for marker in ("RUN", "FAILED"):
-            (self.work_dir / marker).unlink(missing_ok=True)
-        final = self.ws.stage_dir(self.stage)
-        trash = self.ws.root / ".work" / f".old-{final.name}-{os.getpid()}"
-        if final.exists():
-            if trash.exists():
-                shutil.rmtree(trash)
-            os.replace(final, trash)
-        os.replace(self.work_dir, final)
+        """Write the manifest into ``work_dir``, promote it to the stage folder, then remove the
+        checkpoints and run markers. Returns the manifest.
+
+        An interruption at any point leaves either the finished run in the work folder (the next
+        run promotes it, :meth:`Workspace.recover`) or the promoted folder with its manifest."""
         manifest = {
             "stage": self.stage,
             "status": "complete",
@@ -339,10 +545,10 @@ class StageRun:
             "resumed": self.resumed,
             "metrics": self.metrics,
             "outputs": self.outputs,
+            "files": _inventory(self.work_dir),
         }
-        atomic_write_json(final / "manifest.json", manifest)
-        if trash.exists():
-            shutil.rmtree(trash, ignore_errors=True)
+        atomic_write_json(self.work_dir / "manifest.json", manifest)
+        _promote(self.ws, self.stage, self.work_dir, keep_checkpoints)
         return manifest
 
     def fail(self, message: str) -> None:
@@ -372,14 +578,17 @@ def begin_stage(
     (``resumed=True``), so the caller can resume from its newest checkpoint. The caller must hold
     ``ws.lock``.
     """
+    ws.recover(stage)
     inputs: dict[str, Any] = {"stages": {}, "files": dict(external_inputs or {})}
     for up in requires:
         inputs["stages"][up] = ws.require(up, stage)["fingerprint"]
     run_id = {"config_hash": config_hash, "inputs": inputs, "seed": seed}
     fp = hashlib.sha256(json.dumps({"config": config_hash, "inputs": inputs}, sort_keys=True).encode()).hexdigest()[:16]
     m = ws.manifest(stage)
-    if not force and m is not None and m.get("status") == "complete" and m.get("fingerprint") == fp and m.get("seed") == seed:
+    if (not force and m is not None and m.get("status") == "complete" and m.get("fingerprint") == fp and m.get("seed") == seed
+            and not ws.missing_outputs(stage, m)):
         return None
+    ws.check_writable()
     work = ws.work_dir(stage)
     state_file = work / "RUN"
     resumed = False
@@ -418,22 +627,20 @@ def begin_stage(
 
 
 def save_checkpoint(directory: str | Path, step: int, state: dict[str, Any], keep: int = 2) -> Path:
-    """Save a versioned checkpoint dict atomically as ``ckpt_{step:08d}.pt``; keep the newest ``keep``.
+    """Save a versioned checkpoint atomically as ``ckpt_{step:08d}.pt``; keep the newest ``keep``.
 
     ``state`` maps names to state dicts / tensors / plain data (parameters, optimizers,
-    schedulers, RNG states, …). The file holds ``{"format": CHECKPOINT_FORMAT, "version",
-    "step", "state"}``.
+    schedulers, RNG states, …): anything :func:`sage_core.serialization.encode` takes. The file is a
+    safetensors file (despite its historical ``.pt`` name) holding ``{"format": CHECKPOINT_FORMAT,
+    "version", "step", "state"}``; loading it cannot run code.
     """
-    import io
-
-    import torch
+    from .serialization import save_file
 
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()
-    torch.save({"format": CHECKPOINT_FORMAT, "version": __version__, "step": int(step), "state": state}, buf)
     path = d / f"ckpt_{int(step):08d}.pt"
-    atomic_write_bytes(path, buf.getvalue())
+    blob = {"format": CHECKPOINT_FORMAT, "version": __version__, "step": int(step), "state": state}
+    save_file(path, blob, CHECKPOINT_KIND, CHECKPOINT_FORMAT)
     ckpts = sorted(d.glob("ckpt_*.pt"))
     for old in ckpts[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
@@ -441,27 +648,45 @@ def save_checkpoint(directory: str | Path, step: int, state: dict[str, Any], kee
 
 
 def latest_checkpoint(directory: str | Path) -> Path | None:
-    """Newest ``ckpt_*.pt`` in a folder, or None."""
+    """Newest usable ``ckpt_*.pt`` in a folder, or None.
+
+    A damaged or truncated newest checkpoint (bad header, wrong size, checksum mismatch) is skipped
+    for the one before it, with a warning on the ``sage`` logger. An old pickle checkpoint is
+    returned as it is, so that :func:`load_checkpoint` refuses it with a clear message.
+    """
+    from .serialization import inspect_file, verify_file
+
     d = Path(directory)
     if not d.is_dir():
         return None
-    ckpts = sorted(d.glob("ckpt_*.pt"))
-    return ckpts[-1] if ckpts else None
+    ckpts = sorted(d.glob("ckpt_*.pt"), reverse=True)
+    for i, ck in enumerate(ckpts):
+        chk = inspect_file(ck)
+        if chk.status == "pickle":
+            return ck
+        problem = chk.reason if chk.status != "ok" else (None if chk.kind == CHECKPOINT_KIND else f"not a checkpoint ({chk.kind!r})")
+        if problem is None:
+            problem = verify_file(ck)
+        if problem is None:
+            return ck
+        nxt = ckpts[i + 1].name if i + 1 < len(ckpts) else None
+        log.warning("checkpoint %s is damaged (%s); %s", ck, problem,
+                    f"resuming from {nxt} instead" if nxt else "no earlier checkpoint: starting from the beginning")
+    return None
 
 
 def load_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint`; StageError on a foreign or newer format."""
-    import torch
+    """Load a checkpoint written by :func:`save_checkpoint`; StageError on a damaged, foreign,
+    newer or old pickle file (the latter is not loaded: nothing in it runs)."""
+    from .serialization import load_file
 
     p = Path(path)
     try:
-        data = torch.load(p, map_location=map_location, weights_only=False)
-    except Exception as e:  # noqa: BLE001
-        raise StageError(f"{p}: cannot read checkpoint: {e}") from None
+        data, _ = load_file(p, CHECKPOINT_KIND, CHECKPOINT_FORMAT, "checkpoint", map_location=map_location)
+    except InputError as e:
+        raise StageError(f"{p}: {e.problem}") from None
     if not isinstance(data, dict) or "format" not in data or "state" not in data:
         raise StageError(f"{p}: not a sage checkpoint")
-    if int(data["format"]) > CHECKPOINT_FORMAT:
-        raise StageError(f"{p}: checkpoint format {data['format']} is newer than this sage supports ({CHECKPOINT_FORMAT})")
     return data
 
 

@@ -121,11 +121,15 @@ def test_save_load_round_trip_renders_identically(init_dir, data, mode, tmp_path
 
 
 def test_load_rejects_foreign_file(tmp_path):
-    from sage_core.errors import InputError
+    from sage_core.errors import InputError, UnsafeFileError
+    from sage_core.serialization import save_file
 
     p = tmp_path / "x.pt"
-    torch.save({"something": 1}, p)
+    save_file(p, {"something": torch.ones(1)}, "sage-sdf", 2)
     with pytest.raises(InputError, match="not a sage avatar"):
+        Avatar.load(p)
+    torch.save({"something": 1}, p)  # an old pickle file is refused without being loaded
+    with pytest.raises(UnsafeFileError, match="old pickle format"):
         Avatar.load(p)
 
 

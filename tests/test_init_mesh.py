@@ -79,7 +79,9 @@ def test_interrupted_pretraining_resumes_exactly(tiny_ws, tmp_path, one_thread):
     assert sorted(p.name for p in ck.glob("ckpt_*.pt"))[-1] == "ckpt_00000020.pt"
     resumed = run_init_mesh(data, out, cfg, checkpoint_dir=ck)
     assert resumed["final_loss"] == pytest.approx(ref["final_loss"], rel=1e-6, abs=1e-9)
-    a = torch.load(ref_dir / "sdf.pt", weights_only=False)["state"]
-    b = torch.load(out / "sdf.pt", weights_only=False)["state"]
+    from sage_core.train.init_mesh import read_sdf_file
+
+    a = read_sdf_file(ref_dir / "sdf.pt")[1]
+    b = read_sdf_file(out / "sdf.pt")[1]
     for k in a:
         assert torch.allclose(a[k], b[k], atol=1e-7), k

@@ -223,12 +223,15 @@ def test_save_load_keeps_shading_light_and_gains(init_dir, data, tmp_path):
 
 def test_old_avatar_files_still_load(init_dir, data, tmp_path):
     av = _avatar(init_dir, data, "free", "none")
+    from sage_core.avatar.model import AVATAR_FORMAT, AVATAR_KIND
+    from sage_core.serialization import load_file, save_file
+
     path = av.save(tmp_path / "new.pt")
-    blob = torch.load(path, weights_only=False)
+    blob, _ = load_file(path, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
     assert blob["args"]["shading"] == "none" and "exposure_gains" not in blob
     del blob["args"]["shading"]
     old = tmp_path / "old.pt"
-    torch.save(blob, old)
+    save_file(old, blob, AVATAR_KIND, AVATAR_FORMAT)
     back = Avatar.load(old)
     assert back.shading == "none" and back.light is None and back.exposure_gains == {}
     inputs = av.frame_inputs(data.test[0].timestep)

@@ -7,8 +7,9 @@ import multiprocessing as mp
 import pytest
 import torch
 
-from sage_core.errors import StageError
+from sage_core.errors import StageError, WorkspaceError
 from sage_core.workspace import (
+    CHECKPOINT_FORMAT,
     Workspace,
     atomic_write_json,
     begin_stage,
@@ -127,7 +128,7 @@ def test_checkpoint_round_trip_every_optimizer_group(tmp_path):
         save_checkpoint(tmp_path, step, state, keep=2)
     assert sorted(p.name for p in tmp_path.glob("ckpt_*.pt")) == ["ckpt_00000020.pt", "ckpt_00000030.pt"]
     ck = load_checkpoint(latest_checkpoint(tmp_path))
-    assert ck["step"] == 30 and ck["format"] == 1
+    assert ck["step"] == 30 and ck["format"] == CHECKPOINT_FORMAT
     net2 = torch.nn.Sequential(torch.nn.Linear(3, 8), torch.nn.Linear(8, 2))
     opt2 = torch.optim.Adam([{"params": net2[0].parameters(), "lr": 0.5}, {"params": net2[1].parameters(), "lr": 0.5}])
     sched2 = torch.optim.lr_scheduler.ExponentialLR(opt2, 0.9)
@@ -147,7 +148,110 @@ def test_checkpoint_round_trip_every_optimizer_group(tmp_path):
 
 
 def test_foreign_checkpoint_is_refused(tmp_path):
+    from sage_core.serialization import save_file
+
     p = tmp_path / "x.pt"
-    torch.save({"weights": 1}, p)
+    save_file(p, {"weights": torch.ones(2)}, "something-else", 1)
     with pytest.raises(StageError, match="not a sage checkpoint"):
         load_checkpoint(p)
+
+
+def test_pickle_checkpoint_is_refused_with_conversion_hint(tmp_path):
+    p = tmp_path / "ckpt_00000010.pt"
+    torch.save({"format": 1, "step": 10, "state": {}}, p)
+    with pytest.raises(StageError, match=r"old pickle format.*sage convert .*ckpt_00000010.pt --trust"):
+        load_checkpoint(p)
+
+
+def test_damaged_newest_checkpoint_falls_back_with_warning(tmp_path, caplog):
+    for step in (10, 20):
+        save_checkpoint(tmp_path, step, {"w": torch.full((64,), float(step))})
+    newest = tmp_path / "ckpt_00000020.pt"
+    newest.write_bytes(newest.read_bytes()[:-40])  # truncated mid-write
+    with caplog.at_level("WARNING", logger="sage"):
+        ck = latest_checkpoint(tmp_path)
+    assert ck == tmp_path / "ckpt_00000010.pt"
+    assert "ckpt_00000020.pt is damaged" in caplog.text and "resuming from ckpt_00000010.pt" in caplog.text
+    assert float(load_checkpoint(ck)["state"]["w"][0]) == 10.0
+    # a flipped byte in the tensor data is caught by the checksum
+    good = tmp_path / "ckpt_00000010.pt"
+    data = bytearray(good.read_bytes())
+    data[-3] ^= 0xFF
+    good.write_bytes(bytes(data))
+    assert latest_checkpoint(tmp_path) is None
+    with pytest.raises(StageError, match="checksum"):
+        load_checkpoint(good)
+
+
+def test_checkpoint_keeps_python_and_numpy_types(tmp_path):
+    import numpy as np
+
+    state = {"t": (1, 2.5, None, "s"), "ints": {0: torch.zeros(2), 3: [True, np.float32(0.1)]},
+             "np": np.arange(6, dtype=np.uint32).reshape(2, 3), "__odd": 1}  # fmt: skip
+    save_checkpoint(tmp_path, 1, state)
+    back = load_checkpoint(latest_checkpoint(tmp_path))["state"]
+    assert back["t"] == (1, 2.5, None, "s") and set(back["ints"]) == {0, 3}
+    assert isinstance(back["ints"][3][1], np.float32) and back["ints"][3][1] == np.float32(0.1)
+    assert back["np"].dtype == np.uint32 and back["np"].tolist() == [[0, 1, 2], [3, 4, 5]]
+    assert back["__odd"] == 1
+
+
+def test_missing_output_makes_stage_incomplete_and_reruns(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    _run(ws, "ingest")
+    (ws.stage_dir("ingest") / "out.txt").unlink()
+    st = ws.status("ingest")
+    assert st.status == "incomplete" and "out.txt is missing" in st.reason
+    with pytest.raises(StageError, match="incomplete.*out.txt"):
+        ws.require("ingest", "init-mesh")
+    assert _run(ws, "ingest") is not None  # not skipped
+    assert ws.status("ingest").status == "complete"
+
+
+def test_manifest_that_is_not_an_object_is_corrupt(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    _run(ws, "ingest")
+    ws.manifest_path("ingest").write_text("[1, 2]\n")
+    st = ws.status("ingest")
+    assert st.status == "corrupt" and "not a JSON object" in st.reason
+    with pytest.raises(StageError, match="corrupt"):
+        ws.require("ingest", "init-mesh")
+    assert _run(ws, "ingest") is not None and ws.status("ingest").status == "complete"
+
+
+def test_workspace_path_that_is_a_file(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(WorkspaceError, match="is a file, not a workspace folder"):
+        Workspace(f)
+    with pytest.raises(WorkspaceError, match="is a file, not a folder"):
+        Workspace(f / "ws")
+
+
+def test_failed_rename_keeps_the_finished_run_and_next_run_promotes_it(tmp_path, monkeypatch):
+    import os
+
+    ws = Workspace(tmp_path / "ws")
+    _run(ws, "ingest", payload="old")
+    run = begin_stage(ws, "ingest", {"k": "c2"}, "c2", seed=0)
+    (run.work_dir / "out.txt").write_text("new")
+    save_checkpoint(run.checkpoint_dir, 5, {"w": torch.ones(1)})
+    real = os.replace
+
+    def failing(src, dst):
+        if str(src) == str(run.work_dir):
+            raise PermissionError(13, "Permission denied")
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", failing)
+    with pytest.raises(WorkspaceError, match="cannot move the finished run into place"):
+        run.finish()
+    monkeypatch.setattr(os, "replace", real)
+    # nothing lost: the old output is back, the new run (with its checkpoints) is in the work folder
+    assert (ws.stage_dir("ingest") / "out.txt").read_text() == "old"
+    assert (run.work_dir / "checkpoints" / "ckpt_00000005.pt").is_file()
+    assert ws.status("ingest").status == "interrupted"
+    # the next run promotes it and then skips, since it is complete with that config
+    assert begin_stage(ws, "ingest", {"k": "c2"}, "c2", seed=0) is None
+    assert (ws.stage_dir("ingest") / "out.txt").read_text() == "new"
+    assert not (ws.stage_dir("ingest") / "checkpoints").exists() and not ws.work_dir("ingest").exists()

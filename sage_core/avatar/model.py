@@ -46,7 +46,6 @@ use gain 1).
 from __future__ import annotations
 
 import dataclasses
-import io
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -75,8 +74,12 @@ from .shading import SHADING_MODES, SHIrradiance, orient_outward
 from .surfels import SurfelSet
 from .wrinkles import apply_wrinkles
 
-AVATAR_FORMAT = 1
+AVATAR_FORMAT = 2
+"""Format 1 was a torch.save pickle (refused now, ``sage convert FILE --trust`` rewrites it); 2 is a
+safetensors file (:mod:`sage_core.serialization`) that may reference the workspace's FLAME model."""
 AVATAR_KIND = "sage-avatar"
+FLAME_REF_SEARCH_DEPTH = 4
+"""How many folders above an avatar file :meth:`Avatar.load` looks for the FLAME model it references."""
 _FLAME_KEYS = ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
 
 
@@ -178,6 +181,8 @@ class Avatar(nn.Module):
     q_c: torch.Tensor
     root_joint: torch.Tensor
     base_scale: torch.Tensor
+    flame_source: Path | None = None
+    """The workspace FLAME model file the avatar was built from (``WS/init/flame_model.npz``), or None."""
 
     def __init__(
         self,
@@ -272,15 +277,14 @@ class Avatar(nn.Module):
 
         from ..flame import load_flame_model
         from ..flame.regions import Regions
-        from ..train.init_mesh import load_sdf
+        from ..train.init_mesh import read_sdf_file
 
         d = Path(ws_init_dir)
         model_path = d / "flame_model.npz"
         if not model_path.is_file():
             raise InputError(model_path, "missing (run `sage init-mesh` first)")
         model_data = load_flame_model(model_path)
-        sdf_net = load_sdf(d / "sdf.pt", device)
-        blob = torch.load(d / "sdf.pt", map_location="cpu", weights_only=False)
+        sdf_args, sdf_state = read_sdf_file(d / "sdf.pt")
         regions = None
         reg_path = d / "regions.json"
         if reg_path.is_file():
@@ -313,9 +317,10 @@ class Avatar(nn.Module):
         surfels = SurfelSet.from_init(init, **kw).to(device)
         app = {"hidden": 32, "n_layers": 2, "sh_degree": 2, **(app_args or {})}
         shp = {"hidden": 32, "n_layers": 2, **(shape_args or {})}
-        avatar = cls(model_data, params, ct, surfels, blob["args"], attributes, app, shp if attributes == "mlp" else None,
+        avatar = cls(model_data, params, ct, surfels, sdf_args, attributes, app, shp if attributes == "mlp" else None,
                      neus_variance=neus_variance, shading=shading)
-        avatar.sdf.load_state_dict(sdf_net.state_dict())
+        avatar.sdf.load_state_dict(sdf_state)
+        avatar.flame_source = model_path.resolve()
         return avatar.to(device)
 
     # ------------------------------------------------------------------ FLAME inputs
@@ -603,45 +608,69 @@ class Avatar(nn.Module):
     def _exposure_plain(self) -> list[dict[str, Any]]:
         return [{"timestep": t, "camera": c, "gain": [float(x) for x in g]} for (t, c), g in sorted(self.exposure_gains.items())]
 
-    def save(self, path: str | Path) -> Path:
-        """Write a self-contained avatar file atomically (constructor data, FLAME model arrays,
-        parameters, state dict without the FLAME buffers)."""
-        from .. import __version__
-        from ..workspace import atomic_write_bytes
+    def _flame_reference(self, path: Path) -> dict[str, Any] | None:
+        """``{"file", "sha256"}`` referencing the workspace FLAME model when ``path`` lies in the
+        workspace the avatar was built from (``WS/init/flame_model.npz``), else None."""
+        src = self.flame_source
+        if src is None or src.parent.name != "init" or not src.is_file():
+            return None
+        root = src.parent.parent
+        if not (root / "data").is_dir():
+            return None
+        try:
+            path.resolve().relative_to(root)
+        except ValueError:
+            return None
+        return {"file": src.relative_to(root).as_posix(), "sha256": flame_model_sha256(self.model_data)}
 
+    def save(self, path: str | Path, *, embed_flame: bool | None = None) -> Path:
+        """Write the avatar file atomically: constructor data, parameters, state dict without the
+        FLAME buffers, and the FLAME model, as a safetensors file (see ``docs/workspace.md``).
+
+        embed_flame: True stores the FLAME model arrays in the file (self-contained, as bundles
+        are); False/None (default) stores a reference to the workspace's ``init/flame_model.npz``
+        with its content hash when the file is written inside the workspace the avatar was built
+        from, and embeds the model otherwise.
+        """
+        from .. import __version__
+        from ..serialization import save_file
+
+        p = Path(path)
         state = {k: v.detach().cpu() for k, v in self.state_dict().items() if not k.startswith("flame.")}
-        blob = {
+        blob: dict[str, Any] = {
             "format": AVATAR_FORMAT,
             "kind": AVATAR_KIND,
             "version": __version__,
             "args": self._args(),
-            "flame": _plain(self.model_data),
             "params": _plain(self.params),
             "state": state,
         }
+        ref = None if embed_flame else self._flame_reference(p)
+        if ref is None:
+            blob["flame"] = _plain(self.model_data)
+        else:
+            blob["flame_ref"] = ref
         if self.exposure_gains:
             blob["exposure_gains"] = self._exposure_plain()
-        buf = io.BytesIO()
-        torch.save(blob, buf)
-        p = Path(path)
-        atomic_write_bytes(p, buf.getvalue())
-        return p
+        return save_file(p, blob, AVATAR_KIND, AVATAR_FORMAT)
 
     @classmethod
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Avatar:
-        """Read a file written by :meth:`save`; InputError when it is not a readable avatar."""
+        """Read a file written by :meth:`save`; InputError when it is not a readable avatar
+        (UnsafeFileError for an old pickle avatar file, which is refused without being loaded)."""
+        from ..serialization import load_file
+
         p = Path(path)
-        try:
-            blob = torch.load(p, map_location="cpu", weights_only=False)
-        except Exception as e:  # noqa: BLE001
-            raise InputError(p, f"cannot read avatar file: {e}") from None
+        blob, _ = load_file(p, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
         if not isinstance(blob, dict) or blob.get("kind") != AVATAR_KIND:
             raise InputError(p, "not a sage avatar file")
-        if int(blob.get("format", 0)) > AVATAR_FORMAT:
-            raise InputError(p, f"avatar format {blob.get('format')} is newer than this sage supports ({AVATAR_FORMAT})")
+        source: Path | None = None
         try:
             args = blob["args"]
-            model_data = FlameModelData(**blob["flame"])
+            if "flame_ref" in blob:
+                model_data, source = _resolve_flame_ref(p, blob["flame_ref"])
+            else:
+                model_data = FlameModelData(**blob["flame"])
             params = FlameParams(**blob["params"])
             state = blob["state"]
             surf_state = {k[len("surfels."):]: v for k, v in state.items() if k.startswith("surfels.")}
@@ -653,12 +682,53 @@ class Avatar(nn.Module):
             )  # fmt: skip
             missing, unexpected = obj.load_state_dict(state, strict=False)
             obj.set_exposure_gains({(e["timestep"], e["camera"]): e["gain"] for e in blob.get("exposure_gains", [])})
-        except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
             raise InputError(p, f"malformed avatar file: {e}") from None
         bad = [k for k in missing if not k.startswith("flame.")]
         if bad or unexpected:
             raise InputError(p, f"avatar state does not match: missing {bad[:5]}, unexpected {list(unexpected)[:5]}")
+        obj.flame_source = source
         return obj.to(device)
+
+
+def flame_model_sha256(md: FlameModelData) -> str:
+    """Content hash of a FLAME model: every field's name, dtype, shape and bytes, in field order."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in dataclasses.fields(md):
+        v = getattr(md, f.name)
+        items = sorted(v.items()) if isinstance(v, dict) else [("", v)]
+        for key, x in items:
+            h.update(f"{f.name}\0{key}\0".encode())
+            if isinstance(x, np.ndarray):
+                a = np.ascontiguousarray(x)
+                h.update(f"{a.dtype.str}{a.shape}".encode())
+                h.update(a.tobytes())
+            else:
+                h.update(repr(x).encode())
+    return h.hexdigest()
+
+
+def _resolve_flame_ref(path: Path, ref: dict[str, Any]) -> tuple[FlameModelData, Path]:
+    """Find and check the FLAME model an avatar file references: ``ref["file"]`` relative to one of
+    the folders above the avatar file (its workspace), with the recorded content hash."""
+    from ..flame import load_flame_model
+
+    rel = str(ref["file"])
+    if Path(rel).is_absolute() or ".." in Path(rel).parts:
+        raise InputError(path, f"references the FLAME model {rel!r} outside its workspace")
+    for anc in list(path.resolve().parents)[:FLAME_REF_SEARCH_DEPTH]:
+        cand = anc / rel
+        if cand.is_file():
+            md = load_flame_model(cand)
+            if flame_model_sha256(md) != ref.get("sha256"):
+                raise InputError(path, f"the FLAME model it references ({cand}) changed since the avatar was saved; "
+                                       "re-run the stage that wrote the avatar")
+            return md, cand
+    raise InputError(path, f"references the workspace FLAME model {rel}, which is not found in the folders above it; "
+                           "keep avatar files inside their workspace, or export a self-contained bundle "
+                           "(`sage export WS --bundle`)")
 
 
 def _rigid_world_from_canonical(params: FlameParams, row: int, root_joint: torch.Tensor) -> np.ndarray:

@@ -6,7 +6,8 @@ Outputs (into the stage's work folder):
     canonical_mesh.ply   canonical mesh of the whole model (head, eyes, teeth, mouth interior)
     head_mesh.ply        the outer head surface the SDF is fitted to
     mouth_interior.ply   the mouth-interior parts alone (when added)
-    sdf.pt               SDF network state dict and its constructor arguments
+    sdf.pt               SDF network state dict and its constructor arguments (a safetensors file,
+                         :func:`save_sdf`; kind ``sage-sdf``)
     sdf_mesh.ply         marching-cubes zero level set of the pretrained SDF
     metrics.json         fit quality (also in the manifest)
 """
@@ -35,7 +36,9 @@ from ..workspace import atomic_write_bytes, atomic_write_json, latest_checkpoint
 
 Progress = Callable[..., None]
 
-SDF_FILE_FORMAT = 1
+SDF_FILE_FORMAT = 2
+"""Format 1 was a torch.save pickle (refused now); 2 is a safetensors file (sage_core.serialization)."""
+SDF_KIND = "sage-sdf"
 
 
 def build_model(data: IngestedData, mouth_interior: bool) -> tuple[FlameModelData, Regions | None]:
@@ -91,17 +94,36 @@ def sdf_constructor_args(cfg: InitMeshConfig, bbox_min: np.ndarray, bbox_max: np
     }
 
 
+def save_sdf(path: str | Path, args: dict[str, Any], net: SDFNetwork) -> Path:
+    """Write an SDF file atomically: ``{"format", "args": constructor kwargs, "state": state dict}``
+    as a safetensors file (loading it cannot run code)."""
+    from ..serialization import save_file
+
+    state = {k: v.detach().cpu() for k, v in net.state_dict().items()}
+    return save_file(path, {"format": SDF_FILE_FORMAT, "args": args, "state": state}, SDF_KIND, SDF_FILE_FORMAT)
+
+
+def read_sdf_file(path: str | Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """(constructor kwargs, CPU state dict) of an SDF file; InputError (UnsafeFileError for an old
+    pickle file, which is not loaded) when it is not a readable sage SDF file."""
+    from ..serialization import load_file
+
+    p = Path(path)
+    blob, _ = load_file(p, SDF_KIND, SDF_FILE_FORMAT, "SDF file")
+    if not isinstance(blob, dict) or not isinstance(blob.get("args"), dict) or not isinstance(blob.get("state"), dict):
+        raise InputError(p, "not a sage SDF file")
+    return blob["args"], blob["state"]
+
+
 def load_sdf(path: str | Path, device: str | torch.device = "cpu") -> SDFNetwork:
     """Load ``sdf.pt`` written by this stage."""
     p = Path(path)
+    args, state = read_sdf_file(p)
     try:
-        blob = torch.load(p, map_location=device, weights_only=False)
-    except Exception as e:  # noqa: BLE001
-        raise InputError(p, f"cannot read SDF file: {e}") from None
-    if not isinstance(blob, dict) or blob.get("format") != SDF_FILE_FORMAT:
-        raise InputError(p, "not a sage SDF file")
-    net = SDFNetwork(**blob["args"]).to(device)
-    net.load_state_dict(blob["state"])
+        net = SDFNetwork(**args).to(device)
+        net.load_state_dict(state)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise InputError(p, f"malformed SDF file: {e}") from None
     return net
 
 
@@ -203,11 +225,7 @@ def run_init_mesh(
     ev = trainer.evaluate(cfg.mc_resolution)
     mv, mf = extract_mesh(net.sdf, net.bbox_min, net.bbox_max, cfg.mc_resolution, device=device)
     atomic_write_bytes(out_dir / "sdf_mesh.ply", _mesh_bytes(mv, mf))
-    import io
-
-    buf = io.BytesIO()
-    torch.save({"format": SDF_FILE_FORMAT, "args": args, "state": {k: v.detach().cpu() for k, v in net.state_dict().items()}}, buf)
-    atomic_write_bytes(out_dir / "sdf.pt", buf.getvalue())
+    save_sdf(out_dir / "sdf.pt", args, net)
 
     diag = float(np.linalg.norm(verts[np.unique(faces_head)].max(0) - verts[np.unique(faces_head)].min(0)))
     metrics = {
