@@ -5,8 +5,11 @@ Usage:
     python benchmarks/suite.py --size small|full --out DIR [--rows a,b,...] [--device auto]
                                [--seed 0] [--lpips-weights PATH]
 
-Rows (ids): sage, no_mlp, no_phase2, no_correction, ga_mvsf, ga_mvmf, sv_hr, one_shot.
+Rows (ids): sage, sage_exact, no_mlp, no_phase2, no_correction, wrinkles, ga_mvsf, ga_mvmf, sv_hr, one_shot.
 ``small`` uses the tiny presets (128x186 captures, CPU); ``full`` the default ones (550x802, GPU).
+The captures are tracked (``sage synth --tracking fitted``: FLAME parameters fitted to a ground
+truth the written model cannot fully express, plus pose noise); ``sage_exact`` trains SAGE MV-SF
+on the exact multiview capture (``--tracking exact``) so both are visible.
 Every stage runs through the real ``sage`` CLI in a subprocess, one workspace per row under
 ``DIR/ws/<row>``; rows copy the finished stages they share with the SAGE row (``cp -a`` of the
 stage folders keeps their manifests, so the workspace accepts them as complete). A rerun skips

@@ -78,6 +78,19 @@ def reenact_record(ws: Path, name: str = "bench") -> dict[str, Any]:
             "size": f"{r.get('width')}x{r.get('height')}", "cameras": doc.get("cameras")}  # fmt: skip
 
 
+def capture_tracking(capture: Path) -> dict[str, Any] | None:
+    """How the capture's FLAME parameters relate to its ground truth (``gt/info.json``): exact, or
+    fitted with its tracking error summary (mean / max / face-region mean vertex distance, mm)."""
+    try:
+        info = json.loads((capture / "gt" / "info.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    tr = info.get("tracking")
+    if not tr:
+        return {"mode": "exact"}
+    return {"mode": tr.get("mode", "fitted"), "error": tr.get("error")}
+
+
 def gt_canonical_mesh(capture: Path, avatar: Any) -> tuple[Any, Any, int]:
     """The capture's ground-truth mesh at the avatar's canonical timestep, moved into the
     avatar's canonical space.

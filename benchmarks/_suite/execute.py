@@ -172,6 +172,7 @@ def collect_row(row: RowSpec, settings: Settings, needs: list[str], records: dic
                 if not any(k.startswith(f"{row.id}:eval:{split}") for k in errors):
                     errors.append(f"{row.id}:eval:{split}: no {name} result ({type(e).__name__})")
     out["metrics"] = metrics
+    out["capture_tracking"] = collect.capture_tracking(settings.capture_dir(row.capture))
 
     if row.has_sdf and "phase1" in stages:
         try:

@@ -29,7 +29,8 @@ loss only (no SDF terms, no 2DGS regularizers)."""
 class RowSpec:
     """One row of the benchmark.
 
-    capture: "multiview" | "monocular" | "oneshot" (the ``sage synth --regime`` it trains on).
+    capture: the capture kind it trains on (a key of :data:`CAPTURES`: "multiview", "monocular"
+    and "oneshot" are tracked captures, "multiview_exact" the exact multiview one).
     regime: ``sage ingest --regime``. base: row whose workspace this row copies ``copy_stages``
     from (None: the row ingests itself). phase1 / phase2: extra options of the row's own phase-1 /
     phase-2 run (None: not run by this row). eval_stage: avatar evaluated. eval_splits: one
@@ -56,6 +57,8 @@ ROWS: dict[str, RowSpec] = {
     r.id: r
     for r in (
         RowSpec("sage", "SAGE", "MV-SF", "multiview", "mv-sf", None, (), ("--attributes", "mlp"), (), "phase2", ("all",), True, True),
+        RowSpec("sage_exact", "SAGE on the exact capture", "MV-SF", "multiview_exact", "mv-sf", None, (), ("--attributes", "mlp"), (),
+                "phase2", ("all",), True, True),
         RowSpec("no_mlp", "w/o attribute MLPs", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
                 ("--attributes", "free"), (), "phase2", ("all",), True, True),
         RowSpec("no_phase2", "w/o phase 2", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
@@ -74,6 +77,16 @@ ROWS: dict[str, RowSpec] = {
 }  # fmt: skip
 """Every row id, in table order."""
 
+CAPTURES: dict[str, tuple[str, str]] = {
+    "multiview": ("multiview", "fitted"),
+    "multiview_exact": ("multiview", "exact"),
+    "monocular": ("monocular", "fitted"),
+    "oneshot": ("oneshot", "fitted"),
+}
+"""Capture kind -> (``sage synth --regime``, ``--tracking``). Rows train on tracked captures
+(FLAME parameters fitted to a truth the written model cannot fully express, plus pose noise);
+``multiview_exact`` (the ``sage_exact`` row) is the capture whose parameters are the truth."""
+
 ROW_IDS: tuple[str, ...] = tuple(ROWS)
 
 
@@ -81,7 +94,7 @@ ROW_IDS: tuple[str, ...] = tuple(ROWS)
 class Size:
     """A benchmark size: the stage preset, the synthetic capture and per-stage ``--set`` overrides.
 
-    synth_args: extra ``sage synth`` options per capture kind. sets: stage -> ``key=value`` items
+    synth_args: extra ``sage synth`` options per regime (shared by the tracked and exact captures). sets: stage -> ``key=value`` items
     added to every run of that stage. motion_steps: frames from one test timestep to the next in
     the reenactment clip.
     """
@@ -220,8 +233,9 @@ def reenact_argv(st: Settings, row: RowSpec) -> list[str]:
 
 def synth_argv(st: Settings, kind: str) -> list[str]:
     """``sage synth`` arguments of a capture kind (``--force`` is added when an older capture is replaced)."""
-    return ["synth", str(st.capture_dir(kind)), "--regime", kind, "--preset", st.size.synth_preset,
-            *st.size.synth_args.get(kind, ()), "--seed", str(st.seed), "--quiet"]  # fmt: skip
+    regime, tracking = CAPTURES[kind]
+    return ["synth", str(st.capture_dir(kind)), "--regime", regime, "--tracking", tracking, "--preset", st.size.synth_preset,
+            *st.size.synth_args.get(regime, ()), "--seed", str(st.seed), "--quiet"]  # fmt: skip
 
 
 def own_stages(row: RowSpec) -> list[str]:

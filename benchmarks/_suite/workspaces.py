@@ -21,6 +21,7 @@ def capture_is_current(capture: Path, argv: list[str]) -> bool:
     if not info.is_file():
         return False
     opts = _synth_options(argv)
+    opts.setdefault("tracking", "fitted")  # sage synth's default
     try:
         cfg = preset(opts.pop("preset", "default"), regime=opts.pop("regime", "multiview"), **opts)
         return json.loads(info.read_text(encoding="utf-8"))["config"] == cfg.to_dict()
@@ -31,7 +32,7 @@ def capture_is_current(capture: Path, argv: list[str]) -> bool:
 def _synth_options(argv: list[str]) -> dict:
     names = {"--regime": ("regime", str), "--preset": ("preset", str), "--cameras": ("n_cameras", int), "--width": ("width", int),
              "--height": ("height", int), "--train-timesteps": ("train_timesteps", int), "--test-timesteps": ("test_timesteps", int),
-             "--seed": ("seed", int)}  # fmt: skip
+             "--seed": ("seed", int), "--tracking": ("tracking", str)}  # fmt: skip
     out: dict = {}
     for i, a in enumerate(argv[:-1]):
         if a in names:
