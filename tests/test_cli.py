@@ -66,7 +66,7 @@ def test_bad_inputs_exit_nonzero_and_write_nothing(tiny_capture, tmp_path):
     res = runner.invoke(app, ["ingest", str(tmp_path / "nope"), str(ws), "--flame-model", str(tiny_capture.model_path)])
     assert res.exit_code == 2 and "capture folder not found" in res.output and not ws.exists()
     res = _ingest(tiny_capture, ws, "--regime", "bogus")
-    assert res.exit_code == 3 and "unknown regime" in res.output and not ws.exists()
+    assert res.exit_code == 3 and "regime = 'bogus'" in res.output and "one of mv-sf" in res.output and not ws.exists()
     res = _ingest(tiny_capture, ws, "--height", "50", "--downsample", "2")
     assert res.exit_code == 3 and not ws.exists()
     broken = tmp_path / "broken"
@@ -129,3 +129,24 @@ def test_config_command_applies_regime_defaults():
     assert "app_sh_degree: 0" in svhr.output and "app_sh_degree: 0" not in plain.output
     bad = runner.invoke(app, ["config", "phase1", "--regime", "bogus"])
     assert bad.exit_code == 3 and "bogus" in bad.output
+
+
+def test_set_without_equals_is_a_configuration_error(tmp_path):
+    res = runner.invoke(app, ["config", "phase1", "--set", "iterations"])
+    assert res.exit_code == 3 and "key=value" in res.output, res.output
+    res = runner.invoke(app, ["phase1", str(tmp_path), "--set", "=5"])
+    assert res.exit_code == 3, res.output
+
+
+def test_out_of_range_flag_is_refused_before_anything_is_written(tiny_ws, tmp_path):
+    ws = tmp_path / "ws"
+    shutil.copytree(tiny_ws, ws)
+    before = sorted(p.relative_to(ws) for p in ws.rglob("*"))
+    res = runner.invoke(app, ["phase1", str(ws), "--iterations", "-5", "--preset", "tiny", "--quiet", "--device", "cpu"])
+    assert res.exit_code == 3, res.output
+    assert "iterations = -5" in res.output and ">= 1" in res.output
+    assert sorted(p.relative_to(ws) for p in ws.rglob("*")) == before  # no log, work folder or manifest
+    res = runner.invoke(app, ["phase2", str(ws), "--set", "teacher=mesh", "--quiet"])
+    assert res.exit_code == 3 and "one of rest, neus" in res.output, res.output
+    res = runner.invoke(app, ["config", "phase1", "--explain"], env={"COLUMNS": "250"})
+    assert res.exit_code == 0 and "one of off, gain, rgb" in res.output
