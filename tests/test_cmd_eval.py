@@ -169,7 +169,7 @@ def test_eval_refuses_a_stale_avatar(ws):
 
 def test_eval_rejects_bad_options(ws, tmp_path):
     res = invoke(["eval", ws, "--split", "train", "--quiet"])
-    assert res.exit_code == 3 and "--split" in res.output
+    assert res.exit_code == 3 and "split = 'train'" in res.output and "one of test, val, all, novel" in res.output
     res = invoke(["eval", ws, "--lpips-weights", tmp_path / "missing.pth", "--quiet"])
     assert res.exit_code == 2 and "missing.pth" in res.output
     res = invoke(["eval", ws, "--stage", "phase2", "--quiet"])
