@@ -38,9 +38,6 @@ REPO = HERE.parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-DEFAULT_LPIPS = REPO.parent / "shared" / "weights" / "lpips_alex_v0.1.pth"
-
-
 def build_parser() -> argparse.ArgumentParser:
     from _suite.rows import ROW_IDS, SIZES
 
@@ -50,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--rows", default=",".join(ROW_IDS), help=f"Comma-separated subset of: {', '.join(ROW_IDS)} (default: all).")
     ap.add_argument("--device", default="auto", help="Device of every stage: auto, cpu or cuda[:N].")
     ap.add_argument("--seed", type=int, default=0, help="Seed of the synthetic captures and of every stage.")
-    ap.add_argument("--lpips-weights", type=Path, default=None, help=f"LPIPS AlexNet v0.1 weights (default: {DEFAULT_LPIPS} when it exists).")
+    ap.add_argument("--lpips-weights", type=Path, default=None, help="LPIPS AlexNet v0.1 weights (default: where sage finds them: $SAGE_LPIPS_WEIGHTS, then ~/.cache/sage/lpips_alex_v0.1.pth; LPIPS is reported unavailable without them).")
     ap.add_argument("--smoke", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--override", action="append", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--docs", type=Path, default=None, help=argparse.SUPPRESS)
@@ -105,11 +102,12 @@ def main(argv: list[str] | None = None) -> int:
         resolve_device(args.device)
     except Exception as e:  # noqa: BLE001
         ap.error(str(e))
-    lpips = args.lpips_weights
-    if lpips is None and DEFAULT_LPIPS.is_file():
-        lpips = DEFAULT_LPIPS
-    if lpips is not None and not lpips.is_file():
-        ap.error(f"--lpips-weights {lpips}: file not found")
+    from sage_core.evaluate.lpips import find_lpips_weights
+
+    try:
+        lpips = find_lpips_weights(args.lpips_weights)
+    except Exception as e:  # noqa: BLE001
+        ap.error(str(e))
     size = SIZES[args.size]
     if args.smoke:
         size = smoke_size(size)

@@ -146,6 +146,11 @@ class Phase1Config:
     app_hidden: int = _f(64, "Appearance network width.", ge=1)
     app_layers: int = _f(2, "Appearance network hidden layers.", ge=1)
     app_sh_degree: int = _f(3, "SH degree of the appearance network's view-direction encoding.", ge=0, le=3)
+    app_grid: bool = _f(True, "Give the appearance network its own hash grid (app_grid_* fields) whose features at the surfel centre join the SDF feature z: colour detail then has capacity of its own instead of passing through the SDF network.")
+    app_grid_levels: int = _f(16, "Levels of the appearance hash grid.", ge=1)
+    app_grid_log2_table: int = _f(19, "log2 of the table entries per level of the appearance hash grid.", ge=8, le=24)
+    app_grid_max_res: int = _f(2048, "Finest resolution of the appearance hash grid (its coarsest is 16).", ge=16)
+    lr_app_grid: float = _f(1e-2, "Adam learning rate of the appearance hash table.", ge=0)
     shape_hidden: int = _f(64, "Shape network width.", ge=1)
     shape_layers: int = _f(2, "Shape network hidden layers.", ge=1)
     lr_sdf: float = _f(1e-4, "Adam learning rate of the SDF MLP (paper: 1e-4).", ge=0)
@@ -338,6 +343,9 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
             "app_sh_degree": 2,
             "shape_hidden": 32,
             "lr_sdf": 1e-3,
+            "app_grid_levels": 8,
+            "app_grid_log2_table": 15,
+            "app_grid_max_res": 512,
             "lr_grid": 1e-3,
             "lr_networks": 1e-3,
             "lr_color": 1e-2,

@@ -7,7 +7,21 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
+
+
+def _lpips_weights() -> Path | None:
+    """The LPIPS AlexNet weights where sage itself finds them ($SAGE_LPIPS_WEIGHTS, then
+    ~/.cache/sage/lpips_alex_v0.1.pth), else None: tests that need them skip."""
+    from sage_core.evaluate.lpips import find_lpips_weights
+
+    try:
+        return find_lpips_weights()
+    except Exception:  # a named but missing file: treat as absent here, the CLI tests cover the error
+        return None
+
+
+LPIPS_WEIGHTS = _lpips_weights()
+LPIPS_SKIP_REASON = "LPIPS weights not found: set SAGE_LPIPS_WEIGHTS or place lpips_alex_v0.1.pth in ~/.cache/sage/"
 
 
 def pytest_collection_modifyitems(config, items):

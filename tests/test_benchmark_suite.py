@@ -17,6 +17,7 @@ from _suite import ROW_IDS, SIZES, Settings, merge_results, parse_overrides, pla
 from _suite.execute import step_command  # noqa: E402
 from _suite.report import DASH, render_document  # noqa: E402
 from _suite.workspaces import copy_stages  # noqa: E402
+from conftest import LPIPS_WEIGHTS  # noqa: E402
 
 
 def _settings(tmp_path: Path, **kw) -> Settings:
@@ -331,7 +332,9 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     r = doc["rows"]["no_phase2"]
     assert r["errors"] == [], r["errors"]
     assert r["metrics"]["val"]["overall"]["psnr"] > 5 and r["metrics"]["test"]["overall"]["psnr"] > 5
-    assert r["metrics"]["test"]["frontal"]["count"] >= 1 and r["metrics"]["val"]["overall"]["lpips"] is not None
+    assert r["metrics"]["test"]["frontal"]["count"] >= 1
+    # LPIPS where sage finds the weights (as in CI), reported unavailable where it does not
+    assert (r["metrics"]["val"]["overall"]["lpips"] is not None) == (LPIPS_WEIGHTS is not None)
     assert r["reenact"]["render_fps"] > 0 and r["peak_rss_mib"] > 100
     assert r["stages"]["phase1"]["shared"] is True and r["stages"]["phase1"]["iterations_per_s"] > 0
     # the capture is tracked: its FLAME mesh differs from the ground truth by the tracking error, so the

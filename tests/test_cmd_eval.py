@@ -18,9 +18,8 @@ import torch
 import typer
 from typer.testing import CliRunner
 
-from conftest import SHARED
+from conftest import LPIPS_SKIP_REASON, LPIPS_WEIGHTS
 
-LPIPS_WEIGHTS = SHARED / "weights" / "lpips_alex_v0.1.pth"
 N_SURFELS = 600
 TEST_CAMERAS = (8,)
 
@@ -100,7 +99,7 @@ def ws(base_ws, tmp_path):
     return dst
 
 
-@pytest.mark.skipif(not LPIPS_WEIGHTS.is_file(), reason="shared LPIPS weights not present")
+@pytest.mark.skipif(LPIPS_WEIGHTS is None, reason=LPIPS_SKIP_REASON)
 def test_eval_writes_metrics_with_and_without_lpips(ws):
     res = invoke(["eval", ws, "--split", "val", "--lpips-weights", LPIPS_WEIGHTS, "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
@@ -198,8 +197,8 @@ def test_eval_render_matches_the_avatar_render(ws):
 
 
 def test_lpips_env_var_is_honoured(ws, tmp_path):
-    if not LPIPS_WEIGHTS.is_file():
-        pytest.skip("shared LPIPS weights not present")
+    if LPIPS_WEIGHTS is None:
+        pytest.skip(LPIPS_SKIP_REASON)
     res = invoke(["eval", ws, "--split", "val", "--device", "cpu", "--quiet"], SAGE_LPIPS_WEIGHTS=str(LPIPS_WEIGHTS))
     assert res.exit_code == 0, res.output
     doc = json.loads((ws / "eval" / "phase1" / "val" / "metrics.json").read_text())

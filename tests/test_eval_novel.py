@@ -10,11 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import SHARED
+from conftest import LPIPS_WEIGHTS
 from test_cmd_eval import invoke
 from test_pseudo_views import NOVEL_EXPRESSIONS, NOVEL_VIEWS, oneshot_workspace
 
-LPIPS_WEIGHTS = SHARED / "weights" / "lpips_alex_v0.1.pth"
 
 
 def trained_oneshot_workspace(tmp_path_factory) -> Path:
@@ -161,7 +160,7 @@ def test_visible_region_and_region_metrics(base_ws):
     assert p2 == pytest.approx(float(-10.0 * torch.log10(d2)), rel=1e-5)
     empty = torch.zeros_like(region)
     assert math.isnan(region_metrics(pred, gt, empty, 1.0, None, None)[0])
-    if LPIPS_WEIGHTS.is_file():
+    if LPIPS_WEIGHTS is not None:
         from sage_core.evaluate.lpips import LPIPS
 
         lpips = LPIPS.from_path(LPIPS_WEIGHTS)

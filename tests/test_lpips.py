@@ -20,10 +20,8 @@ from sage_core.evaluate import (
 )
 from sage_core.evaluate.lpips import EXPECTED_SHAPES
 
-WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights" / "lpips_alex_v0.1.pth"
-needs_weights = pytest.mark.skipif(
-    not WEIGHTS.is_file(), reason=f"LPIPS weights not found at {WEIGHTS}"
-)
+from conftest import LPIPS_SKIP_REASON, LPIPS_WEIGHTS as WEIGHTS  # noqa: E402
+needs_weights = pytest.mark.skipif(WEIGHTS is None, reason=LPIPS_SKIP_REASON)
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from ..geometry.sh import sh_basis
+from .hashgrid import HashGrid
 
 
 class AppearanceNetwork(nn.Module):
@@ -28,6 +29,11 @@ class AppearanceNetwork(nn.Module):
         sh_degree: degree (0..3) of the spherical-harmonics view encoding.
         view_dependent: use the view direction.
         opacity_bias: initial bias of the opacity logit (sigmoid(2) ~ 0.88 starts surfels mostly opaque).
+        grid: optional :class:`HashGrid` kwargs (n_levels, n_features, log2_table, base_res, max_res) of
+            an appearance-only hash grid over the same box; its features at x join the MLP input.
+            The SDF feature z carries colour only through the SDF network, whose hash grid and MLP are
+            shaped by the geometry losses; an own grid gives colour detail (iris, lips) its own
+            capacity without moving the geometry.
 
     Presets: ``tiny`` hidden 32, 2 layers, sh_degree 2; ``default`` hidden 64, 2 layers, sh_degree 3.
     """
@@ -42,6 +48,7 @@ class AppearanceNetwork(nn.Module):
         sh_degree: int = 3,
         view_dependent: bool = True,
         opacity_bias: float = 2.0,
+        grid: dict[str, int] | None = None,
     ) -> None:
         super().__init__()
         lo = torch.as_tensor(bbox_min, dtype=torch.float32).reshape(3)
@@ -52,7 +59,9 @@ class AppearanceNetwork(nn.Module):
         self.sh_degree = int(sh_degree)
         self.view_dependent = bool(view_dependent)
         n_view = (self.sh_degree + 1) ** 2 if self.view_dependent else 0
-        dims = [3 + n_view + 3 + self.feature_dim] + [hidden] * n_layers + [4]
+        self.grid: HashGrid | None = HashGrid(lo, hi, **grid) if grid else None
+        n_grid = self.grid.output_dim if self.grid is not None else 0
+        dims = [3 + n_view + 3 + self.feature_dim + n_grid] + [hidden] * n_layers + [4]
         layers: list[nn.Module] = []
         for i in range(len(dims) - 1):
             layers.append(nn.Linear(dims[i], dims[i + 1]))
@@ -64,6 +73,14 @@ class AppearanceNetwork(nn.Module):
             assert isinstance(last, nn.Linear)
             last.bias.zero_()
             last.bias[3] = opacity_bias
+
+    def grid_parameters(self) -> list[nn.Parameter]:
+        """The appearance hash table (empty without a grid)."""
+        return [self.grid.table] if self.grid is not None else []
+
+    def mlp_parameters(self) -> list[nn.Parameter]:
+        """Every parameter but the hash table."""
+        return list(self.mlp.parameters())
 
     def forward(
         self,
@@ -81,5 +98,7 @@ class AppearanceNetwork(nn.Module):
             d = view_dir / view_dir.norm(dim=-1, keepdim=True).clamp_min(1e-12)
             parts.append(sh_basis(d, self.sh_degree))
         parts += [normal, feature]
+        if self.grid is not None:
+            parts.append(self.grid(x))
         out = self.mlp(torch.cat(parts, -1))
         return torch.sigmoid(out[:, :3]), torch.sigmoid(out[:, 3])

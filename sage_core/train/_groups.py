@@ -17,18 +17,24 @@ def surfel_param_groups(
     lr_color: float,
     lr_opacity: float,
     lr_shape: float | None = None,
+    lr_app_grid: float | None = None,
 ) -> list[dict[str, Any]]:
     """Named Adam groups of the surfels and their attribute heads.
 
     Always: the local offsets ``mu_loc`` and the appearance network. With attribute networks
     (``mlp``) the shape network; with free attributes the per-surfel rotation, scale, SH colour
     (the higher bands at 1/20 of the DC rate) and opacity. ``lr_shape`` (default ``lr_networks``)
-    is the shape network's rate. Groups whose rate is 0 are left out (those parameters stay fixed).
+    is the shape network's rate; ``lr_app_grid`` (default ``lr_networks``) the rate of the appearance
+    network's own hash table when it has one. Groups whose rate is 0 are left out (those parameters
+    stay fixed).
     """
     groups: list[dict[str, Any]] = [
         {"name": "mu_loc", "params": [avatar.surfels.mu_loc], "lr": lr_position},
-        {"name": "appearance", "params": list(avatar.appearance.parameters()), "lr": lr_networks},
+        {"name": "appearance", "params": avatar.appearance.mlp_parameters(), "lr": lr_networks},
     ]
+    if avatar.appearance.grid is not None:
+        groups.append({"name": "appearance_grid", "params": avatar.appearance.grid_parameters(),
+                       "lr": lr_networks if lr_app_grid is None else lr_app_grid})
     if avatar.shape is not None:
         groups.append({"name": "shape", "params": list(avatar.shape.parameters()), "lr": lr_networks if lr_shape is None else lr_shape})
         return [g for g in groups if g["lr"] > 0]

@@ -78,13 +78,22 @@ def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, de
     """The phase-1 avatar from the init-mesh outputs and the config."""
     return Avatar.build(
         init_dir, data, cfg.n_surfels, cfg.attributes,
-        app_args={"hidden": cfg.app_hidden, "n_layers": cfg.app_layers, "sh_degree": cfg.app_sh_degree},
+        app_args=appearance_args(cfg),
         shape_args={"hidden": cfg.shape_hidden, "n_layers": cfg.shape_layers},
         sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity,
         init_args={"face_weight": cfg.face_weight, "mouth_weight": cfg.mouth_weight, "hair_weight": cfg.hair_weight,
                    "neck_weight": cfg.neck_weight, "camera_weight": cfg.camera_weight, "scale_factor": cfg.init_scale_factor},
         neus_variance=cfg.neus_variance, shading=cfg.shading, device=device, generator=generator,
     )  # fmt: skip
+
+
+def appearance_args(cfg: Phase1Config) -> dict[str, Any]:
+    """:class:`AppearanceNetwork` kwargs of a phase-1 config (plain data, saved with the avatar)."""
+    args: dict[str, Any] = {"hidden": cfg.app_hidden, "n_layers": cfg.app_layers, "sh_degree": cfg.app_sh_degree}
+    if cfg.app_grid:
+        args["grid"] = {"n_levels": cfg.app_grid_levels, "n_features": 2, "log2_table": cfg.app_grid_log2_table,
+                        "base_res": 16, "max_res": cfg.app_grid_max_res}
+    return args
 
 
 class CanonicalRays:
@@ -207,6 +216,7 @@ class Phase1Trainer:
         self.data = data
         self.cfg = cfg
         self.device = torch.device(device)
+        self.render_backend = resolve_render_backend(cfg.render_backend, str(self.device))
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.step_count = 0
         self.frames: list[IngestedFrame] = list(data.train)
@@ -216,7 +226,6 @@ class Phase1Trainer:
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
         self.warp = make_warp(cfg.canonical_warp)
-        self.render_backend = resolve_render_backend(cfg.render_backend, str(self.device))
         self.length_unit = float(avatar.sdf.half_extent)
         self.exposure: ExposureGain | None = None
         if cfg.exposure != "off":
@@ -249,6 +258,7 @@ class Phase1Trainer:
             lr_scale=c.lr_scale,
             lr_color=c.lr_color,
             lr_opacity=c.lr_opacity,
+            lr_app_grid=c.lr_app_grid,
         )
         if self.exposure is not None:
             groups.append({"name": "exposure", "params": [self.exposure.log_gain], "lr": c.lr_exposure})
@@ -647,9 +657,13 @@ def run_phase1(
     t0 = time.perf_counter()
     last: dict[str, float] = {}
     val_psnr = float("nan")
+    clock = StepClock(total, start_step)
     while trainer.step_count < total:
         last = trainer.step()
         step = trainer.step_count
+        estimate = clock.tick(step)
+        if estimate is not None and progress is not None:
+            progress(step, total, "phase 1", **estimate.as_stats())
         if cfg.eval_every > 0 and step % cfg.eval_every == 0 and step < total:
             val_psnr = trainer.evaluate("val", max_frames=4)["psnr"]
         if progress is not None:
@@ -657,13 +671,9 @@ def run_phase1(
             progress(step, total, "phase 1", val_psnr=val_psnr, **stats)
         if checkpoint_dir is not None and cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0 and step < total:
             save_checkpoint(checkpoint_dir, step, {"trainer": trainer.state_dict()})
-    clock = StepClock(total, start_step)
     train_time = time.perf_counter() - t0
     steps_run = trainer.step_count - start_step
 
-        estimate = clock.tick(step)
-        if estimate is not None and progress is not None:
-            progress(step, total, "phase 1", **estimate.as_stats())
     if progress is not None:
         progress(total, total, "evaluating")
     val = trainer.evaluate("val", return_images=True)
@@ -701,6 +711,7 @@ def run_phase1(
         "shading": cfg.shading,
         "n_surfels": len(avatar.surfels),
         "iterations": total,
+        "render_backend": trainer.render_backend,
         "val_psnr": val["psnr"],
         "val_ssim": val["ssim"],
         "val_images": val["n"],
@@ -711,7 +722,6 @@ def run_phase1(
         "normal_error_deg": nerr,
         "head_diagonal_m": diag,
         "surfel_mean_abs_sdf_m": mean_abs_sdf,
-        "render_backend": trainer.render_backend,
         "iterations_per_s": steps_run / train_time if train_time > 0 and steps_run > 0 else float("nan"),
         "train_time_s": train_time,
         "final_losses": last,
