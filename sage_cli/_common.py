@@ -73,6 +73,15 @@ def cli_errors() -> Iterator[None]:
     except MemoryError:
         err_console.print("[bold red]error:[/] out of memory: lower the image height (--height) or the surfel count, or use --preset tiny")
         raise typer.Exit(code=5) from None
+    except OSError as e:
+        # file-system refusals (permissions, read-only, a file where a folder belongs, full disk): exit 2
+        import errno
+
+        if e.errno not in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EISDIR, errno.EEXIST, errno.ENOSPC):
+            raise
+        where = f"{e.filename}: " if e.filename else ""
+        err_console.print(f"[bold red]error:[/] {where}{e.strerror or e}", soft_wrap=True)
+        raise typer.Exit(code=2) from None
     except RuntimeError as e:
         if "out of memory" in str(e).lower():
             err_console.print("[bold red]error:[/] the device ran out of memory: lower the image height, the surfel count or the batch/chunk sizes in the config")

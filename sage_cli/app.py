@@ -34,7 +34,7 @@ def _root(
 
 
 def _register() -> None:
-    from .commands import batch_cmd, config_cmd, demo_cmd, eval_cmd, export_cmd, info, ingest, init_mesh, phase1, phase2, reenact_cmd, run_cmd, synth
+    from .commands import batch_cmd, config_cmd, convert_cmd, demo_cmd, eval_cmd, export_cmd, info, ingest, init_mesh, phase1, phase2, reenact_cmd, run_cmd, synth
 
     app.command("synth")(synth.synth)
     app.command("ingest")(ingest.ingest)
@@ -49,6 +49,7 @@ def _register() -> None:
     app.command("batch")(batch_cmd.batch)
     app.command("info")(info.info)
     app.command("config")(config_cmd.config)
+    app.command("convert")(convert_cmd.convert)
 
 
 _register()

@@ -12,7 +12,7 @@ read (upstream manifests' fingerprints and external files, by content). A stage'
 is the hash of both. Re-running with the same config and inputs skips; an upstream stage that was
 re-run with different inputs changes its fingerprint, which makes every stage that read the old
 one stale, and later stages refuse to run on it. The manifest also lists every file of the stage
-folder with its size; a stage whose listed files are gone or changed size is "incomplete".
+folder (with its size when written); a stage whose listed files are gone is "incomplete".
 
 Promotion cannot lose a finished run: the manifest is written into the work folder first, the
 work folder is renamed into place, and only then are its checkpoints removed. A promotion that was
@@ -334,21 +334,12 @@ class Workspace:
         return None
 
     def missing_outputs(self, stage: str, m: dict[str, Any]) -> list[str]:
-        """Files the manifest lists (``files``: relative path -> size) that are gone or changed size."""
+        """Files the manifest lists (``files``: relative path -> size when written) that are gone."""
         folder = self.stage_dir(stage)
         files = m.get("files")
         if not isinstance(files, dict):
             return []
-        bad: list[str] = []
-        for rel, size in files.items():
-            try:
-                st = (folder / rel).stat()
-            except OSError:
-                bad.append(f"{rel} is missing")
-                continue
-            if isinstance(size, int) and st.st_size != size:
-                bad.append(f"{rel} changed size ({st.st_size} bytes, {size} when written)")
-        return bad
+        return [f"{rel} is missing" for rel in files if not (folder / rel).is_file()]
 
     # freshness ---------------------------------------------------------------------------
     def status(self, stage: str) -> StageStatus:

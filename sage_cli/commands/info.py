@@ -86,7 +86,8 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
         t.add_column("wall time", no_wrap=True)
         t.add_column("ran on", overflow="fold")
         t.add_column("key metrics", overflow="fold")
-        colours = {"complete": "green", "stale": "yellow", "missing": "dim", "interrupted": "yellow", "failed": "red"}
+        colours = {"complete": "green", "stale": "yellow", "missing": "dim", "interrupted": "yellow", "failed": "red",
+                   "incomplete": "red", "corrupt": "red"}
         for st in w.stages():
             m = st.manifest or {}
             status = st.status + (f" ({st.reason})" if st.reason else "")

@@ -85,6 +85,10 @@ def ingest(
         for name in sorted(p.name for p in dataset.glob("transforms*.json")):
             external[name] = file_fingerprint(dataset / name)
         external["dataset"] = str(dataset.resolve())
+        from sage_core.data.ingest import capture_fingerprint
+        from sage_core.workspace import HASH_CACHE, Workspace
+
+        external["capture_content"] = capture_fingerprint(capture, Workspace(ws).root / HASH_CACHE if ws.is_dir() else None)
 
         summary_holder: dict = {}
 

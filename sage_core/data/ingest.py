@@ -417,6 +417,39 @@ def _write_frame(
     }
 
 
+def capture_files(capture: Capture) -> list[Path]:
+    """Every file of a capture that ingest reads besides the transforms JSONs: each frame's image
+    and mask, each timestep's FLAME parameter file and ``canonical_flame_param.npz`` (sorted)."""
+    paths: set[Path] = set()
+    for f in capture.frames:
+        paths.add(Path(f.image_path))
+        if f.mask_path is not None:
+            paths.add(Path(f.mask_path))
+    paths.update(Path(p) for p in capture.param_paths.values())
+    canon = capture.root / "canonical_flame_param.npz"
+    if canon.is_file():
+        paths.add(canon)
+    return sorted(paths)
+
+
+def capture_fingerprint(capture: Capture, cache_file: str | Path | None = None) -> str:
+    """Content fingerprint (16 hex) of :func:`capture_files`: replacing an image or mask or
+    re-tracking the FLAME parameters changes it. ``cache_file``: the workspace's hash cache
+    (:data:`sage_core.workspace.HASH_CACHE`), so unchanged files (same size and mtime) are not
+    read again."""
+    from ..workspace import combined_hash, content_hashes
+
+    root = capture.root.resolve()
+    hashes = content_hashes(capture_files(capture), cache_file)
+    keyed: dict[str, str] = {}
+    for path, digest in hashes.items():
+        try:
+            keyed[Path(path).relative_to(root).as_posix()] = digest
+        except ValueError:  # union captures point into sibling folders
+            keyed[path] = digest
+    return combined_hash(keyed)
+
+
 def ingest(
     capture: Capture,
     model_path: str | Path,

@@ -1,16 +1,22 @@
 """The avatar bundle: a self-contained, animatable avatar folder (formats.md §7.2).
 
-Layout of a bundle folder::
+Layout of a bundle folder (format 2; ``docs/workspace.md`` "Bundle format" describes every array)::
 
-    avatar.pt          the avatar (Avatar.save: FLAME model arrays with the face table, the subject's
-                       FLAME parameters, surfels with their bindings, SDF and attribute networks)
-    flame_param.npz    the subject's FLAME parameters in the GaussianAvatars key layout (shape (S,),
-                       expr (T,E), rotation/neck_pose/jaw_pose/translation (T,3), eyes_pose (T,6),
-                       static_offset (1,V,3), dynamic_offset (T,V,3) when present, timesteps (T,))
-    bundle.json        metadata (see :func:`bundle_metadata`)
+    avatar.safetensors the avatar (Avatar.save with the FLAME model embedded: FLAME model arrays with
+                       the face table, the subject's FLAME parameters, surfels with their bindings,
+                       SDF and attribute networks), a safetensors file whose header metadata holds the
+                       structure as JSON (:mod:`sage_core.serialization`); loading it runs no code
+    flame_param.npz    the subject's FLAME parameters with exactly GaussianAvatars' keys and dtypes,
+                       all float32: shape (S,), expr (T,E), rotation/neck_pose/jaw_pose/translation
+                       (T,3), eyes_pose (T,6), static_offset (1,V,3), dynamic_offset (T,V,3) (zeros
+                       when the capture has none); row i is dataset timestep ``timestep_map[i]``
+    bundle.json        versioned metadata (see :func:`bundle_metadata`), with an ``arrays`` section
+                       listing every array of both files: dtype, shape and meaning
 
 Nothing in it refers back to the workspace: :func:`load_bundle` rebuilds the avatar from the
-folder alone and checks it against the metadata (vertex and face counts, face-table hash).
+folder alone and checks it against the metadata (vertex and face counts, face-table hash). Format-1
+bundles (``avatar.pt``) still load when their avatar file was converted with ``sage convert``;
+an unconverted one (a pickle) is refused with a message saying how.
 """
 
 from __future__ import annotations
@@ -31,11 +37,14 @@ if TYPE_CHECKING:
     from ..avatar.model import Avatar
     from ..data.cameras import Camera
 
-BUNDLE_FORMAT = 1
+BUNDLE_FORMAT = 2
 BUNDLE_KIND = "sage-avatar-bundle"
 BUNDLE_JSON = "bundle.json"
-AVATAR_FILE = "avatar.pt"
+AVATAR_FILE = "avatar.safetensors"
+LEGACY_AVATAR_FILE = "avatar.pt"
 PARAMS_FILE = "flame_param.npz"
+GA_PARAM_KEYS = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation", "static_offset", "dynamic_offset")
+"""The keys of GaussianAvatars' ``flame_param.npz``, all float32."""
 FRAME_CONVENTION = "surfel-flat [a0,-a2,a1]"
 
 
@@ -111,6 +120,7 @@ def bundle_metadata(
         "kind": BUNDLE_KIND,
         "generator": f"sage {__version__}",
         "files": {"avatar": AVATAR_FILE, "flame_params": PARAMS_FILE},
+        "avatar_format": {"container": "safetensors", "kind": "sage-avatar", "structure": "header metadata 'sage.tree' (JSON)"},
         "flame": {
             "version": str(md.version),
             "jaw": n_joints >= 3,
@@ -154,17 +164,141 @@ def write_bundle(
     up_axis: str = "y",
     source: dict[str, Any] | None = None,
 ) -> Path:
-    """Write ``avatar.pt``, ``flame_param.npz`` and (last) ``bundle.json`` into ``out_dir``; returns it."""
-    from ..flame.params import save_stacked_npz
+    """Write ``avatar.safetensors`` (FLAME model embedded), ``flame_param.npz`` (GaussianAvatars'
+    keys) and (last) ``bundle.json`` with the description of every array into ``out_dir``; returns it."""
     from ..workspace import atomic_write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    avatar.save(out / AVATAR_FILE)
-    save_stacked_npz(out / PARAMS_FILE, avatar.params)
+    (out / LEGACY_AVATAR_FILE).unlink(missing_ok=True)
+    avatar.save(out / AVATAR_FILE, embed_flame=True)
+    write_ga_flame_params(out / PARAMS_FILE, avatar.params, int(np.asarray(avatar.model_data.v_template).shape[0]))
     meta = bundle_metadata(avatar, render, reference_camera=reference_camera, head_center=head_center,
                            up_axis=up_axis, source=source)  # fmt: skip
+    meta["arrays"] = {AVATAR_FILE: describe_avatar_file(out / AVATAR_FILE), PARAMS_FILE: describe_npz(out / PARAMS_FILE)}
     atomic_write_json(out / BUNDLE_JSON, meta)
+    return out
+
+
+def ga_flame_param_arrays(params: Any, n_vertices: int | None = None) -> dict[str, np.ndarray]:
+    """GaussianAvatars' ``flame_param.npz`` arrays of a :class:`~sage_core.flame.params.FlameParams`:
+    exactly :data:`GA_PARAM_KEYS`, float32, T-leading; static_offset (1,V,3) and dynamic_offset
+    (T,V,3), zeros where the parameters carry none (V: ``n_vertices``, default the offsets' own
+    vertex count, else 5143)."""
+    T = int(np.asarray(params.expr).shape[0])
+    out: dict[str, np.ndarray] = {k: np.asarray(getattr(params, k), dtype=np.float32) for k in
+                                  ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")}  # fmt: skip
+    out["shape"] = np.asarray(params.shape, dtype=np.float32).reshape(-1)
+    so = None if params.static_offset is None else np.asarray(params.static_offset, np.float32).reshape(-1, 3)
+    do = None if params.dynamic_offset is None else np.asarray(params.dynamic_offset, np.float32).reshape(T, -1, 3)
+    V = so.shape[0] if so is not None else do.shape[1] if do is not None else (n_vertices or 5143)
+    out["static_offset"] = (so if so is not None else np.zeros((V, 3), np.float32))[None]
+    out["dynamic_offset"] = do if do is not None else np.zeros((T, V, 3), np.float32)
+    return {k: np.ascontiguousarray(out[k]) for k in GA_PARAM_KEYS}
+
+
+def write_ga_flame_params(path: str | Path, params: Any, n_vertices: int | None = None) -> Path:
+    """Write :func:`ga_flame_param_arrays` as an npz, atomically, with the usual file mode (umask)."""
+    import io
+
+    from ..workspace import atomic_write_bytes
+
+    buf = io.BytesIO()
+    np.savez(buf, **ga_flame_param_arrays(params, n_vertices))
+    p = Path(path)
+    atomic_write_bytes(p, buf.getvalue())
+    return p
+
+
+# meaning of the arrays of a bundle (``bundle.json`` "arrays", docs/workspace.md "Bundle format")
+_EXACT: dict[str, str] = {
+    "flame/v_template": "FLAME template vertices (V,3), metres, FLAME's y-up head frame; rows past n_base_vertices are teeth and mouth interior",
+    "flame/faces": "triangle vertex indices (F,3) of the full face table (FLAME, teeth, mouth interior); surfel bindings index it",
+    "flame/shapedirs": "identity blendshapes (V,3,S)",
+    "flame/exprdirs": "expression blendshapes (V,3,E)",
+    "flame/posedirs": "pose corrective blendshapes (V,3,9*(J-1))",
+    "flame/j_regressor": "joint regressor (J,V)",
+    "flame/lbs_weights": "linear blend skinning weights (V,J)",
+    "flame/parents": "kinematic tree (J,), -1 for the root",
+    "params/shape": "the subject's identity coefficients (S,)",
+    "params/expr": "expression coefficients per row (T,E)",
+    "params/rotation": "global head rotation per row (T,3), axis-angle, pivot at joint 0",
+    "params/neck_pose": "neck joint rotation per row (T,3), axis-angle",
+    "params/jaw_pose": "jaw joint rotation per row (T,3), axis-angle",
+    "params/eyes_pose": "two eye joint rotations per row (T,6), axis-angle",
+    "params/translation": "translation added after skinning per row (T,3), metres",
+    "params/static_offset": "per-vertex canonical offsets (V',3) added to the template",
+    "params/dynamic_offset": "per-row per-vertex offsets (T,V',3)",
+    "params/timesteps": "dataset timestep of each row (T,)",
+    "state/surfels.binding": "triangle (face) id each surfel is bound to (N,)",
+    "state/surfels.mu_loc": "surfel centre in its triangle's local frame (N,3): x_c = k_c*R_c*mu_loc + T_c of the bound canonical triangle",
+    "state/surfels.q_loc": "surfel rotation in its triangle's frame (N,4), quaternion wxyz (unnormalised)",
+    "state/surfels.s_loc": "log in-plane scales relative to the triangle scale k (N,2)",
+    "state/surfels.region_id": "region label of each surfel (N,) (0 skin, see sage_core.flame.regions)",
+    "state/surfels.face_region": "region label of each triangle (F,)",
+    "state/surfels.opacity": "free mode: opacity logit (N,)",
+    "state/surfels.sh_dc": "free mode: SH degree-0 colour coefficient (N,1,3)",
+    "state/surfels.sh_rest": "free mode: higher SH colour coefficients (N,(d+1)^2-1,3)",
+    "state/surfels.wrinkle": "wrinkle shading per surfel (N,2): amplitude and full compression",
+    "state/surfels.color_prior": "colour prior per surfel (N,4): RGB and blend weight",
+    "state/canonical_vertices": "canonical mesh vertices (V,3) (derived: FLAME at the canonical timestep, zero global motion)",
+    "state/root_joint": "canonical root joint position (3,) (derived)",
+    "state/R_c": "canonical triangle frames (F,3,3), columns [a0,-a2,a1] (surfel-flat convention) (derived)",
+    "state/T_c": "canonical triangle centroids (F,3) (derived)",
+    "state/k_c": "canonical triangle scales (F,) (derived)",
+    "state/q_c": "canonical triangle frames as quaternions wxyz (F,4) (derived)",
+    "state/base_scale": "per-surfel base size of the shape network (N,) (mlp mode)",
+    "state/variance.variance": "NeuS s-variance (scalar)",
+}
+_PREFIX: tuple[tuple[str, str], ...] = (
+    ("flame/vertex_groups/", "vertex ids of an appended part of the model (teeth, mouth interior)"),
+    ("state/sdf.", "canonical SDF network: hash-grid encoding (sdf.encoding.*) and MLP (sdf.layers.*), PyTorch state-dict entry"),
+    ("state/appearance.", "appearance network f_app (colour, opacity), PyTorch state-dict entry"),
+    ("state/shape.", "shape network (rotation, scales) on the SDF grid features (mlp mode), PyTorch state-dict entry"),
+    ("state/light.", "world-space SH irradiance of the sh2 shading mode"),
+    ("state/", "avatar module state-dict entry"),
+)
+_GA_MEANING: dict[str, str] = {
+    "shape": "identity coefficients (S,) float32",
+    "expr": "expression coefficients (T,E) float32",
+    "rotation": "global rotation (T,3) float32, axis-angle",
+    "neck_pose": "neck rotation (T,3) float32, axis-angle",
+    "jaw_pose": "jaw rotation (T,3) float32, axis-angle",
+    "eyes_pose": "eye rotations (T,6) float32, axis-angle",
+    "translation": "translation (T,3) float32, metres",
+    "static_offset": "canonical per-vertex offsets (1,V,3) float32",
+    "dynamic_offset": "per-row per-vertex offsets (T,V,3) float32 (zeros when the capture has none)",
+}
+
+
+def array_meaning(name: str) -> str:
+    """What an array of ``avatar.safetensors`` holds (by its tensor name)."""
+    if name in _EXACT:
+        return _EXACT[name]
+    for prefix, text in _PREFIX:
+        if name.startswith(prefix):
+            return text
+    return "avatar data"
+
+
+def describe_avatar_file(path: str | Path) -> dict[str, dict[str, Any]]:
+    """{tensor name: {dtype, shape, meaning}} of an avatar safetensors file (header only)."""
+    from safetensors import safe_open
+
+    out: dict[str, dict[str, Any]] = {}
+    with safe_open(str(path), framework="pt") as f:
+        for name in sorted(f.keys()):
+            sl = f.get_slice(name)
+            out[name] = {"dtype": str(sl.get_dtype()), "shape": list(sl.get_shape()), "meaning": array_meaning(name)}
+    return out
+
+
+def describe_npz(path: str | Path) -> dict[str, dict[str, Any]]:
+    """{key: {dtype, shape, meaning}} of the bundle's ``flame_param.npz``."""
+    out: dict[str, dict[str, Any]] = {}
+    with np.load(path, allow_pickle=False) as z:
+        for k in z.files:
+            out[k] = {"dtype": str(z[k].dtype), "shape": list(z[k].shape), "meaning": _GA_MEANING.get(k, "")}
     return out
 
 
@@ -199,7 +333,10 @@ def load_bundle(root: str | Path, device: str | torch.device = "cpu") -> Bundle:
 
     root = Path(root)
     meta = read_bundle_metadata(root)
-    avatar_path = root / str(meta["files"].get("avatar", AVATAR_FILE))
+    name = str(meta["files"].get("avatar", AVATAR_FILE if int(meta.get("format", 1)) >= 2 else LEGACY_AVATAR_FILE))
+    if Path(name).is_absolute() or ".." in Path(name).parts:
+        raise InputError(root / BUNDLE_JSON, f"the avatar file {name!r} lies outside the bundle")
+    avatar_path = root / name
     if not avatar_path.is_file():
         raise InputError(avatar_path, "avatar file of the bundle is missing")
     avatar = Avatar.load(avatar_path, device)
