@@ -154,7 +154,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument(
-        "--backend", nargs="+", default=["torch"], choices=["torch", "triton", "auto"],
+        "--backend", nargs="+", default=["torch"], choices=["torch", "cpp", "triton", "auto"],
         help="rasterizer backends to time on the same scenes (triton needs --device cuda)",
     )
     ap.add_argument("--case", nargs=2, type=int, metavar=("N", "S"), help=argparse.SUPPRESS)

@@ -29,7 +29,7 @@ import torch
 from ._packed import PackedImages
 
 _SOURCE = Path(__file__).parent / "csrc" / "surfels_cpu.cpp"
-_CFLAGS = ["-O3", "-std=c++17", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
+_CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
 _LDFLAGS = ["-fopenmp"]
 _NAMESPACE = "sage_surfels_cpu"
 

@@ -79,6 +79,59 @@ inline void intersect(const S* g, S px, S py, S near, Hit<S>& h) {
   h.sig = hz_ok && (h.z >= near) && (h.alpha >= S(kAlphaMin));
 }
 
+// Cheap pre-pass over one row of a surfel's box inside a tile, x in [x0, x0 + n), n <= 16: finds
+// the pixels that may be significant, i.e. h_z != 0, z >= near and rho <= rho_max, where rho_max
+// bounds the rho with alpha >= 1/255 (2 ln(255 o) plus a margin far above the rounding of exp).
+// It computes rho and z exactly as `intersect` (same operations in the same order) for all 16
+// lanes without branches or exp, so the compiler vectorizes it; it writes the candidates' offsets
+// to idx and their rho and z to rho_out and z_out (indexed by offset) and returns their count.
+template <typename S>
+inline int row_candidates(const S* g, int64_t x0, int64_t n, S py, S near, S rho_max, int32_t* idx, S* rho_out,
+                          S* z_out) {
+  const S tu0 = g[0], tu1 = g[1], tu2 = g[2], tv0 = g[3], tv1 = g[4], tv2 = g[5];
+  const S tw0 = g[6], tw1 = g[7], tw2 = g[8], cx = g[9], cy = g[10];
+  const S dy = py - cy;
+  const S l0 = dy * tw0 - tv0, l1 = dy * tw1 - tv1, l2 = dy * tw2 - tv2;
+  const S rdy = dy * dy;
+  S keep[kTile];
+  const int xi0 = static_cast<int>(x0), ni = static_cast<int>(n);
+  for (int k = 0; k < kTile; ++k) {
+    const S dx = (static_cast<S>(xi0 + k) + S(0.5)) - cx;
+    const S k0 = dx * tw0 - tu0, k1 = dx * tw1 - tu1, k2 = dx * tw2 - tu2;
+    const S hx = k1 * l2 - k2 * l1;
+    const S hy = k2 * l0 - k0 * l2;
+    const S hz = k0 * l1 - k1 * l0;
+    const S hzs = hz != S(0) ? hz : S(1);
+    const S u = hx / hzs, v = hy / hzs;
+    const S rho2d = S(2) * (dx * dx + rdy);
+    const S rho3d = u * u + v * v;
+    const S z3 = (tw0 * u + tw1 * v) + tw2;
+    // written as selects on floating-point compares only, which the vectorizer accepts
+    const S rho_s = rho3d <= rho2d ? rho3d : rho2d;
+    const S rho = hz != S(0) ? rho_s : rho2d;
+    const S z_s = rho3d <= rho2d ? z3 : tw2;
+    const S z = hz != S(0) ? z_s : tw2;
+    const S a = z >= near ? S(1) : S(0);
+    const S b = rho <= rho_max ? a : S(0);
+    keep[k] = hz != S(0) ? b : S(0);
+    rho_out[k] = rho;
+    z_out[k] = z;
+  }
+  int m = 0;
+  for (int k = 0; k < ni; ++k) {
+    idx[m] = k;
+    m += keep[k] != S(0);
+  }
+  return m;
+}
+
+// rho_max of row_candidates for opacity o (alpha < 1/255 everywhere when o < 1/255).
+template <typename S>
+inline S rho_bound(S o) {
+  const double b = 2.0 * std::log(255.0 * static_cast<double>(o));
+  return static_cast<S>(b + 1e-3 + 1e-4 * std::fabs(b));
+}
+
 struct Grid {
   int64_t W, H, gx, gy;
   int64_t tiles() const { return gx * gy; }
@@ -126,7 +179,7 @@ std::vector<at::Tensor> bin_tiles_impl(const at::Tensor& boxes_t, const Grid& gr
 }
 
 // Forward of one tile. Per-pixel outputs: pay_out (HW, P), stats (HW, 4) = (A, sum w z, median,
-// distortion); aux (HW, 5) float64 = (T final, z0, A, M1, M2); auxi (HW, 3) int32 = (last list
+// distortion); aux (HW, 5) float64 = (T final, 1/z0, A, M1, M2); auxi (HW, 3) int32 = (last list
 // index + 1, median list index or -1, contributor count).
 template <typename S>
 struct ForwardScratch {
@@ -154,37 +207,45 @@ void forward_tile(int64_t tile, const Grid& grid, const S* tab, const S* pay, in
   std::fill(s.cnt.begin(), s.cnt.end(), 0);
   std::fill(s.alive.begin(), s.alive.end(), 1);
   int64_t n_alive = (xb - xa) * (yb - ya);
-  Hit<S> h;
   for (int64_t j = start; j < end && n_alive > 0; ++j) {
     const int64_t r = lst[j];
     int64_t x0, y0, x1, y1;
     if (!box_in_tile(boxes, r, tx, ty, x0, y0, x1, y1)) continue;
     const S* g = tab + 12 * r;
     const S* pr = pay + P * r;
+    const S rho_max = rho_bound(g[11]);
+    const S o = g[11];
+    int32_t cand[kTile];
+    S rho_r[kTile], z_r[kTile];
     for (int64_t y = y0; y < y1; ++y) {
       const S py = static_cast<S>(y) + S(0.5);
-      for (int64_t x = x0; x < x1; ++x) {
+      const int nc = row_candidates(g, x0, x1 - x0, py, near, rho_max, cand, rho_r, z_r);
+      for (int c_i = 0; c_i < nc; ++c_i) {
+        const int k = cand[c_i];
+        const int64_t x = x0 + k;
         const int64_t i = (y - ya) * kTile + (x - xa);
         if (!s.alive[i]) continue;
-        intersect(g, static_cast<S>(x) + S(0.5), py, near, h);
-        if (!h.sig) continue;
+        // alpha exactly as `intersect` computes it from rho
+        const S alpha = std::min(o * std::exp(S(-0.5) * rho_r[k]), S(kAlphaMax));
+        if (!(alpha >= S(kAlphaMin))) continue;
         const double T = s.T[i];
-        const double t_next = T * (1.0 - static_cast<double>(h.alpha));
+        const double t_next = T * (1.0 - static_cast<double>(alpha));
         if (t_next < kTMin) {
           s.alive[i] = 0;
           --n_alive;
           continue;
         }
-        const double w = static_cast<double>(h.alpha * static_cast<S>(T));
-        const double z = static_cast<double>(h.z);
+        const double w = static_cast<double>(alpha * static_cast<S>(T));
+        const double z = static_cast<double>(z_r[k]);
         double* acc = &s.acc[i * P];
         for (int64_t c = 0; c < P; ++c) acc[c] += w * static_cast<double>(pr[c]);
         if (T > 0.5) {
           s.med[i] = z;
           s.medi[i] = static_cast<int32_t>(j);
         }
-        if (s.cnt[i] == 0) s.z0[i] = z;
-        const double mt = cm * (z - s.z0[i]) / (z * s.z0[i]);
+        const double inv_z = 1.0 / z;
+        if (s.cnt[i] == 0) s.z0[i] = inv_z;  // 1 / depth of the pixel's first contributor
+        const double mt = cm * (s.z0[i] - inv_z);  // m(z) - m(z0), m(z) = far/(far - near)(1 - near/z)
         s.dist[i] += w * (mt * mt * s.A[i] + s.M2[i] - 2.0 * mt * s.M1[i]);
         s.A[i] += w;
         s.Dz[i] += w * z;
@@ -314,12 +375,19 @@ void backward_tile(int64_t tile, const Grid& grid, const S* tab, const S* pay, i
     const S* g = tab + 12 * r;
     const S* pr = pay + P * r;
     const double tw0 = g[6], tw1 = g[7], tw2 = g[8];
-    double* acc = s.gsum.data();
-    std::fill(acc, acc + G, 0.0);
+    double* accp = s.gsum.data() + 12;  // payload channels
+    std::fill(accp, accp + P, 0.0);
+    // table-row gradient sums, kept in registers
+    double a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0, a6 = 0, a7 = 0, a8 = 0, a9 = 0, a10 = 0, a11 = 0;
     bool any = false;
+    const S rho_max = rho_bound(g[11]);
+    int32_t cand[kTile];
+    S rho_r[kTile], z_r[kTile];
     for (int64_t y = y0; y < y1; ++y) {
       const S py = static_cast<S>(y) + S(0.5);
-      for (int64_t x = x0; x < x1; ++x) {
+      const int nc = row_candidates(g, x0, x1 - x0, py, near, rho_max, cand, rho_r, z_r);
+      for (int c_i = 0; c_i < nc; ++c_i) {
+        const int64_t x = x0 + cand[c_i];
         const int64_t p = y * grid.W + x;
         const int32_t* ai = auxi + 3 * p;
         if (j >= ai[0]) continue;
@@ -328,65 +396,71 @@ void backward_tile(int64_t tile, const Grid& grid, const S* tab, const S* pay, i
         any = true;
         const int64_t i = (y - ya) * kTile + (x - xa);
         const double alpha = h.alpha;
-        s.T[i] = s.T[i] / (1.0 - alpha);
-        const S Tc = static_cast<S>(s.T[i]);
+        const double T = s.T[i] / (1.0 - alpha);
+        s.T[i] = T;
+        const S Tc = static_cast<S>(T);
         const double w = static_cast<double>(h.alpha * Tc);
         const S* gp = g_pay + P * p;
         double fdot = 0.0;
         for (int64_t c = 0; c < P; ++c) {
-          fdot += static_cast<double>(gp[c]) * static_cast<double>(pr[c]);
-          acc[12 + c] += w * static_cast<double>(gp[c]);
+          const double gc = static_cast<double>(gp[c]);
+          fdot += gc * static_cast<double>(pr[c]);
+          accp[c] += w * gc;
         }
         const double* ax = aux + 5 * p;
         const S* gs = g_s + 4 * p;
         const double gA = gs[0], gD = gs[1], gM = gs[2], gL = gs[3];
-        const double z = h.z, z0 = ax[1], Af = ax[2], M1f = ax[3], M2f = ax[4];
-        const double mt = cm * (z - z0) / (z * z0);
+        const double z = h.z, inv_z0 = ax[1], Af = ax[2], M1f = ax[3], M2f = ax[4];
+        const double inv_z = 1.0 / z;
+        const double mt = cm * (inv_z0 - inv_z);
         const double e = fdot + gA + gD * z + gL * (mt * mt * Af - 2.0 * mt * M1f + M2f);
-        double g_a = static_cast<double>(Tc) * (e - s.B[i]);
-        s.B[i] = alpha * e + (1.0 - alpha) * s.B[i];
-        double g_z = w * (gD + gL * 2.0 * (mt * Af - M1f) * cm / (z * z));
+        const double Bi = s.B[i];
+        double g_a = static_cast<double>(Tc) * (e - Bi);
+        s.B[i] = alpha * e + (1.0 - alpha) * Bi;
+        double g_z = w * (gD + gL * 2.0 * (mt * Af - M1f) * cm * inv_z * inv_z);
         if (ai[1] == j) g_z += gM;
         if (!(h.G <= S(kAlphaMax))) g_a = 0.0;  // the clamp passes no gradient
-        const double G_ = h.G, ex = h.ex;
-        acc[11] += g_a * ex;
-        const double g_rho = -0.5 * g_a * G_;
+        a11 += g_a * static_cast<double>(h.ex);
+        const double g_rho = -0.5 * g_a * static_cast<double>(h.G);
         const double dx = h.dx, dy = h.dy;
         if (h.use3d) {
           // rho = u^2 + v^2, z = Tw.(u, v, 1), (u, v) = (h_x, h_y) / h_z with h = k x l
-          const double u = h.u, v = h.v, hz = h.hz;
+          const double u = h.u, v = h.v, inv_hz = 1.0 / static_cast<double>(h.hz);
           const double k0 = h.k0, k1 = h.k1, k2 = h.k2, l0 = h.l0, l1 = h.l1, l2 = h.l2;
           const double g_u = 2.0 * g_rho * u + g_z * tw0;
           const double g_v = 2.0 * g_rho * v + g_z * tw1;
-          const double g_hx = g_u / hz, g_hy = g_v / hz, g_hz = -(g_u * u + g_v * v) / hz;
+          const double g_hx = g_u * inv_hz, g_hy = g_v * inv_hz, g_hz = -(g_u * u + g_v * v) * inv_hz;
           const double g_k0 = l1 * g_hz - l2 * g_hy;
           const double g_k1 = l2 * g_hx - l0 * g_hz;
           const double g_k2 = l0 * g_hy - l1 * g_hx;
           const double g_l0 = g_hy * k2 - g_hz * k1;
           const double g_l1 = g_hz * k0 - g_hx * k2;
           const double g_l2 = g_hx * k1 - g_hy * k0;
-          acc[0] -= g_k0;
-          acc[1] -= g_k1;
-          acc[2] -= g_k2;
-          acc[3] -= g_l0;
-          acc[4] -= g_l1;
-          acc[5] -= g_l2;
-          acc[6] += dx * g_k0 + dy * g_l0 + g_z * u;
-          acc[7] += dx * g_k1 + dy * g_l1 + g_z * v;
-          acc[8] += dx * g_k2 + dy * g_l2 + g_z;
-          acc[9] -= g_k0 * tw0 + g_k1 * tw1 + g_k2 * tw2;
-          acc[10] -= g_l0 * tw0 + g_l1 * tw1 + g_l2 * tw2;
+          a0 -= g_k0;
+          a1 -= g_k1;
+          a2 -= g_k2;
+          a3 -= g_l0;
+          a4 -= g_l1;
+          a5 -= g_l2;
+          a6 += dx * g_k0 + dy * g_l0 + g_z * u;
+          a7 += dx * g_k1 + dy * g_l1 + g_z * v;
+          a8 += dx * g_k2 + dy * g_l2 + g_z;
+          a9 -= g_k0 * tw0 + g_k1 * tw1 + g_k2 * tw2;
+          a10 -= g_l0 * tw0 + g_l1 * tw1 + g_l2 * tw2;
         } else {
           // low-pass branch: rho = 2(dx^2 + dy^2), z = Tw[2]
           const double g_rho2 = 4.0 * g_rho;
-          acc[8] += g_z;
-          acc[9] -= g_rho2 * dx;
-          acc[10] -= g_rho2 * dy;
+          a8 += g_z;
+          a9 -= g_rho2 * dx;
+          a10 -= g_rho2 * dy;
         }
       }
     }
     if (any) {
-      std::copy(acc, acc + G, gbuf + G * j);
+      double* dst = gbuf + G * j;
+      const double rows[12] = {a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11};
+      std::copy(rows, rows + 12, dst);
+      std::copy(accp, accp + P, dst + 12);
       touched[j] = 1;
     }
   }
