@@ -17,7 +17,7 @@ import json
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Callable, TypeVar
 
 from .errors import ConfigError
 
@@ -383,6 +383,18 @@ REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 T = TypeVar("T")
 
 
+# Rules that tie several fields of one config together: (check, fields named in the error, what is
+# wrong). validate_config applies them after the per-field choices and ranges.
+CONFIG_RULES: dict[type, tuple[tuple[Callable[[Any], bool], tuple[str, ...], str], ...]] = {
+    IngestConfig: ((lambda c: c.height is None or c.downsample is None, ("height", "downsample"), "give either height or downsample, not both"),),
+    HashGridConfig: ((lambda c: c.base_res <= c.max_res, ("base_res", "max_res"), "base_res must not exceed max_res"),),
+    Phase1Config: ((lambda c: c.near < c.far, ("near", "far"), "near must be smaller than far"),),
+    Phase2Config: (
+        (lambda c: c.near < c.far, ("near", "far"), "near must be smaller than far"),
+        (lambda c: c.wrinkle_quantiles[0] < c.wrinkle_quantiles[1], ("wrinkle_quantiles",), "the first quantile must be below the second"),
+    ),
+}
+
 # --------------------------------------------------------------------------------------------
 # Machinery
 # --------------------------------------------------------------------------------------------
@@ -631,6 +643,10 @@ def validate_config(cfg: Any, where: str = "", prefix: str = "") -> None:
 
 
 def from_dict(cls: type[T], data: dict[str, Any]) -> T:
+    for check, names, problem in CONFIG_RULES.get(type(cfg), ()):
+        if not check(cfg):
+            got = ", ".join(f"{prefix}{n} = {getattr(cfg, n)!r}" for n in names)
+            raise ConfigError(f"{where + ': ' if where else ''}{problem} (got {got})")
     """Rebuild a config dataclass from its plain dict (e.g. a saved resolved config)."""
     cfg = cls()
     for k, v in data.items():

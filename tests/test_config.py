@@ -211,3 +211,17 @@ def test_pseudo_view_defaults_come_from_the_config_dataclass():
 
     d = Phase1Config()
     assert CONFIG_DEFAULTS and all(v == getattr(d, k) for k, v in CONFIG_DEFAULTS.items())
+
+
+@pytest.mark.parametrize(
+    "stage,flags,match",
+    [
+        ("ingest", {"height": 100, "downsample": 2}, r"either height or downsample.*height = 100, downsample = 2.0"),
+        ("init-mesh", {"grid.base_res": 4096}, r"base_res must not exceed max_res.*grid.base_res = 4096, grid.max_res = 2048"),
+        ("phase1", {"near": 5}, r"near must be smaller than far.*near = 5.0, far = 3.0"),
+        ("phase2", {"wrinkle_quantiles": "0.9,0.5"}, r"first quantile must be below the second"),
+    ],
+)
+def test_rules_across_fields(stage, flags, match):
+    with pytest.raises(ConfigError, match=match):
+        resolve_config(stage, "default", None, flags)

@@ -46,7 +46,7 @@ def ingest(
 ) -> None:
     """Read a capture: cameras (OpenCV), frames and splits, FLAME parameters, resized images and masks, and the FLAME model."""
     with cli_errors():
-        from sage_core.errors import ConfigError, InputError
+        from sage_core.errors import InputError
 
         flags = {
             "regime": regime,
@@ -58,12 +58,6 @@ def ingest(
             **parse_sets(set_),
         }
         cfg = resolve_stage_config("ingest", preset, config, flags)
-        if cfg.height is not None and cfg.downsample is not None:
-            raise ConfigError("give either --height or --downsample, not both")
-        if cfg.regime not in ("mv-sf", "mv-mf", "sv-hr", "one-shot"):
-            raise ConfigError(f"unknown regime '{cfg.regime}' (choose mv-sf, mv-mf, sv-hr or one-shot)")
-        if cfg.background not in ("white", "black"):
-            raise ConfigError(f"unknown background '{cfg.background}' (choose white or black)")
         if not dataset.is_dir():
             raise InputError(dataset, "capture folder not found")
         if not flame_model.is_file():
