@@ -172,7 +172,7 @@ def run_export(
         loaded = load_stage_avatar(run.ws, av_stage, data, run.device)
         av = loaded.avatar
         dev = av.device
-        renderer = AvatarRenderer(av, loaded.render)
+        renderer = AvatarRenderer(av, loaded.render, backend=cfg.render_backend)
         if frame is None:
             inputs = canonical_inputs(av.params, av.canonical_timestep, dev)
         else:
