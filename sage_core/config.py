@@ -680,3 +680,5 @@ def describe_allowed(cls: type, prefix: str = "") -> dict[str, str]:
                 text += " or none"
             out[f"{prefix}{f.name}"] = text
     return out
+    orientation: str = _f("viewer", "World of the viewer files: viewer (y-down OpenCV convention, turned 180 degrees about x, as splat viewers expect) or flame (sage's y-up world).", choices=("viewer", "flame"))
+    sh_degree: int = _f(0, "SH degree of the viewer PLY: 0, or up to 3 with zero padding for strict INRIA loaders.", choices=(0, 1, 2, 3))

@@ -51,7 +51,7 @@ def test_canonical_ply_round_trip_and_header(ws):
     from sage_core.export.ply import MIN_OPACITY, property_names, read_ply
     from sage_core.flame.canonical import canonical_inputs
 
-    res = invoke(["export", ws, "--ply", "--device", "cpu", "--quiet"])
+    res = invoke(["export", ws, "--ply", "--orientation", "flame", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
     path = ws / "export" / "ply" / "canonical.ply"
     props, comments = _header(path)
@@ -89,7 +89,7 @@ def test_ply_rendered_back_matches_the_avatar_render(ws):
 
     data, loaded, renderer = _loaded(ws)
     fr = data.val[0]
-    res = invoke(["export", ws, "--ply", "--frame", fr.timestep, "--color-camera", fr.camera_index, "--device", "cpu", "--quiet"])
+    res = invoke(["export", ws, "--ply", "--frame", fr.timestep, "--color-camera", fr.camera_index, "--up", "y", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
     ply = read_ply(ws / "export" / "ply" / f"frame_{fr.timestep:05d}.ply")
     cam = RenderCamera.from_camera(fr.camera)

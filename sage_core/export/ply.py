@@ -50,6 +50,21 @@ def sh_degree_from_rest(k: int) -> int:
     return deg
 
 
+def pad_sh_rest(sh_rest: ArrayLike | None, n: int, degree: int) -> np.ndarray:
+    """Higher SH coefficients zero-padded up to ``degree`` (0..3): (N, K, 3) or None -> (N, (deg+1)² − 1, 3).
+
+    Padding with zeros leaves every colour unchanged; strict INRIA loaders expect degree 3 (45
+    ``f_rest`` values). A degree below the input's raises ValueError (that would drop coefficients).
+    """
+    if not 0 <= degree <= 3:
+        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+    rest = np.zeros((n, 0, 3)) if sh_rest is None else _np(sh_rest)
+    want = (degree + 1) ** 2 - 1
+    if rest.shape[1] > want:
+        raise ValueError(f"cannot pad {rest.shape[1]} higher SH coefficients down to degree {degree}")
+    return np.concatenate([rest, np.zeros((n, want - rest.shape[1], 3))], axis=1)
+
+
 def property_names(n_rest: int) -> list[str]:
     """Vertex property names in INRIA order for K = ``n_rest`` higher SH coefficients."""
     return (
