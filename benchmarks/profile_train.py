@@ -1,7 +1,7 @@
 """Profile whole training iterations of phase 1 or phase 2 on an existing workspace.
 
 Usage: python benchmarks/profile_train.py WS [--stage phase1|phase2] [--device cuda|cpu|auto]
-       [--warmup N] [--steps M] [--out DIR] [--preset tiny|default] [--config FILE] [--set key=value ...]
+       [--warmup N] [--steps M] [--out DIR] [--preset tiny|small|default] [--config FILE] [--set key=value ...]
 
 The trainer is built as ``sage phase1`` / ``sage phase2`` build it: phase 1 from ``WS/data/`` and
 ``WS/init/`` (the avatar of ``build_avatar``, one-shot pseudo-views where the regime has them),
@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--warmup", type=int, default=3, help="steps run before profiling (not measured)")
     ap.add_argument("--steps", type=int, default=10, help="steps measured under the profiler")
     ap.add_argument("--out", type=Path, default=Path("profile"), help="folder for profile_<stage>.json and trace_<stage>.json")
-    ap.add_argument("--preset", default="default", help="settings preset of the stage (tiny or default)")
+    ap.add_argument("--preset", default="default", help="settings preset of the stage (tiny, small or default)")
     ap.add_argument("--config", type=Path, default=None, help="YAML/JSON config file, as for the stage command")
     ap.add_argument("--set", dest="sets", action="append", default=None, metavar="KEY=VALUE", help="override a config field (repeatable)")
     ap.add_argument("--seed", type=int, default=0, help="random seed")

@@ -21,7 +21,7 @@ from typing import Any, Callable, TypeVar
 
 from .errors import ConfigError
 
-PRESETS = ("tiny", "default")
+PRESETS = ("tiny", "small", "default")
 
 RENDER_BACKENDS = ("auto", "torch", "cpp", "triton")
 """Values of the ``render_backend`` field of the stages that render surfels."""
@@ -135,7 +135,7 @@ class Phase1Config:
     attributes: str = _f("mlp", "Surfel attributes: mlp (appearance and shape networks, SAGE) or free (per-surfel colour, opacity, rotation, scale).", choices=("mlp", "free"))
     iterations: int = _f(30000, "Optimisation steps.", ge=1)
     n_surfels: int = _f(150000, "Number of surfels spread over the canonical mesh (no densification).", ge=1)
-    sh_degree: int = _f(0, "SH degree of the free per-surfel colour (attributes=free).", ge=0, le=3)
+    sh_degree: int = _f(3, "SH degree of the free per-surfel colour (attributes=free); the presets match app_sh_degree so that the two attribute modes are compared at equal view dependence.", ge=0, le=3)
     init_opacity: float = _f(0.5, "Initial opacity of free surfels.", gt=0, lt=1)
     init_scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.", gt=0)
     face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.", ge=0)
@@ -341,8 +341,7 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
             "n_surfels": 6000,
             "app_hidden": 32,
             "app_sh_degree": 2,
-            "shape_hidden": 32,
-            "lr_sdf": 1e-3,
+            "sh_degree": 2,
             "app_grid_levels": 8,
             "app_grid_log2_table": 15,
             "app_grid_max_res": 512,
@@ -375,6 +374,55 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 
 # Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
+    "small": {
+        "ingest": {},
+        "init-mesh": {
+            "grid.n_levels": 12,
+            "grid.log2_table": 16,
+            "grid.base_res": 16,
+            "grid.max_res": 512,
+            "pretrain.steps": 800,
+            "pretrain.batch_size": 4096,
+            "pretrain.bank_size": 100000,
+            "mc_resolution": 192,
+            "checkpoint_every": 200,
+        },
+        "phase1": {
+            "iterations": 4000,
+            "n_surfels": 20000,
+            "app_hidden": 64,
+            "app_sh_degree": 2,
+            "sh_degree": 2,
+            "app_grid_levels": 12,
+            "app_grid_log2_table": 17,
+            "app_grid_max_res": 1024,
+            "shape_hidden": 32,
+            "lr_sdf": 1e-3,
+            "lr_grid": 1e-3,
+            "lr_networks": 1e-3,
+            "lr_color": 1e-2,
+            "normal_consistency_from": 800,
+            "distortion_from": 800,
+            "rays_per_step": 512,
+            "smooth_points": 512,
+            "neus_samples": 24,
+            "neus_importance": 16,
+            "rebind_every": 500,
+            "eval_every": 500,
+            "mc_resolution": 192,
+            "checkpoint_every": 500,
+        },
+        "phase2": {
+            "iterations": 800,
+            "rays_per_step": 512,
+            "neus_samples": 24,
+            "neus_importance": 16,
+            "lr_networks": 1e-4,
+            "checkpoint_every": 200,
+        },
+        "eval": {},
+        "export": {"mc_resolution": 192},
+    },
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
     "sv-hr": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},
     "one-shot": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},

@@ -142,6 +142,24 @@ class SynthConfig:
         return replace(self, **kw).validate()
 
 
+def parse_sets(items: list[str] | None) -> dict[str, Any]:
+    """``["crease_depth_mm=3", "tracking=exact"]`` -> {"crease_depth_mm": 3.0, "tracking": "exact"},
+    typed by the :class:`SynthConfig` field; unknown keys and bad values raise ConfigError."""
+    types = {f.name: f.type for f in fields(SynthConfig)}
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, val = item.partition("=")
+        key, val = key.strip(), val.strip()
+        if not sep or key not in types:
+            raise ConfigError(f"--set expects FIELD=VALUE with a synth config field ({', '.join(types)}), got '{item}'")
+        tp = {"int": int, "float": float, "str": str}[str(types[key])]
+        try:
+            out[key] = tp(val)
+        except ValueError:
+            raise ConfigError(f"--set {key}: '{val}' is not a valid {tp.__name__}") from None
+    return out
+
+
 PRESETS: dict[str, SynthConfig] = {
     "tiny": SynthConfig(
         width=128,
@@ -157,6 +175,20 @@ PRESETS: dict[str, SynthConfig] = {
         novel_views=6,
         novel_expressions=3,
     ),
+    "small": SynthConfig(
+        width=256,
+        height=372,
+        n_cameras=16,
+        train_timesteps=2,
+        test_timesteps=4,
+        head_rows=64,
+        head_cols=84,
+        eye_rows=10,
+        eye_cols=16,
+        supersample=2,
+        novel_views=6,
+        novel_expressions=3,
+    ),
     "default": SynthConfig(),
 }
 
@@ -166,12 +198,14 @@ _REGIME_DEFAULTS: dict[tuple[str, str], dict[str, int]] = {
     ("tiny", "monocular"): {"train_timesteps": 8, "test_timesteps": 3},
     ("default", "monocular"): {"train_timesteps": 42, "test_timesteps": 18},
     ("tiny", "oneshot"): {"train_timesteps": 1, "test_timesteps": 0},
+    ("small", "monocular"): {"train_timesteps": 8, "test_timesteps": 3},
+    ("small", "oneshot"): {"train_timesteps": 1, "test_timesteps": 0},
     ("default", "oneshot"): {"train_timesteps": 1, "test_timesteps": 0},
 }
 
 
 def preset(name: str, regime: str = "multiview", **overrides: Any) -> SynthConfig:
-    """A named preset ("tiny" or "default") for a regime, with optional field overrides (None ignored)."""
+    """A named preset ("tiny", "small" or "default") for a regime, with optional field overrides (None ignored)."""
     if name not in PRESETS:
         raise ConfigError(f"unknown synth preset '{name}' (choose from {', '.join(PRESETS)})")
     if regime not in REGIMES:
