@@ -5,8 +5,11 @@ file is YAML or JSON; it may hold one section per stage (``ingest:``, ``init_mes
 it is given to a single stage, that stage's keys at the top level. Nested fields are addressed
 with dots in flags and as nested mappings in files. Unknown keys are errors, never ignored.
 
-Every field carries its documentation in ``metadata["help"]``; the CLI shows it and the docs
-list it. This module imports no heavy dependencies.
+Every field carries its documentation in ``metadata["help"]`` and what it allows (``choices``,
+``ge``/``gt``/``le``/``lt`` bounds, list ``length``; see :func:`_f`); :data:`CONFIG_RULES` ties
+fields of one config together. :func:`resolve_config` checks them once, on the merged config, and
+raises ConfigError naming the field, the value and what is allowed. Presets live in one table,
+:data:`PRESET_OVERRIDES`. This module imports no heavy dependencies.
 """
 
 from __future__ import annotations
@@ -245,6 +248,8 @@ class ExportConfig:
     mc_resolution: int = _f(256, "Marching-cubes resolution of the SDF mesh.", ge=8)
     color_camera: int | None = _f(None, "Bake the view-dependent colours as seen from this camera of the capture (none: each surfel seen along its normal).", ge=0)
     up_axis: str = _f("y", "Vertical axis written in the PLY comment (VHAP worlds are roughly y-up).", choices=("x", "y", "z", "-x", "-y", "-z"))
+    orientation: str = _f("viewer", "World of the viewer files: viewer (y-down OpenCV convention, turned 180 degrees about x, as splat viewers expect) or flame (sage's y-up world).", choices=("viewer", "flame"))
+    sh_degree: int = _f(0, "SH degree of the viewer PLY: 0, or up to 3 with zero padding for strict INRIA loaders.", choices=(0, 1, 2, 3))
     render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
 
 
@@ -345,6 +350,8 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
             "app_grid_levels": 8,
             "app_grid_log2_table": 15,
             "app_grid_max_res": 512,
+            "shape_hidden": 32,
+            "lr_sdf": 1e-3,
             "lr_grid": 1e-3,
             "lr_networks": 1e-3,
             "lr_color": 1e-2,
@@ -370,10 +377,6 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
         "eval": {},
         "export": {"mc_resolution": 128},
     },
-}
-
-# Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
-# workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
     "small": {
         "ingest": {},
         "init-mesh": {
@@ -423,13 +426,14 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
         "eval": {},
         "export": {"mc_resolution": 192},
     },
+}
+
+# Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
+# workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
     "sv-hr": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},
     "one-shot": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},
 }
-
-T = TypeVar("T")
-
 
 # Rules that tie several fields of one config together: (check, fields named in the error, what is
 # wrong). validate_config applies them after the per-field choices and ranges.
@@ -442,6 +446,9 @@ CONFIG_RULES: dict[type, tuple[tuple[Callable[[Any], bool], tuple[str, ...], str
         (lambda c: c.wrinkle_quantiles[0] < c.wrinkle_quantiles[1], ("wrinkle_quantiles",), "the first quantile must be below the second"),
     ),
 }
+
+T = TypeVar("T")
+
 
 # --------------------------------------------------------------------------------------------
 # Machinery
@@ -688,13 +695,13 @@ def validate_config(cfg: Any, where: str = "", prefix: str = "") -> None:
             validate_config(value, where, prefix=f"{key}.")
             continue
         _check_value(value, f.metadata, f"{where}: {key}" if where else key)
-
-
-def from_dict(cls: type[T], data: dict[str, Any]) -> T:
     for check, names, problem in CONFIG_RULES.get(type(cfg), ()):
         if not check(cfg):
             got = ", ".join(f"{prefix}{n} = {getattr(cfg, n)!r}" for n in names)
             raise ConfigError(f"{where + ': ' if where else ''}{problem} (got {got})")
+
+
+def from_dict(cls: type[T], data: dict[str, Any]) -> T:
     """Rebuild a config dataclass from its plain dict (e.g. a saved resolved config)."""
     cfg = cls()
     for k, v in data.items():
@@ -728,5 +735,3 @@ def describe_allowed(cls: type, prefix: str = "") -> dict[str, str]:
                 text += " or none"
             out[f"{prefix}{f.name}"] = text
     return out
-    orientation: str = _f("viewer", "World of the viewer files: viewer (y-down OpenCV convention, turned 180 degrees about x, as splat viewers expect) or flame (sage's y-up world).", choices=("viewer", "flame"))
-    sh_degree: int = _f(0, "SH degree of the viewer PLY: 0, or up to 3 with zero padding for strict INRIA loaders.", choices=(0, 1, 2, 3))
