@@ -20,6 +20,7 @@ def synth(
     test_timesteps: Annotated[Optional[int], typer.Option("--test-timesteps", help="Held-out timesteps with novel expressions (monocular: novel head poses).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Identity, texture and expression seed; the same seed writes identical files.")] = 0,
     tracking: Annotated[str, typer.Option("--tracking", help="fitted: the truth deforms beyond the written FLAME-format model and flame_param/ is a tracker-like fit with pose noise (error in gt/info.json); exact: the written model and parameters are the truth.")] = "fitted",
+    sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override a synth config field, e.g. --set crease_depth_mm=3 or --set pose_noise_deg=0 (repeatable; fields in docs/synthetic.md).")] = None,
     preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a grid of views x expressions.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace OUT if it already holds files.")] = False,
     verbose: Annotated[bool, typer.Option("--verbose/--quiet", help="Show the progress bar (default) or only errors and the final panel.")] = True,
@@ -30,18 +31,11 @@ def synth(
     with cli_errors():
         from sage_core.data.synthetic import preset as make_preset
         from sage_core.data.synthetic import write_capture
+        from sage_core.data.synthetic.config import parse_sets
 
-        cfg = make_preset(
-            preset,
-            regime=regime,
-            seed=seed,
-            n_cameras=cameras,
-            width=width,
-            height=height,
-            train_timesteps=train_timesteps,
-            test_timesteps=test_timesteps,
-            tracking=tracking,
-        )
+        options = {"seed": seed, "n_cameras": cameras, "width": width, "height": height, "train_timesteps": train_timesteps,
+                   "test_timesteps": test_timesteps, "tracking": tracking}
+        cfg = make_preset(preset, regime=regime, **{**options, **parse_sets(sets)})
         t0 = time.time()
         with ProgressDisplay("synth", enabled=verbose) as progress:
             path = write_capture(out, cfg, progress=progress, preview=preview, force=force)
