@@ -126,6 +126,16 @@ class Chromium:
         r = self.call("Runtime.evaluate", {"expression": expr, "returnByValue": True, "awaitPromise": True}, session=True)
         return r.get("result", {}).get("value")
 
+    def wait_until(self, expr: str, timeout: float = 60.0) -> Any:
+        """Evaluate ``expr`` until it is truthy; returns its value (TimeoutError after ``timeout``)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            value = self.evaluate(expr)
+            if value:
+                return value
+            time.sleep(0.2)
+        raise TimeoutError(f"{expr} stayed false for {timeout} s")
+
     def screenshot(self) -> np.ndarray:
         """(H, W, 3) float32 in [0, 1]."""
         from PIL import Image

@@ -15,7 +15,7 @@ Outputs accumulate in ``WS/export/`` (a workspace stage with a manifest):
 - ``web/``: ``index.html`` playing the avatar in a browser (:mod:`sage_core.export.web`);
 - ``mesh/sdf_mesh.{ply,obj}``: zero level set of the canonical SDF (canonical space);
   ``mesh/flame_canonical.{ply,obj}`` or ``mesh/flame_frame_{T:05d}.{ply,obj}``: the posed FLAME mesh;
-- ``bundle/``: ``avatar.pt`` + ``flame_param.npz`` + ``bundle.json`` (formats.md §7.2), loadable by
+- ``bundle/``: ``avatar.safetensors`` + ``flame_param.npz`` + ``bundle.json`` (formats.md §7.2), loadable by
   ``sage reenact --bundle``.
 
 ``WS/export/results.json`` indexes every item with the key of its inputs; a new export keeps the
@@ -61,7 +61,7 @@ def export(
     flame_seq: Annotated[Optional[Path], typer.Option("--flame-seq", help="Motion (npz, flame_param folder or capture): one viewer file per frame into export/ply/{i:05d}.*, and the sequence of --gaussian-avatars and --web (default: the avatar's own).")] = None,
     max_frames: Annotated[Optional[int], typer.Option("--max-frames", help="With --flame-seq: only the first N frames.")] = None,
     mesh: Annotated[bool, typer.Option("--mesh", help="Meshes: the SDF zero level set (marching cubes) and the posed FLAME mesh, as PLY and OBJ.")] = False,
-    bundle: Annotated[bool, typer.Option("--bundle", help="Self-contained avatar bundle (avatar.pt, flame_param.npz, bundle.json).")] = False,
+    bundle: Annotated[bool, typer.Option("--bundle", help="Self-contained avatar bundle (avatar.safetensors, flame_param.npz, bundle.json).")] = False,
     stage: Annotated[Optional[str], typer.Option("--stage", help="Avatar: auto (latest finished of phase2, phase1), phase1 or phase2.")] = None,
     mc_resolution: Annotated[Optional[int], typer.Option("--mc-resolution", help="Marching-cubes resolution of the SDF mesh.")] = None,
     color_camera: Annotated[Optional[int], typer.Option("--color-camera", help="Bake view-dependent colours as seen from this capture camera (default: each surfel seen along its normal).")] = None,
@@ -303,8 +303,9 @@ def run_export(
 
                 files = _item_files(name, frame)
                 params = get_motion().params if flame_seq is not None else own_params()
-                wp = write_web_player(av, renderer, params, run.work_dir / "web", reference_camera(data),
-                                      title=f"sage avatar ({av_stage})",
+                fps = float(get_motion().fps) if flame_seq is not None else 25.0
+                wp = write_web_player(av, renderer, params, run.work_dir / "web", reference_camera(data, cfg.color_camera),
+                                      fps=fps, view_from=view_from, title=f"sage avatar ({av_stage})",
                                       progress=lambda d, t, m: progress(i, steps, f"web {m}"))  # fmt: skip
                 extra = {"frames": wp.n_frames, "surfels": wp.n_surfels, "bytes": wp.n_bytes}
             elif name == "mesh:sdf":

@@ -64,9 +64,11 @@ class GaussianAvatarsExport:
     n_vertices: int
 
 
-def ga_local_gaussians(avatar: Avatar) -> dict[str, np.ndarray]:
+def ga_local_gaussians(avatar: Avatar, view_from: torch.Tensor | None = None) -> dict[str, np.ndarray]:
     """The avatar's surfels as GA local Gaussians (module doc), float32.
 
+    view_from: (3,) canonical-space point the colours are evaluated for (None: each surfel seen
+    along its normal).
     Returns xyz (N, 3), f_dc (N, 3), f_rest (N, 45) channel-major zeros, opacity (N,) logit,
     scale (N, 3) log k-relative, rot (N, 4) wxyz unit, binding (N,) int64.
     """
@@ -76,7 +78,8 @@ def ga_local_gaussians(avatar: Avatar) -> dict[str, np.ndarray]:
 
     with torch.no_grad():
         cs = avatar.canonical_state(with_sdf=avatar.attributes == "mlp")
-        posed = avatar.posed(canonical_inputs(avatar.params, avatar.canonical_timestep, avatar.device), None, canonical=cs)
+        inputs = canonical_inputs(avatar.params, avatar.canonical_timestep, avatar.device)
+        posed = avatar.posed(inputs, view_from, canonical=cs)
         R, T, k = triangle_frames(avatar.canonical_vertices, avatar.faces)
         b = avatar.surfels.binding.to(torch.long)
         Rb, Tb, kb = R[b], T[b], k[b]

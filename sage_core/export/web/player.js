@@ -1,0 +1,346 @@
+// sage web player: plays a surfel avatar posed on the GPU from per-frame FLAME mesh vertices.
+// Data: window.SAGE_AVATAR (avatar.js, written by `sage export --web`; layout in sage_core/export/web.py).
+// URL query: frame=i (show frame i, paused), camera=ref (the capture's reference camera at its pixel
+// size; default: an orbit camera starting there), ui=0 (hide the controls).
+"use strict";
+(function () {
+  const doc = window.SAGE_AVATAR;
+  const query = new URLSearchParams(location.search);
+  const canvas = document.getElementById("view");
+  const msg = document.getElementById("msg");
+  const bar = document.getElementById("bar");
+  const playBtn = document.getElementById("play");
+  const slider = document.getElementById("slider");
+  const label = document.getElementById("label");
+  window.sageReady = false;
+
+  function fail(text) {
+    msg.textContent = text;
+    window.sageError = text;
+  }
+  if (!doc) { fail("avatar.js is missing or did not load"); return; }
+  const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, premultipliedAlpha: false, preserveDrawingBuffer: true });
+  if (!gl) { fail("this browser has no WebGL2"); return; }
+
+  // ------------------------------------------------------------------ data
+  const N = doc.n_surfels, V = doc.n_vertices, T = doc.n_frames;
+  const raw = atob(doc.data);
+  const bytes = new Uint8Array(raw.length);
+  for (let i = 0; i < raw.length; i++) bytes[i] = raw.charCodeAt(i);
+  const buf = bytes.buffer;
+  const tri = new Uint32Array(buf, 0, N * 3);
+  const mu = new Float32Array(buf, 12 * N, N * 3);
+  const rot = new Float32Array(buf, 24 * N, N * 4);
+  const scl = new Float32Array(buf, 40 * N, N * 2);
+  const rgba = new Uint8Array(buf, 48 * N, N * 4);
+  const qverts = new Int16Array(buf, 52 * N, T * V * 3);
+  const vs = doc.vert_scale, vo = doc.vert_offset;
+
+  const TW = 1024;
+  function texHeight(count) { return Math.max(1, Math.ceil(count / TW)); }
+  function makeTexture(internal, format, type, data, count) {
+    const t = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, t);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    gl.texImage2D(gl.TEXTURE_2D, 0, internal, TW, texHeight(count), 0, format, type, data);
+    return t;
+  }
+  const padN = TW * texHeight(N);
+  const triData = new Uint32Array(padN * 4);
+  const muData = new Float32Array(padN * 4);
+  const rotData = new Float32Array(padN * 4);
+  const colData = new Uint8Array(padN * 4);
+  const s1bits = new Uint32Array(new Float32Array(scl.filter((_, i) => i % 2 === 1)).buffer);
+  for (let i = 0; i < N; i++) {
+    triData[4 * i] = tri[3 * i]; triData[4 * i + 1] = tri[3 * i + 1]; triData[4 * i + 2] = tri[3 * i + 2];
+    triData[4 * i + 3] = s1bits[i];
+    muData[4 * i] = mu[3 * i]; muData[4 * i + 1] = mu[3 * i + 1]; muData[4 * i + 2] = mu[3 * i + 2];
+    muData[4 * i + 3] = scl[2 * i];
+    for (let c = 0; c < 4; c++) { rotData[4 * i + c] = rot[4 * i + c]; colData[4 * i + c] = rgba[4 * i + c]; }
+  }
+  const texTri = makeTexture(gl.RGBA32UI, gl.RGBA_INTEGER, gl.UNSIGNED_INT, triData, N);
+  const texMu = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, muData, N);
+  const texRot = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, rotData, N);
+  const texCol = makeTexture(gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, colData, N);
+  const vertData = new Float32Array(TW * texHeight(V) * 4);
+  const texVert = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, vertData, V);
+
+  // ------------------------------------------------------------------ shaders
+  const VS = `#version 300 es
+  precision highp float; precision highp int; precision highp usampler2D;
+  uniform highp sampler2D uVert, uMu, uRot, uCol; uniform usampler2D uTri;
+  uniform mat4 uView, uProj; uniform vec2 uSize;
+  in uint aId;
+  out vec2 vUV; out vec4 vColor; flat out vec2 vCentre;
+  ivec2 px(uint i) { return ivec2(int(i % ${TW}u), int(i / ${TW}u)); }
+  vec3 vert(uint i) { return texelFetch(uVert, px(i), 0).xyz; }
+  mat3 quatMat(vec4 q) {
+    q = q / length(q);
+    float w = q.x, x = q.y, y = q.z, z = q.w;
+    return mat3(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
+                2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
+                2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
+  }
+  const vec2 corners[4] = vec2[4](vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(-1.0, 1.0), vec2(1.0, 1.0));
+  void main() {
+    uvec4 t = texelFetch(uTri, px(aId), 0);
+    vec3 v0 = vert(t.x), v1 = vert(t.y), v2 = vert(t.z);
+    vec3 e1 = v1 - v0, e2 = v2 - v0;
+    vec3 a0 = e1 / sqrt(max(dot(e1, e1), 1e-20));
+    vec3 n = cross(a0, e2);
+    vec3 a1 = n / sqrt(max(dot(n, n), 1e-20));
+    vec3 a2 = cross(a0, a1);
+    float k = 0.5 * (length(e1) + abs(dot(a2, e2)));
+    mat3 R = mat3(a0, a1, a2);
+    vec4 m = texelFetch(uMu, px(aId), 0);
+    mat3 Rs = R * quatMat(texelFetch(uRot, px(aId), 0));
+    vec3 centre = k * (R * m.xyz) + (v0 + v1 + v2) / 3.0;
+    vec2 s = k * vec2(m.w, uintBitsToFloat(t.w));
+    vec2 c = corners[gl_VertexID] * 3.0;
+    vec3 world = centre + c.x * s.x * Rs[0] + c.y * s.y * Rs[1];
+    gl_Position = uProj * uView * vec4(world, 1.0);
+    vec4 cc = uProj * uView * vec4(centre, 1.0);
+    vCentre = vec2((cc.x / cc.w + 1.0) * 0.5 * uSize.x, (1.0 - cc.y / cc.w) * 0.5 * uSize.y);
+    vUV = c;
+    vColor = texelFetch(uCol, px(aId), 0);
+    if (cc.w <= 0.0) gl_Position = vec4(0.0, 0.0, 2.0, 1.0);
+  }`;
+  const FS = `#version 300 es
+  precision highp float;
+  uniform vec2 uSize;
+  in vec2 vUV; in vec4 vColor; flat in vec2 vCentre;
+  out vec4 outColor;
+  void main() {
+    vec2 p = vec2(gl_FragCoord.x, uSize.y - gl_FragCoord.y);
+    vec2 d = p - vCentre;
+    float rho = min(dot(vUV, vUV), 2.0 * dot(d, d));
+    if (rho > 9.0) discard;
+    float a = min(0.99, vColor.a * exp(-0.5 * rho));
+    if (a < 1.0 / 255.0) discard;
+    outColor = vec4(vColor.rgb * a, a);
+  }`;
+  function compile(type, src) {
+    const s = gl.createShader(type);
+    gl.shaderSource(s, src);
+    gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+    return s;
+  }
+  const prog = gl.createProgram();
+  try {
+    gl.attachShader(prog, compile(gl.VERTEX_SHADER, VS));
+    gl.attachShader(prog, compile(gl.FRAGMENT_SHADER, FS));
+    gl.linkProgram(prog);
+    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+  } catch (e) { fail("shader error: " + e.message); return; }
+  gl.useProgram(prog);
+  const U = {};
+  for (const name of ["uVert", "uMu", "uRot", "uCol", "uTri", "uView", "uProj", "uSize"]) U[name] = gl.getUniformLocation(prog, name);
+  [[texVert, "uVert"], [texMu, "uMu"], [texRot, "uRot"], [texCol, "uCol"], [texTri, "uTri"]].forEach(([tex, name], unit) => {
+    gl.activeTexture(gl.TEXTURE0 + unit);
+    gl.bindTexture(gl.TEXTURE_2D, tex);
+    gl.uniform1i(U[name], unit);
+  });
+  const vao = gl.createVertexArray();
+  gl.bindVertexArray(vao);
+  const idBuf = gl.createBuffer();
+  const aId = gl.getAttribLocation(prog, "aId");
+  gl.bindBuffer(gl.ARRAY_BUFFER, idBuf);
+  gl.bufferData(gl.ARRAY_BUFFER, N * 4, gl.DYNAMIC_DRAW);
+  gl.enableVertexAttribArray(aId);
+  gl.vertexAttribIPointer(aId, 1, gl.UNSIGNED_INT, 0, 0);
+  gl.vertexAttribDivisor(aId, 1);
+
+  // ------------------------------------------------------------------ frames and sorting
+  const frameVerts = new Float32Array(V * 3);
+  const centres = new Float32Array(N * 3);
+  let loadedFrame = -1;
+  function loadFrame(f) {
+    const base = f * V * 3;
+    for (let i = 0; i < V; i++) {
+      for (let c = 0; c < 3; c++) {
+        const v = qverts[base + 3 * i + c] * vs[c] + vo[c];
+        frameVerts[3 * i + c] = v;
+        vertData[4 * i + c] = v;
+      }
+    }
+    gl.activeTexture(gl.TEXTURE0);  // texVert's unit
+    gl.bindTexture(gl.TEXTURE_2D, texVert);
+    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(V), gl.RGBA, gl.FLOAT, vertData);
+    // surfel centres on the CPU, only to sort them (the GPU poses everything it draws)
+    for (let i = 0; i < N; i++) {
+      const i0 = 3 * tri[3 * i], i1 = 3 * tri[3 * i + 1], i2 = 3 * tri[3 * i + 2];
+      const e1x = frameVerts[i1] - frameVerts[i0], e1y = frameVerts[i1 + 1] - frameVerts[i0 + 1], e1z = frameVerts[i1 + 2] - frameVerts[i0 + 2];
+      const e2x = frameVerts[i2] - frameVerts[i0], e2y = frameVerts[i2 + 1] - frameVerts[i0 + 1], e2z = frameVerts[i2 + 2] - frameVerts[i0 + 2];
+      const l1 = Math.sqrt(Math.max(e1x * e1x + e1y * e1y + e1z * e1z, 1e-20));
+      const a0x = e1x / l1, a0y = e1y / l1, a0z = e1z / l1;
+      let nx = a0y * e2z - a0z * e2y, ny = a0z * e2x - a0x * e2z, nz = a0x * e2y - a0y * e2x;
+      const ln = Math.sqrt(Math.max(nx * nx + ny * ny + nz * nz, 1e-20));
+      nx /= ln; ny /= ln; nz /= ln;
+      const a2x = a0y * nz - a0z * ny, a2y = a0z * nx - a0x * nz, a2z = a0x * ny - a0y * nx;
+      const k = 0.5 * (l1 + Math.abs(a2x * e2x + a2y * e2y + a2z * e2z));
+      const mx = mu[3 * i], my = mu[3 * i + 1], mz = mu[3 * i + 2];
+      for (let c = 0; c < 3; c++) {
+        const a0 = [a0x, a0y, a0z][c], a1 = [nx, ny, nz][c], a2 = [a2x, a2y, a2z][c];
+        const tc = (frameVerts[i0 + c] + frameVerts[i1 + c] + frameVerts[i2 + c]) / 3;
+        centres[3 * i + c] = k * (a0 * mx + a1 * my + a2 * mz) + tc;
+      }
+    }
+    loadedFrame = f;
+  }
+  const order = new Uint32Array(N);
+  const depthKey = new Uint32Array(N);
+  const counts = new Uint32Array(65536);
+  function sortBackToFront(view) {  // view: column-major GL view matrix; camera looks along -z
+    let lo = Infinity, hi = -Infinity;
+    const depth = new Float32Array(N);
+    for (let i = 0; i < N; i++) {
+      const z = view[2] * centres[3 * i] + view[6] * centres[3 * i + 1] + view[10] * centres[3 * i + 2] + view[14];
+      depth[i] = z;  // more negative = farther
+      if (z < lo) lo = z;
+      if (z > hi) hi = z;
+    }
+    const span = hi > lo ? hi - lo : 1;
+    counts.fill(0);
+    for (let i = 0; i < N; i++) { depthKey[i] = Math.min(65535, Math.floor((depth[i] - lo) / span * 65535)); counts[depthKey[i]]++; }
+    for (let b = 1; b < 65536; b++) counts[b] += counts[b - 1];
+    for (let i = N - 1; i >= 0; i--) order[--counts[depthKey[i]]] = i;  // ascending z: far first
+    gl.bindBuffer(gl.ARRAY_BUFFER, idBuf);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, order);
+  }
+
+  // ------------------------------------------------------------------ cameras
+  const ref = doc.camera;
+  const useRef = query.get("camera") === "ref";
+  const W2C = ref.w2c;  // row-major 4x4, OpenCV
+  const R0 = [[W2C[0], W2C[1], W2C[2]], [W2C[4], W2C[5], W2C[6]], [W2C[8], W2C[9], W2C[10]]];  // world -> camera rows
+  const t0 = [W2C[3], W2C[7], W2C[11]];
+  const camCentre = [0, 1, 2].map(j => -(R0[0][j] * t0[0] + R0[1][j] * t0[1] + R0[2][j] * t0[2]));
+  const target = doc.head_center;
+  const up = [-R0[1][0], -R0[1][1], -R0[1][2]];  // the reference camera's up (OpenCV y points down)
+  let axes = [R0[0].slice(), R0[1].slice(), R0[2].slice()];  // camera x, y, z in world (rows)
+  let dist = Math.hypot(camCentre[0] - target[0], camCentre[1] - target[1], camCentre[2] - target[2]);
+  function rotateAbout(v, axis, ang) {  // Rodrigues
+    const c = Math.cos(ang), s = Math.sin(ang);
+    const d = axis[0] * v[0] + axis[1] * v[1] + axis[2] * v[2];
+    const cr = [axis[1] * v[2] - axis[2] * v[1], axis[2] * v[0] - axis[0] * v[2], axis[0] * v[1] - axis[1] * v[0]];
+    return [0, 1, 2].map(j => v[j] * c + cr[j] * s + axis[j] * d * (1 - c));
+  }
+  function cameraState() {  // -> {view (GL, column-major), fx, fy, cx, cy, width, height}
+    let rows, centre, width, height, fx, fy, cx, cy;
+    if (useRef) {
+      rows = R0; centre = camCentre; width = ref.width; height = ref.height;
+      fx = ref.fx; fy = ref.fy; cx = ref.cx; cy = ref.cy;
+    } else {
+      rows = axes;
+      centre = [0, 1, 2].map(j => target[j] - dist * axes[2][j]);
+      width = canvas.width; height = canvas.height;
+      fy = ref.fy * height / ref.height; fx = fy; cx = width / 2; cy = height / 2;
+    }
+    const t = [0, 1, 2].map(r => -(rows[r][0] * centre[0] + rows[r][1] * centre[1] + rows[r][2] * centre[2]));
+    const view = new Float32Array(16);  // diag(1, -1, -1, 1) · w2c, column-major
+    const sign = [1, -1, -1];
+    for (let r = 0; r < 3; r++) {
+      for (let c = 0; c < 3; c++) view[c * 4 + r] = sign[r] * rows[r][c];
+      view[12 + r] = sign[r] * t[r];
+    }
+    view[15] = 1;
+    return { view, fx, fy, cx, cy, width, height };
+  }
+  function projection(s, near, far) {  // OpenCV intrinsics -> GL clip (pixel centres at i + 0.5)
+    const P = new Float32Array(16);
+    P[0] = 2 * s.fx / s.width;
+    P[5] = 2 * s.fy / s.height;
+    P[8] = 1 - 2 * s.cx / s.width;
+    P[9] = 2 * s.cy / s.height - 1;
+    P[10] = -(far + near) / (far - near);
+    P[11] = -1;
+    P[14] = -2 * far * near / (far - near);
+    return P;
+  }
+
+  // ------------------------------------------------------------------ drawing and controls
+  let frame = Math.max(0, Math.min(T - 1, parseInt(query.get("frame") || "0", 10) || 0));
+  let playing = !query.has("frame") && T > 1;
+  let dirty = true, sortedFor = "";
+  const requested = query.has("frame") ? frame : -1;
+  if (query.get("ui") === "0") bar.classList.add("hidden");
+  slider.max = String(T - 1);
+  function resize() {
+    if (useRef) {
+      canvas.width = ref.width; canvas.height = ref.height;
+      canvas.style.width = ref.width + "px"; canvas.style.height = ref.height + "px";
+    } else {
+      const dpr = window.devicePixelRatio || 1;
+      canvas.width = Math.round(window.innerWidth * dpr); canvas.height = Math.round(window.innerHeight * dpr);
+      canvas.style.width = window.innerWidth + "px"; canvas.style.height = window.innerHeight + "px";
+    }
+    dirty = true;
+  }
+  window.addEventListener("resize", resize);
+  resize();
+  function setPlaying(p) { playing = p && T > 1; playBtn.textContent = playing ? "pause" : "play"; }
+  setPlaying(playing);
+  playBtn.onclick = () => setPlaying(!playing);
+  window.addEventListener("keydown", e => { if (e.code === "Space") { setPlaying(!playing); e.preventDefault(); } });
+  slider.oninput = () => { frame = parseInt(slider.value, 10); setPlaying(false); dirty = true; };
+  let drag = null;
+  canvas.addEventListener("pointerdown", e => { drag = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); });
+  canvas.addEventListener("pointerup", () => { drag = null; });
+  canvas.addEventListener("pointermove", e => {
+    if (!drag || useRef) return;
+    const dx = e.clientX - drag[0], dy = e.clientY - drag[1];
+    drag = [e.clientX, e.clientY];
+    axes = axes.map(a => rotateAbout(a, up, -dx * 0.008));
+    const x = axes[0];
+    axes = axes.map(a => rotateAbout(a, x, dy * 0.008));
+    dirty = true;
+  });
+  canvas.addEventListener("wheel", e => { if (!useRef) { dist *= Math.exp(e.deltaY * 0.001); dirty = true; } e.preventDefault(); }, { passive: false });
+
+  const bg = doc.background;
+  let start = performance.now(), startFrame = frame;
+  function draw() {
+    if (frame !== loadedFrame) loadFrame(frame);
+    const s = cameraState();
+    const key = frame + ":" + Array.from(s.view).join(",");
+    if (key !== sortedFor) { sortBackToFront(s.view); sortedFor = key; }
+    gl.viewport(0, 0, canvas.width, canvas.height);
+    gl.clearColor(bg[0], bg[1], bg[2], 1);
+    gl.clear(gl.COLOR_BUFFER_BIT);
+    gl.disable(gl.DEPTH_TEST);
+    gl.enable(gl.BLEND);
+    gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
+    gl.useProgram(prog);
+    gl.uniformMatrix4fv(U.uView, false, s.view);
+    gl.uniformMatrix4fv(U.uProj, false, projection(s, 0.01, 100.0));
+    gl.uniform2f(U.uSize, s.width, s.height);
+    gl.bindVertexArray(vao);
+    gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, N);
+    slider.value = String(frame);
+    label.textContent = `${frame + 1} / ${T}` + (doc.timesteps ? `  (timestep ${doc.timesteps[frame]})` : "");
+    window.sageFrame = frame;
+  }
+  function tick(now) {
+    if (playing) {
+      const f = (startFrame + Math.floor((now - start) / 1000 * doc.fps)) % T;
+      if (f !== frame) { frame = f; dirty = true; }
+    } else {
+      start = now; startFrame = frame;
+    }
+    if (dirty) {
+      draw();
+      dirty = false;
+      if (!window.sageReady && (requested < 0 || frame === requested)) {
+        requestAnimationFrame(() => { window.sageReady = true; });
+      }
+    }
+    requestAnimationFrame(tick);
+  }
+  msg.textContent = "";
+  msg.classList.add("hidden");
+  requestAnimationFrame(tick);
+})();
