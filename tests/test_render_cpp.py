@@ -345,3 +345,22 @@ def test_importing_the_package_compiles_nothing() -> None:
     env = dict(os.environ, SAGE_CACHE_DIR="/nonexistent-sage-cache")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0 and proc.stdout.strip() == "lazy", proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("dtype,atol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+def test_depth_normals_match_torch(cpp_ext: float, dtype: torch.dtype, atol: float) -> None:
+    from sage_core.render.surfels import depth_to_normal
+
+    g = torch.Generator().manual_seed(0)
+    K = torch.tensor([[30.0, 0.2, 12.3], [0.0, 31.0, 9.7], [0.0, 0.0, 1.0]], dtype=dtype)
+    depth = torch.rand(20, 24, generator=g, dtype=dtype) + 2.0
+    depth[3:6, 4:9] = 0.0  # an uncovered patch: zero depth, degenerate normals at its edges
+    d1, d2 = depth.clone().requires_grad_(True), depth.clone().requires_grad_(True)
+    a, b = depth_to_normal(d1, K), _cpp_surfels.depth_to_normal_cpp(d2, K)
+    weight = torch.rand(20, 24, 3, generator=g, dtype=dtype) * (depth > 0).unsqueeze(-1)
+    (a * weight).sum().backward()
+    (b * weight).sum().backward()
+    assert b.dtype == dtype and float((a - b).detach().abs().max()) <= atol
+    assert float((d1.grad - d2.grad).abs().max()) <= atol * float(d1.grad.abs().max())
+    small = (torch.rand(7, 6, generator=g, dtype=torch.float64) + 2.0).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: _cpp_surfels.depth_to_normal_cpp(x, K.double()), (small,))

@@ -192,6 +192,28 @@ class _CppComposite(torch.autograd.Function):
         return gtab.T, gpay.T, None, None, None, None, None
 
 
+class _DepthNormal(torch.autograd.Function):
+    """Normals from depth in the extension; depth: (H, W), kinv: (3, 3) float64 (not differentiated)."""
+
+    @staticmethod
+    def forward(ctx, depth, kinv):  # type: ignore[override]
+        ctx.save_for_backward(depth.detach(), kinv)
+        return _ops().depth_normal_forward(depth.detach().contiguous(), kinv)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):  # type: ignore[override]
+        depth, kinv = ctx.saved_tensors
+        return _ops().depth_normal_backward(depth, kinv, grad.contiguous()), None
+
+
+def depth_to_normal_cpp(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Same as ``surfels.depth_to_normal`` (depth: (H, W), K: (3, 3) -> (H, W, 3)), computed in the
+    extension in float64; differentiable w.r.t. depth only (K is treated as a constant)."""
+    kinv = torch.linalg.inv(K.detach().double()).contiguous()
+    return _DepthNormal.apply(depth, kinv)
+
+
 def composite_cpp(
     table: torch.Tensor,
     payload: torch.Tensor,

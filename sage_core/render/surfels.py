@@ -284,7 +284,10 @@ def rasterize_surfels(
         depth = torch.where(alpha > 0, dsum / torch.where(alpha > 0, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
         color = img.features.T.reshape(H, W, Dch) + (1.0 - alpha).unsqueeze(-1) * bg
         ncam = img.normal.T.reshape(H, W, 3)
-        sn_cam = depth_to_normal(depth, Ks[c]) * alpha.detach().unsqueeze(-1)
+        if cpp is not None and not Ks.requires_grad:
+            sn_cam = cpp.depth_to_normal_cpp(depth, Ks[c]) * alpha.detach().unsqueeze(-1)
+        else:
+            sn_cam = depth_to_normal(depth, Ks[c]) * alpha.detach().unsqueeze(-1)
         for k, v in (
             ("color", color),
             ("alpha", alpha),

@@ -22,6 +22,7 @@
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
 #include <ATen/ops/zeros.h>
+#include <ATen/ops/_to_copy.h>
 #include <c10/util/Exception.h>
 #include <torch/library.h>
 
@@ -41,6 +42,8 @@ constexpr int kTilePx = kTile * kTile;
 constexpr double kAlphaMax = 0.99;
 constexpr double kAlphaMin = 1.0 / 255.0;
 constexpr double kTMin = 1e-4;
+// images smaller than this run their per-pixel loops on one thread (waking threads costs more)
+constexpr int64_t kParallelPixels = 1 << 14;
 
 // Ray-splat intersection, low-pass filter and alpha of one surfel at one pixel centre (eval_pairs).
 template <typename S>
@@ -312,7 +315,7 @@ void forward_all(const at::Tensor& table, const at::Tensor& payload, const at::T
   int32_t* ai = auxi.data_ptr<int32_t>();
   const int64_t nt = grid.tiles();
   const S nr = static_cast<S>(near);
-#pragma omp parallel num_threads(num_threads())
+#pragma omp parallel num_threads(num_threads()) if (nt > 1)
   {
     ForwardScratch<S> scratch(P);
 #pragma omp for schedule(dynamic, 1)
@@ -483,7 +486,7 @@ void backward_all(const at::Tensor& table, const at::Tensor& payload, const at::
   std::vector<double> gbuf(static_cast<size_t>(L * G));
   std::vector<unsigned char> touched(static_cast<size_t>(L), 0);
   const S nr = static_cast<S>(near);
-#pragma omp parallel num_threads(num_threads())
+#pragma omp parallel num_threads(num_threads()) if (nt > 1)
   {
     BackwardScratch scratch(P);
 #pragma omp for schedule(dynamic, 1)
@@ -546,6 +549,121 @@ std::vector<at::Tensor> bin_tiles(const at::Tensor& boxes, int64_t width, int64_
   return bin_tiles_impl(boxes, grid);
 }
 
+// Normals from depth (surfels.depth_to_normal): P(y, x) = z(y, x) K^-1 (x + 0.5, y + 0.5, 1),
+// c = (P(y+1, x) - P(y-1, x)) x (P(y, x+1) - P(y, x-1)), n = c / max(|c|, 1e-12), 1-px border 0.
+// Computed in float64 and rounded to the depth's dtype.
+struct DepthNormalGeom {
+  int64_t H, W;
+  double ki[9];
+  void point(const double* z, int64_t y, int64_t x, double* out) const {
+    const double px = static_cast<double>(x) + 0.5, py = static_cast<double>(y) + 0.5, d = z[y * W + x];
+    for (int k = 0; k < 3; ++k) out[k] = d * (ki[3 * k] * px + ki[3 * k + 1] * py + ki[3 * k + 2]);
+  }
+  // the two difference vectors a = P(y+1,x) - P(y-1,x), b = P(y,x+1) - P(y,x-1) of an interior pixel
+  void diffs(const double* z, int64_t y, int64_t x, double* a, double* b) const {
+    double p0[3], p1[3];
+    point(z, y + 1, x, p1);
+    point(z, y - 1, x, p0);
+    for (int k = 0; k < 3; ++k) a[k] = p1[k] - p0[k];
+    point(z, y, x + 1, p1);
+    point(z, y, x - 1, p0);
+    for (int k = 0; k < 3; ++k) b[k] = p1[k] - p0[k];
+  }
+};
+
+inline void cross3(const double* a, const double* b, double* c) {
+  c[0] = a[1] * b[2] - a[2] * b[1];
+  c[1] = a[2] * b[0] - a[0] * b[2];
+  c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+DepthNormalGeom depth_normal_geom(const at::Tensor& depth, const at::Tensor& kinv) {
+  TORCH_CHECK(depth.dim() == 2 && depth.device().is_cpu(), "surfels_cpu: depth must be a (H, W) CPU tensor");
+  TORCH_CHECK(kinv.sizes() == at::IntArrayRef({3, 3}) && kinv.scalar_type() == at::kDouble && kinv.is_contiguous(),
+              "surfels_cpu: kinv must be a contiguous (3, 3) float64 tensor");
+  DepthNormalGeom geo{depth.size(0), depth.size(1), {}};
+  const double* k = kinv.data_ptr<double>();
+  std::copy(k, k + 9, geo.ki);
+  return geo;
+}
+
+// depth (H, W) float32/float64, kinv (3, 3) float64 -> normal (H, W, 3) in depth's dtype.
+at::Tensor depth_normal_forward(const at::Tensor& depth_in, const at::Tensor& kinv) {
+  const DepthNormalGeom geo = depth_normal_geom(depth_in, kinv);
+  const at::Tensor z64 = depth_in.to(at::kDouble).contiguous();
+  const double* z = z64.data_ptr<double>();
+  const int64_t H = geo.H, W = geo.W;
+  at::Tensor out = at::zeros({H, W, 3}, z64.options());
+  double* n = out.data_ptr<double>();
+#pragma omp parallel for schedule(static) num_threads(num_threads()) if (H * W >= kParallelPixels)
+  for (int64_t y = 1; y < H - 1; ++y) {
+    for (int64_t x = 1; x < W - 1; ++x) {
+      double a[3], b[3], c[3];
+      geo.diffs(z, y, x, a, b);
+      cross3(a, b, c);
+      const double len = std::max(std::sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]), 1e-12);
+      for (int k = 0; k < 3; ++k) n[3 * (y * W + x) + k] = c[k] / len;
+    }
+  }
+  return out.to(depth_in.scalar_type());
+}
+
+// Gradient of depth_normal_forward: grad (H, W, 3) -> d depth (H, W).
+at::Tensor depth_normal_backward(const at::Tensor& depth_in, const at::Tensor& kinv, const at::Tensor& grad_in) {
+  const DepthNormalGeom geo = depth_normal_geom(depth_in, kinv);
+  const int64_t H = geo.H, W = geo.W;
+  TORCH_CHECK(grad_in.sizes() == at::IntArrayRef({H, W, 3}), "surfels_cpu: grad must be (H, W, 3)");
+  const at::Tensor z64 = depth_in.to(at::kDouble).contiguous();
+  const at::Tensor g64 = grad_in.to(at::kDouble).contiguous();
+  const double* z = z64.data_ptr<double>();
+  const double* g = g64.data_ptr<double>();
+  // per interior pixel: gradients of its difference vectors a (vertical) and b (horizontal)
+  std::vector<double> ga(static_cast<size_t>(H * W * 3), 0.0), gb(static_cast<size_t>(H * W * 3), 0.0);
+  const int nt = num_threads();
+#pragma omp parallel for schedule(static) num_threads(nt) if (H * W >= kParallelPixels)
+  for (int64_t y = 1; y < H - 1; ++y) {
+    for (int64_t x = 1; x < W - 1; ++x) {
+      const int64_t p = y * W + x;
+      double a[3], b[3], c[3];
+      geo.diffs(z, y, x, a, b);
+      cross3(a, b, c);
+      const double norm = std::sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+      const double* gn = g + 3 * p;
+      double gc[3];
+      if (norm > 1e-12) {  // n = c / |c|
+        const double dot = (c[0] * gn[0] + c[1] * gn[1] + c[2] * gn[2]) / (norm * norm);
+        for (int k = 0; k < 3; ++k) gc[k] = (gn[k] - c[k] * dot) / norm;
+      } else {  // n = c / 1e-12
+        for (int k = 0; k < 3; ++k) gc[k] = gn[k] / 1e-12;
+      }
+      cross3(b, gc, ga.data() + 3 * p);  // c = a x b: dL/da = b x gc, dL/db = gc x a
+      cross3(gc, a, gb.data() + 3 * p);
+    }
+  }
+  at::Tensor out = at::zeros({H, W}, z64.options());
+  double* gz = out.data_ptr<double>();
+  const double* A = ga.data();
+  const double* B = gb.data();
+#pragma omp parallel for schedule(static) num_threads(nt) if (H * W >= kParallelPixels)
+  for (int64_t y = 0; y < H; ++y) {
+    for (int64_t x = 0; x < W; ++x) {
+      // P(y, x) enters a of (y-1, x) with +, a of (y+1, x) with -, b of (y, x-1) with +, b of (y, x+1) with -
+      double gp[3] = {0.0, 0.0, 0.0};
+      for (int k = 0; k < 3; ++k) {
+        if (y >= 1) gp[k] += A[3 * ((y - 1) * W + x) + k];
+        if (y + 1 < H) gp[k] -= A[3 * ((y + 1) * W + x) + k];
+        if (x >= 1) gp[k] += B[3 * (y * W + x - 1) + k];
+        if (x + 1 < W) gp[k] -= B[3 * (y * W + x + 1) + k];
+      }
+      const double px = static_cast<double>(x) + 0.5, py = static_cast<double>(y) + 0.5;
+      double s = 0.0;
+      for (int k = 0; k < 3; ++k) s += gp[k] * (geo.ki[3 * k] * px + geo.ki[3 * k + 1] * py + geo.ki[3 * k + 2]);
+      gz[y * W + x] = s;
+    }
+  }
+  return out.to(depth_in.scalar_type());
+}
+
 int64_t max_threads() { return num_threads(); }
 
 }  // namespace
@@ -558,5 +676,7 @@ TORCH_LIBRARY(sage_surfels_cpu, m) {
       "Tensor g_pay, Tensor g_stats, int width, int height, float near, float far) -> Tensor[]",
       &composite_backward);
   m.def("bin_tiles(Tensor boxes, int width, int height) -> Tensor[]", &bin_tiles);
+  m.def("depth_normal_forward(Tensor depth, Tensor kinv) -> Tensor", &depth_normal_forward);
+  m.def("depth_normal_backward(Tensor depth, Tensor kinv, Tensor grad) -> Tensor", &depth_normal_backward);
   m.def("max_threads() -> int", &max_threads);
 }
