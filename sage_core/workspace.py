@@ -400,21 +400,38 @@ class Workspace:
                                             "or choose another folder") from None
 
     def recover(self, stage: str) -> bool:
-        """Complete a promotion that was cut short (the work folder holds a finished run with its
-        manifest). Returns True when it promoted. The caller holds the lock."""
+        """Complete a promotion that was cut short: the work folder holds a finished run with its
+        manifest (promote it), the promoted folder still holds the run's checkpoints and marker
+        (remove them), or a previous output moved aside was left behind (put it back when the stage
+        folder is missing, else remove it). Returns True when it promoted. The caller holds the lock."""
         work = self.work_dir(stage)
+        final = self.stage_dir(stage)
+        if (final / "RUN").is_file() and self.manifest(stage) is not None:
+            # promoted, but the clean-up after it was cut short
+            shutil.rmtree(final / "checkpoints", ignore_errors=True)
+            for marker in ("RUN", "FAILED"):
+                (final / marker).unlink(missing_ok=True)
         m_path = work / "manifest.json"
-        if not m_path.is_file():
-            return False
-        try:
-            m = read_json(m_path)
-        except (OSError, ValueError):
-            m = None
-        if not isinstance(m, dict) or m.get("status") != "complete":
-            m_path.unlink(missing_ok=True)
-            return False
-        _promote(self, stage, work, keep_checkpoints=False)
-        return True
+        m = None
+        if m_path.is_file():
+            try:
+                m = read_json(m_path)
+            except (OSError, ValueError):
+                m = None
+            if not isinstance(m, dict) or m.get("status") != "complete":
+                m_path.unlink(missing_ok=True)
+                m = None
+        promoted = False
+        if m is not None:
+            _promote(self, stage, work, keep_checkpoints=False)
+            promoted = True
+        # previous outputs moved aside by a promotion that was cut short
+        trash = sorted((self.root / ".work").glob(f".old-{final.name}-*"), key=lambda p: p.stat().st_mtime)
+        if trash and not final.exists():
+            os.replace(trash.pop(), final)
+        for t in trash:
+            shutil.rmtree(t, ignore_errors=True)
+        return promoted
 
 
 def check_workspace_path(root: Path) -> None:
