@@ -68,6 +68,31 @@ def _metrics(stage: str, m: dict | None, limit: int = 3) -> str:
     return "\n".join(parts)
 
 
+def _reenact_table(root: Path) -> object | None:
+    """A table of the reenactments in ``root/reenact/*/reenact.json`` (None when there are none)."""
+    import json
+
+    from rich.table import Table
+
+    records = sorted((root / "reenact").glob("*/reenact.json")) if (root / "reenact").is_dir() else []
+    if not records:
+        return None
+    t = Table(title="reenactments (WS/reenact/)")
+    for col in ("name", "finished", "frames", "cameras", "render FPS", "outputs"):
+        t.add_column(col, overflow="fold")
+    for path in records:
+        try:
+            doc = json.loads(path.read_text())
+            rep = doc.get("report") or {}
+            outputs = [p for p in (rep.get("video_path"), rep.get("frames_dir")) if p]
+            fps = rep.get("render_fps")
+            t.add_row(path.parent.name, _age(doc.get("finished_at")), str(rep.get("n_frames", "")), str(doc.get("cameras", "")),
+                      f"{fps:.2f}" if isinstance(fps, (int, float)) else "", "\n".join(outputs))  # fmt: skip
+        except (OSError, ValueError, AttributeError) as e:
+            t.add_row(path.parent.name, "", "", "", "", f"[red]unreadable reenact.json ({type(e).__name__})[/]")
+    return t
+
+
 def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
     """Show every stage of a workspace: status, age, wall time, device / threads / render backend, and key metrics."""
     from rich.table import Table
@@ -101,3 +126,6 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
                 _metrics(st.stage, m),
             )
         console.print(t)
+        runs = _reenact_table(w.root)
+        if runs is not None:
+            console.print(runs)

@@ -201,7 +201,7 @@ def run_reenact(
     doc = {
         "finished_at": now_iso(),
         "avatar": avatar_label,
-        "motion": {"source": str(motion.source), "kind": motion.source_kind, "frames": n,
+        "motion": {"source": str(Path(motion.source).resolve()), "kind": motion.source_kind, "frames": n,
                    "timesteps": [int(t) for t in motion.timesteps]},
         "identity": "the avatar's own shape and static offset; expressions and poses from the motion",
         "cameras": cam_desc,

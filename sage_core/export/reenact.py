@@ -155,7 +155,7 @@ def reenact(
         raise ValueError(f"fps must be positive, got {rate}")
     width, height = cams[0].width, cams[0].height
 
-    out = Path(out_dir)
+    out = Path(out_dir).resolve()  # the report's paths are absolute, like the manifests'
     out.mkdir(parents=True, exist_ok=True)
     frames_dir = out / FRAMES_DIR if frames_format != "none" else None
     tmp_frames = out / f".{FRAMES_DIR}.{os.getpid()}.{time.monotonic_ns()}.tmp" if frames_dir else None
