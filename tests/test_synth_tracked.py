@@ -126,7 +126,8 @@ def test_truth_is_not_expressible_by_the_written_model() -> None:
     assert d[0].max() < 0.01  # neutral, closed mouth: nothing beyond the model
     f = th.fields
     crease = f.band > 0.5
-    corr = (f.regions["lips"] + f.regions["cheek"] + f.regions["brow_inner"]) * f.skin > 0.3
+    pattern = np.linalg.norm(f.roll, axis=1) + np.linalg.norm(f.thin, axis=1) + f.apple + f.procerus + f.inner_lift
+    corr = pattern * f.skin > 0.3
     far = (sub.head.part == 0) & (f.skin < 0.05)  # scalp hair
     for ti in range(2, len(frames)):
         assert d[ti][corr].max() > 0.5, (ti, d[ti][corr].max())

@@ -21,7 +21,7 @@ import numpy as np
 
 from ._fields import gauss, smoothstep
 from .appearance import crease_weights
-from .head import EXPRESSION_NAMES, N_SHAPE_COLUMNS, PART_SKIN, HeadModel, _regions, hair_weight
+from .head import EXPRESSION_NAMES, N_SHAPE_COLUMNS, PART_SKIN, HeadModel, hair_weight
 from .mesh_render import vertex_normals
 
 _E = {name: i for i, name in enumerate(EXPRESSION_NAMES)}
@@ -43,21 +43,30 @@ def truncated_head(head: HeadModel, n_keep: int) -> HeadModel:
 class TruthFields:
     """Per-vertex fields of the truth's extra deformation (template space, float64).
 
+    The corrective patterns are chosen outside the span of the written expression components
+    (a per-frame fit would absorb any pattern the kept components can reproduce, however
+    non-linear its coefficient).
+
     Attributes:
         normal: (V, 3) template vertex normals.
         skin: (V,) 1 on skin that may deform beyond the model, 0 elsewhere (eyes, mouth pocket, hair).
-        regions: name -> (V,) soft region weights (lips, corner, cheek, cheek_low, brow, brow_inner).
-        side: (V,) +1 upper lip side, -1 jaw side, 0 on the mouth corners.
-        x_sign: (V,) sign of the template x (subject's left +1, right -1).
+        roll: (V, 3) lip roll per unit: the red of the lips turns inward about the lip root (near the
+            slit inward and towards it, at the lip border slightly outward).
+        thin: (V, 3) lip thinning per unit: the lips' sides flatten, the corners pull in.
+        apple: (V,) the apple of the cheek (bulges along the normal and lifts).
+        procerus: (V,) the skin between the brows (bunches outward along the normal).
+        inner_lift: (V,) the inner brow heads (lift when furrow and brow raise combine).
         band: (V,) crease band weight in [0, 1].
         corrective_scale: scale of the correctives; crease_depth: metres at full compression.
     """
 
     normal: np.ndarray
     skin: np.ndarray
-    regions: dict[str, np.ndarray]
-    side: np.ndarray
-    x_sign: np.ndarray
+    roll: np.ndarray
+    thin: np.ndarray
+    apple: np.ndarray
+    procerus: np.ndarray
+    inner_lift: np.ndarray
     band: np.ndarray
     corrective_scale: float
     crease_depth: float
@@ -66,15 +75,27 @@ class TruthFields:
 def truth_fields(head: HeadModel, corrective_scale: float, crease_depth_mm: float) -> TruthFields:
     """The fields of :class:`TruthFields` for ``head``."""
     v = head.v_template
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    ax = np.abs(x)
     n = vertex_normals(v, head.faces)
-    r = _regions(v, head.mouth_y)
     skin = ((head.part == PART_SKIN) * (1.0 - hair_weight(v))).astype(np.float64)
+    front = smoothstep(z, 0.0, 0.045)
+    lipx = np.exp(-((x / 0.026) ** 4)) * front
+    a = (y - head.mouth_y) / 0.008  # signed distance from the slit in lip heights
+    towards = -np.sign(a) * np.abs(a) * np.exp(-a * a)  # towards the slit, largest mid-lip
+    inward = (1.5 * a * a - 1.0) * np.exp(-a * a)  # -1 at the slit, slightly outward at the border
+    roll = lipx[:, None] * (np.stack([np.zeros_like(x), towards, inward], -1) * np.array([0.0, 0.5, 1.0]))
+    corner = gauss(ax - 0.025, 0.007) * gauss(y - head.mouth_y, 0.007) * front
+    thin = -(lipx * np.square(x / 0.024) * np.exp(-a * a))[:, None] * n
+    thin[:, 0] -= corner * np.sign(x)
     return TruthFields(
         normal=n,
         skin=skin,
-        regions={k: r[k] for k in ("lips", "corner", "cheek", "cheek_low", "brow", "brow_inner")},
-        side=head.side.astype(np.float64),
-        x_sign=np.sign(v[:, 0]),
+        roll=roll,
+        thin=thin,
+        apple=gauss(ax - 0.034, 0.012) * gauss(y - (head.mouth_y + 0.03), 0.012) * front,
+        procerus=gauss(x, 0.009) * gauss(y - 0.036, 0.009) * front,
+        inner_lift=gauss(ax - 0.012, 0.006) * gauss(y - 0.047, 0.006) * front,
         band=crease_band(v, head.mouth_y) * skin,
         corrective_scale=float(corrective_scale),
         crease_depth=1e-3 * float(crease_depth_mm),
@@ -106,23 +127,18 @@ def correctives(f: TruthFields, expr: np.ndarray, jaw: np.ndarray) -> np.ndarray
     """
     pos = lambda a: np.maximum(a, 0.0)  # noqa: E731
     e = lambda name: expr[:, _E[name]][:, None, None]  # noqa: E731
-    r = {k: w[None, :, None] for k, w in f.regions.items()}
     n = f.normal[None]
-    ex, ey, ez = (np.eye(3)[i][None, None] for i in range(3))
-    side = f.side[None, :, None]
-    jaw_ = pos(jaw)[:, None, None]
-    xsign = f.x_sign[None, :, None]
-
+    ey = np.array([0.0, 1.0, 0.0])[None, None]
     roll = 0.004 * np.tanh(1.3 * pos(e("lip_press")) + 0.5 * np.square(pos(e("pucker"))))
-    out = roll * r["lips"] * (-0.7 * ez - 0.5 * side * ey)
-    open_ = 1.0 - np.exp(-np.square(jaw_ / 0.12))
-    out = out - 0.0025 * open_ * r["lips"] * n - 0.003 * open_ * r["corner"] * xsign * ex
+    out = roll * f.roll[None]
+    open_ = 1.0 - np.exp(-np.square(pos(jaw)[:, None, None] / 0.12))
+    out = out + 0.004 * open_ * f.thin[None]
     s = pos(e("smile")) + 0.5 * pos(e("mouth_stretch"))
-    bulge = 0.002 * np.square(s) / (1.0 + 0.25 * np.square(s))
-    out = out + bulge * r["cheek"] * (n + 0.6 * ey) + 0.002 * pos(e("smile")) * pos(e("cheek_puff")) * r["cheek_low"] * n
+    bulge = 0.002 * np.square(s) / (1.0 + 0.25 * np.square(s)) + 0.0015 * pos(e("smile")) * pos(e("cheek_puff"))
+    out = out + bulge * f.apple[None, :, None] * (n + 0.4 * ey)
     furrow = np.tanh(pos(e("brow_furrow")))
-    out = out + 0.0025 * np.square(furrow) * r["brow_inner"] * n - 0.0015 * furrow * r["brow"] * ey
-    out = out + 0.0025 * pos(e("brow_furrow")) * pos(e("brow_raise")) * r["brow_inner"] * ey
+    out = out + 0.003 * np.square(furrow) * f.procerus[None, :, None] * n
+    out = out + 0.003 * pos(e("brow_furrow")) * pos(e("brow_raise")) * f.inner_lift[None, :, None] * ey
     return f.corrective_scale * out * f.skin[None, :, None]
 
 
