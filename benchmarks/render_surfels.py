@@ -1,10 +1,15 @@
 """Speed and memory of the surfel rasterizer (forward + backward), packed torch backend by default.
 
 Usage: python benchmarks/render_surfels.py [--quick] [--out docs/benchmarks] [--device cpu]
-       [--backend torch [triton ...]]
+       [--backend torch [cpp triton ...]] [--threads N] [--profile]
 
 ``--backend`` lists the rasterizer backends to time; each case renders the same scene with each of
-them (on a GPU: ``--device cuda --backend torch triton``). The triton backend needs CUDA tensors.
+them, back to back (on a CPU: ``--backend torch cpp``; on a GPU: ``--device cuda --backend torch
+triton``). The triton backend needs CUDA tensors; cpp builds its extension in the warm-up render.
+With torch and another backend, the markdown has a speed-up table (torch median total / backend
+median total, per case). ``--threads`` sets torch's thread count in every case process (which the
+cpp backend follows); ``--profile`` runs one extra, untimed step under torch.profiler per case and
+lists the top operators by self CPU time.
 
 Scene (rendering.md §3.5): N random surfels filling the view at depth 3 ± 0.3, scales 0.005–0.025,
 opacity 0.1–0.9, RGB features, focal length 1.2·S for an S×S image. The loss touches every output
@@ -40,9 +45,21 @@ def _vm(key: str) -> int:
     return 0
 
 
-def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0, backend: str = "torch") -> dict:
+def run_case(
+    n: int,
+    size: int,
+    repeats: int,
+    device: str,
+    seed: int = 0,
+    backend: str = "torch",
+    threads: int | None = None,
+    profile: bool = False,
+) -> dict:
     """Render one scene ``repeats`` times (after one warm-up) with ``backend`` and time forward and backward."""
     import torch
+
+    if threads:
+        torch.set_num_threads(threads)
 
     from sage_core.render import RenderCamera, rasterize_surfels
 
@@ -65,8 +82,7 @@ def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0, backen
     rss0 = _vm("VmRSS")
     load0 = os.getloadavg()[0]
 
-    fwd, bwd, pairs = [], [], 0
-    for it in range(repeats + 1):
+    def step() -> tuple[float, float, int]:
         for p in params:
             p.grad = None
         sync()
@@ -85,11 +101,14 @@ def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0, backen
         loss.backward()
         sync()
         t2 = time.perf_counter()
-        pairs = int(out.num_pairs)
-        del out, loss
+        return t1 - t0, t2 - t1, int(out.num_pairs)
+
+    fwd, bwd, pairs = [], [], 0
+    for it in range(repeats + 1):
+        tf, tb, pairs = step()
         if it > 0:
-            fwd.append(t1 - t0)
-            bwd.append(t2 - t1)
+            fwd.append(tf)
+            bwd.append(tb)
     total = [a + b for a, b in zip(fwd, bwd)]
     res = {
         "n": n,
@@ -106,8 +125,19 @@ def run_case(n: int, size: int, repeats: int, device: str, seed: int = 0, backen
         "peak_rss_bytes": _vm("VmHWM"),
         "peak_delta_bytes": max(0, _vm("VmHWM") - rss0),
     }
+    res["threads"] = torch.get_num_threads()
     if device.startswith("cuda"):
         res["cuda_peak_bytes"] = int(torch.cuda.max_memory_allocated())
+    if profile:
+        from torch.profiler import ProfilerActivity
+        from torch.profiler import profile as torch_profile
+
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            step()
+        top = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)[:8]
+        total = sum(e.self_cpu_time_total for e in prof.key_averages())
+        res["profile_top"] = [[e.key, round(e.self_cpu_time_total / 1e3, 2), e.count] for e in top]
+        res["profile_total_ms"] = round(total / 1e3, 2)
     return res
 
 
@@ -127,8 +157,8 @@ def _markdown(meta: dict, rows: list[dict]) -> str:
     ]
     if multi:
         lines.append(
-            "Pairs: the torch backend counts every significant (surfel, pixel) pair, the triton backend only the "
-            "composited ones (it stops at terminated pixels). CUDA peak memory is in the JSON (cuda_peak_bytes)."
+            "Pairs: the torch backend counts every significant (surfel, pixel) pair, the cpp and triton backends only "
+            "the composited ones (they stop at terminated pixels). CUDA peak memory is in the JSON (cuda_peak_bytes)."
         )
     head = "| N | image | pairs | forward (s) | backward (s) | total (s) | best total (s) | peak Δ RSS (GB) | load (1 min) |"
     lines += ["", ("| backend " if multi else "") + head, "|---" * (head.count("|") - 1 + multi) + "|"]
@@ -138,7 +168,46 @@ def _markdown(meta: dict, rows: list[dict]) -> str:
             + f"| {r['n']:,} | {r['size']}² | {r['pairs']:,} | {r['forward_s']:.2f} | {r['backward_s']:.2f} | "
             f"{r['total_s']:.2f} | {r['total_min_s']:.2f} | {r['peak_delta_bytes'] / 1e9:.2f} | {r['load_1min_at_start']:.1f} |"
         )
+    lines += _speedups(rows) + _profiles(rows)
     return "\n".join(lines) + "\n"
+
+
+def _speedups(rows: list[dict]) -> list[str]:
+    """Markdown table of torch median total / other backend's median total, per case."""
+    torch_rows = {(r["n"], r["size"]): r for r in rows if r.get("backend", "torch") == "torch"}
+    others = [r for r in rows if r.get("backend", "torch") != "torch" and (r["n"], r["size"]) in torch_rows]
+    if not others:
+        return []
+    out = [
+        "",
+        "Speed-up over the packed torch backend (forward + backward, ratio of the medians above; ratio of the best "
+        "runs in brackets):",
+        "",
+        "| backend | N | image | torch total (s) | backend total (s) | speed-up |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in others:
+        t = torch_rows[(r["n"], r["size"])]
+        out.append(
+            f"| {r['backend']} | {r['n']:,} | {r['size']}² | {t['total_s']:.3f} | {r['total_s']:.3f} | "
+            f"{t['total_s'] / r['total_s']:.1f}× ({t['total_min_s'] / r['total_min_s']:.1f}×) |"
+        )
+    return out
+
+
+def _profiles(rows: list[dict]) -> list[str]:
+    """Markdown lists of the top operators (self CPU time of one profiled step) per backend and case."""
+    out: list[str] = []
+    for r in rows:
+        if "profile_top" not in r:
+            continue
+        if not out:
+            out += ["", "Where the time goes (one extra profiled step; operators by self CPU time, summed over threads):"]
+        ops = ", ".join(f"`{name}` {ms:.1f} ms" for name, ms, _ in r["profile_top"][:6])
+        out.append(
+            f"- {r.get('backend', 'torch')}, N = {r['n']:,}, {r['size']}² (profiled total {r['profile_total_ms']:.0f} ms): {ops}"
+        )
+    return out
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -157,16 +226,25 @@ def main() -> None:
         "--backend", nargs="+", default=["torch"], choices=["torch", "cpp", "triton", "auto"],
         help="rasterizer backends to time on the same scenes (triton needs --device cuda)",
     )
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads in every case process")
+    ap.add_argument("--profile", action="store_true", help="profile one extra step per case (top operators)")
+    ap.add_argument("--only", nargs=2, type=int, metavar=("N", "S"), help="run this one case of the grid")
     ap.add_argument("--case", nargs=2, type=int, metavar=("N", "S"), help=argparse.SUPPRESS)
     args = ap.parse_args()
 
     if args.case:
-        print(json.dumps(run_case(args.case[0], args.case[1], args.repeats or 3, args.device, backend=args.backend[0])))
+        row = run_case(args.case[0], args.case[1], args.repeats or 3, args.device, backend=args.backend[0],
+                       threads=args.threads, profile=args.profile)
+        print(json.dumps(row))
         return
 
     import torch
 
     grid = [(n, s) for n in GRID_N[:2] for s in GRID_S[:2]] if args.quick else [(n, s) for n in GRID_N for s in GRID_S]
+    if args.only:
+        grid = [tuple(args.only)]
+    if args.threads:
+        torch.set_num_threads(args.threads)
     repeats = args.repeats or (2 if args.quick else 3)
     load_before = [round(x, 2) for x in os.getloadavg()]
     rows = []
@@ -174,6 +252,7 @@ def main() -> None:
         for backend in args.backend:
             cmd = [sys.executable, __file__, "--case", str(n), str(s), "--repeats", str(repeats), "--device", args.device,
                    "--backend", backend]
+            cmd += (["--threads", str(args.threads)] if args.threads else []) + (["--profile"] if args.profile else [])
             proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
             row = json.loads(proc.stdout.strip().splitlines()[-1])
             rows.append(row)
