@@ -22,7 +22,8 @@ from sage_core.data.synthetic.motion import arc_cameras, multiview_frames
 from sage_core.data.synthetic.tracking import fit_frames, make_tracked_head, pose_truth, vertex_errors, written_vertices
 from sage_core.flame import FlameModel, load_flame_model
 
-SMALL = {"n_cameras": 3, "width": 40, "height": 58, "train_timesteps": 2, "test_timesteps": 3}
+COARSE = {"head_rows": 40, "head_cols": 48, "eye_rows": 6, "eye_cols": 8}
+SMALL = {"n_cameras": 3, "width": 40, "height": 58, "train_timesteps": 2, "test_timesteps": 3, **COARSE}
 
 
 def _cfg(**kw) -> SynthConfig:
@@ -182,7 +183,7 @@ def test_every_regime_writes_an_ingestible_tracked_capture(tmp_path: Path, regim
 
     r = CliRunner()
     cap, ws = tmp_path / "cap", tmp_path / "ws"
-    size = ["--width", "32", "--height", "46"]
+    size = ["--width", "32", "--height", "46", *(a for k, v in COARSE.items() for a in ("--set", f"{k}={v}"))]
     extra = {"multiview": ["--cameras", "3", "--train-timesteps", "2", "--test-timesteps", "1"],
              "monocular": ["--train-timesteps", "3", "--test-timesteps", "1"],
              "oneshot": ["--set", "pose_noise_deg=0", "--set", "trans_noise_mm=0"]}[regime]  # fmt: skip
