@@ -13,8 +13,9 @@ and read):
     [−1/√2, 1/√2]; ``packed_scale``: log scales as 11, 10, 11-bit unorms of the chunk's range;
     ``packed_color``: r, g, b as 8-bit unorms of the chunk's colour range and the linear opacity
     as 8 bits (r in the top byte, opacity in the low byte).
-``sh`` (one row per splat, only with SH degree > 0): ``f_rest_0 …`` as uchar,
-    ``floor((f/8 + 0.5)·256)`` clamped to 0..255, in the INRIA channel-major order.
+``sh`` (one row per splat, only with SH degree > 0 and some non-zero coefficient; the byte
+    encoding cannot represent 0 exactly, so all-zero padding is left out): ``f_rest_0 …`` as
+    uchar, ``floor((f/8 + 0.5)·256)`` clamped to 0..255, in the INRIA channel-major order.
 
 Splats are Morton-sorted before chunking (tight chunk ranges). Rows that :func:`encode_ply` would
 drop (non-finite, opacity < 1/255) are dropped.
@@ -102,6 +103,8 @@ def encode_compressed_ply(
     rgb = 0.5 + SH_C0 * a["sh_dc"][keep][order]
     alpha = np.clip(a["opacities"][keep][order], 0.0, 1.0)
     rest = a["sh_rest"][keep][order].transpose(0, 2, 1).reshape(order.shape[0], 3 * k)  # channel-major
+    if not rest.any():  # all-zero SH (e.g. zero padding) is left out: a byte cannot hold 0 exactly
+        k, rest = 0, rest[:, :0]
     n = mu.shape[0]
     n_chunks = (n + CHUNK - 1) // CHUNK
     chunk_of = np.arange(n) // CHUNK
