@@ -12,7 +12,7 @@ import typer
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the capture into (VHAP / GaussianAvatars layout).")],
     regime: Annotated[str, typer.Option("--regime", help="multiview (16-camera arc, train/val/test), monocular (one camera, head turns) or oneshot (one frontal image).")] = "multiview",
-    preset: Annotated[str, typer.Option("--preset", help="tiny (128x186 images, seconds on a CPU) or default (550x802, more timesteps).")] = "default",
+    preset: Annotated[str, typer.Option("--preset", help="tiny (128x186 images, seconds on a CPU), small (256x372) or default (550x802, more timesteps).")] = "default",
     cameras: Annotated[Optional[int], typer.Option("--cameras", help="Number of multiview cameras (camera 8 is frontal and held out as val).")] = None,
     width: Annotated[Optional[int], typer.Option("--width", help="Image width in pixels.")] = None,
     height: Annotated[Optional[int], typer.Option("--height", help="Image height in pixels.")] = None,
