@@ -86,6 +86,12 @@ def _load() -> tuple[bool, str]:
     lib = build / f"{name}.so"
     try:
         with _file_lock(cache_dir() / f"{name}.lock"):
+            if lib.is_file():
+                try:
+                    torch.ops.load_library(str(lib))
+                    return True, f"loaded {lib}"
+                except OSError:  # a damaged cached library (e.g. an interrupted link): build it again
+                    lib.unlink()
             if not lib.is_file():
                 cxx = os.environ.get("CXX", "c++")
                 if shutil.which(cxx) is None:
@@ -108,8 +114,6 @@ def _load() -> tuple[bool, str]:
                     is_python_module=False,
                     verbose=False,
                 )
-            else:
-                torch.ops.load_library(str(lib))
     except Exception as exc:  # compiler errors, missing headers, unwritable cache: report, fall back
         lines = str(exc).strip().splitlines()
         errors = [ln.strip() for ln in lines if "error" in ln.lower()]
