@@ -332,7 +332,8 @@ def render_markdown(results: dict[str, Any]) -> str:
               "SDF zero level set of phase 1 (frozen in phase 2) against the ground-truth mesh of the canonical timestep",
               "moved into canonical space; Chamfer = mean of both directions' closest-point distances; normal error =",
               "mean angle between closest faces' normals, both directions. The last column is phase 1's own Chamfer to",
-              "the canonical FLAME mesh. GA-style rows have no SDF.", ""]  # fmt: skip
+              "the canonical FLAME mesh. GA-style rows have no SDF. On a tracked capture the GT mesh is moved with the",
+              "capture's tracked pose, so that timestep's tracking error is part of the distance.", ""]  # fmt: skip
     lines += _geometry_table(_rows(results, ROW_IDS))
     lines += ["", "### Cost", "",
               "Wall times of ingest, init-mesh, phase 1 and phase 2 from the stage manifests (* = stage shared with the",
