@@ -95,3 +95,26 @@ def test_web_page_matches_sage_reenact(web_ws, tiny_capture, tmp_path):
     assert changed.mean() > 0.002
     assert d_web[changed].mean() > 4 * d_web[~changed].mean()
     assert d_web.max() > 0.2
+
+
+def test_web_page_orbits_and_plays(web_ws):
+    """Dragging turns the orbit camera; space starts playback."""
+    require_chromium()
+    import time
+
+    out = web_ws / "export" / "web"
+    with Chromium(320, 320) as browser:
+        browser.open((out / "index.html").as_uri() + "?frame=1&ui=0")
+        browser.wait_until("window.sageReady === true || !!window.sageError", timeout=60)
+        assert browser.evaluate("window.sageError || ''") == ""
+        before = browser.screenshot()
+        assert float((np.abs(before - before[0, 0]).max(-1) > 0.1).mean()) > 0.02  # the head is drawn
+        for kind, x in (("mousePressed", 160), ("mouseMoved", 200), ("mouseMoved", 240), ("mouseReleased", 240)):
+            browser.call("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": 160, "button": "left", "buttons": 1, "clickCount": 1}, session=True)
+        time.sleep(0.5)
+        after = browser.screenshot()
+        assert np.abs(after - before).max() > 0.3  # the camera turned
+        assert browser.evaluate("window.sageFrame") == 1
+        for kind in ("keyDown", "keyUp"):
+            browser.call("Input.dispatchKeyEvent", {"type": kind, "code": "Space", "key": " ", "windowsVirtualKeyCode": 32}, session=True)
+        browser.wait_until("window.sageFrame !== 1", timeout=10)  # playing

@@ -182,21 +182,19 @@
       nx /= ln; ny /= ln; nz /= ln;
       const a2x = a0y * nz - a0z * ny, a2y = a0z * nx - a0x * nz, a2z = a0x * ny - a0y * nx;
       const k = 0.5 * (l1 + Math.abs(a2x * e2x + a2y * e2y + a2z * e2z));
-      const mx = mu[3 * i], my = mu[3 * i + 1], mz = mu[3 * i + 2];
-      for (let c = 0; c < 3; c++) {
-        const a0 = [a0x, a0y, a0z][c], a1 = [nx, ny, nz][c], a2 = [a2x, a2y, a2z][c];
-        const tc = (frameVerts[i0 + c] + frameVerts[i1 + c] + frameVerts[i2 + c]) / 3;
-        centres[3 * i + c] = k * (a0 * mx + a1 * my + a2 * mz) + tc;
-      }
+      const mx = k * mu[3 * i], my = k * mu[3 * i + 1], mz = k * mu[3 * i + 2];
+      centres[3 * i] = a0x * mx + nx * my + a2x * mz + (frameVerts[i0] + frameVerts[i1] + frameVerts[i2]) / 3;
+      centres[3 * i + 1] = a0y * mx + ny * my + a2y * mz + (frameVerts[i0 + 1] + frameVerts[i1 + 1] + frameVerts[i2 + 1]) / 3;
+      centres[3 * i + 2] = a0z * mx + nz * my + a2z * mz + (frameVerts[i0 + 2] + frameVerts[i1 + 2] + frameVerts[i2 + 2]) / 3;
     }
     loadedFrame = f;
   }
   const order = new Uint32Array(N);
   const depthKey = new Uint32Array(N);
   const counts = new Uint32Array(65536);
+  const depth = new Float32Array(N);
   function sortBackToFront(view) {  // view: column-major GL view matrix; camera looks along -z
     let lo = Infinity, hi = -Infinity;
-    const depth = new Float32Array(N);
     for (let i = 0; i < N; i++) {
       const z = view[2] * centres[3 * i] + view[6] * centres[3 * i + 1] + view[10] * centres[3 * i + 2] + view[14];
       depth[i] = z;  // more negative = farther
