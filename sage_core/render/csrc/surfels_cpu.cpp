@@ -212,6 +212,12 @@ void forward_tile(int64_t tile, const Grid& grid, const S* tab, const S* pay, in
   int64_t n_alive = (xb - xa) * (yb - ya);
   for (int64_t j = start; j < end && n_alive > 0; ++j) {
     const int64_t r = lst[j];
+    if (j + 1 < end) {  // the next surfel's rows are scattered in memory (depth order)
+      const int64_t rn = lst[j + 1];
+      __builtin_prefetch(tab + 12 * rn);
+      __builtin_prefetch(boxes + 4 * rn);
+      __builtin_prefetch(pay + P * rn);
+    }
     int64_t x0, y0, x1, y1;
     if (!box_in_tile(boxes, r, tx, ty, x0, y0, x1, y1)) continue;
     const S* g = tab + 12 * r;
@@ -373,6 +379,12 @@ void backward_tile(int64_t tile, const Grid& grid, const S* tab, const S* pay, i
   Hit<S> h;
   for (int64_t j = hi - 1; j >= start; --j) {
     const int64_t r = lst[j];
+    if (j > start) {
+      const int64_t rn = lst[j - 1];
+      __builtin_prefetch(tab + 12 * rn);
+      __builtin_prefetch(boxes + 4 * rn);
+      __builtin_prefetch(pay + P * rn);
+    }
     int64_t x0, y0, x1, y1;
     if (!box_in_tile(boxes, r, tx, ty, x0, y0, x1, y1)) continue;
     const S* g = tab + 12 * r;
