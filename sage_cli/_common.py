@@ -31,7 +31,7 @@ ForceOpt = Annotated[bool, typer.Option("--force", help="Redo the stage even if 
 VerboseOpt = Annotated[bool, typer.Option("--verbose/--quiet", help="Show detailed progress (default) or only errors and the final panel.")]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override any config field: --set key.sub=value (repeatable).")]
 RenderBackendOpt = Annotated[Optional[str], typer.Option("--render-backend", help="Surfel rasterizer: auto (default), torch, cpp or triton (config field render_backend).")]
-ThreadsOpt = Annotated[Optional[int], typer.Option("--threads", help="CPU threads of this process (default: $SAGE_THREADS, else every core; `sage batch` shares the cores out). Recorded in the manifest.")]
+ThreadsOpt = Annotated[Optional[int], typer.Option("--threads", help="CPU threads of this process (default: $SAGE_THREADS, else the cores other processes are not keeping busy; `sage batch` shares the cores out). Recorded in the manifest.")]
 
 
 def parse_sets(values: list[str] | None) -> dict[str, Any]:

@@ -22,7 +22,7 @@ class StageOptions:
     device: str
     force: bool
     verbose: bool
-    threads: int | None = None  # --threads (None: $SAGE_THREADS, else every core)
+    threads: int | None = None  # --threads (None: $SAGE_THREADS, else the idle cores)
 
 
 def execute_stage(

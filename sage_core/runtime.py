@@ -1,7 +1,10 @@
 """How a stage uses this machine: CPU threads, the surfel rasterizer backend, duration estimates.
 
-* Threads (:func:`apply_threads`): ``--threads N``, else ``$SAGE_THREADS``, else every core this
-  process may run on. ``sage batch`` sets ``$SAGE_THREADS`` to cores ÷ concurrent subjects for its
+* Threads (:func:`apply_threads`): ``--threads N``, else ``$SAGE_THREADS``, else the cores this
+  process may run on that other work is not already using (:func:`idle_cores`). On a busy
+  machine torch's spinning worker threads compete with the other processes for the same cores:
+  measured on 2 cores at a load average of about 8, a tiny phase-1 step took 24 s with 2 threads
+  and 2.2 s with 1. ``sage batch`` sets ``$SAGE_THREADS`` to cores ÷ concurrent subjects for its
   workers (:func:`threads_per_worker`) so several processes never multiply threads past the cores.
   torch's intra-op and inter-op pools are sized once, at stage start; the count is recorded in the
   stage manifest (``metrics.threads``).
@@ -34,11 +37,31 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def busy_cores() -> int:
+    """Cores other processes keep busy: the larger of the 1-minute load average (rounded down) and
+    the runnable processes other than this one right now (``/proc/loadavg``); 0 where the OS does
+    not say."""
+    try:
+        fields = open("/proc/loadavg").read().split()
+        load1, running = float(fields[0]), int(fields[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        try:
+            load1, running = os.getloadavg()[0], 1
+        except (AttributeError, OSError):
+            return 0
+    return max(int(load1), running - 1, 0)
+
+
+def idle_cores() -> int:
+    """:func:`available_cores` minus :func:`busy_cores`, at least 1."""
+    return max(1, available_cores() - busy_cores())
+
+
 def default_threads() -> int:
-    """``$SAGE_THREADS`` when set (a whole number >= 1, else ConfigError), else :func:`available_cores`."""
+    """``$SAGE_THREADS`` when set (a whole number >= 1, else ConfigError), else :func:`idle_cores`."""
     raw = os.environ.get(THREADS_ENV, "").strip()
     if not raw:
-        return available_cores()
+        return idle_cores()
     try:
         n = int(raw)
     except ValueError:

@@ -25,6 +25,7 @@ def test_apply_threads_flag_env_and_default(monkeypatch):
     before = torch.get_num_threads()
     try:
         monkeypatch.delenv(runtime.THREADS_ENV, raising=False)
+        monkeypatch.setattr(runtime, "busy_cores", lambda: 0)
         assert runtime.default_threads() == runtime.available_cores()
         assert runtime.apply_threads(1) == 1 and torch.get_num_threads() == 1
         monkeypatch.setenv(runtime.THREADS_ENV, "2")
@@ -37,6 +38,35 @@ def test_apply_threads_flag_env_and_default(monkeypatch):
             runtime.apply_threads(0)
     finally:
         torch.set_num_threads(before)
+
+
+def test_default_threads_leave_the_busy_cores_alone(monkeypatch):
+    monkeypatch.delenv(runtime.THREADS_ENV, raising=False)
+    monkeypatch.setattr(runtime, "available_cores", lambda: 8)
+    for busy, want in ((0, 8), (3, 5), (7, 1), (12, 1)):
+        monkeypatch.setattr(runtime, "busy_cores", lambda b=busy: b)
+        assert runtime.default_threads() == want
+    monkeypatch.setenv(runtime.THREADS_ENV, "6")  # an explicit count is taken as given
+    assert runtime.default_threads() == 6
+
+
+def test_busy_cores_reads_the_load(monkeypatch, tmp_path):
+    import builtins
+
+    real_open = builtins.open
+
+    def fake_open(path, *a, **k):
+        if str(path) == "/proc/loadavg":
+            f = tmp_path / "loadavg"
+            f.write_text(fake_open.text)
+            return real_open(f, *a, **k)
+        return real_open(path, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", fake_open)
+    fake_open.text = "3.70 2.00 1.00 2/300 1234\n"
+    assert runtime.busy_cores() == 3  # the load average
+    fake_open.text = "0.20 0.10 0.05 6/300 1234\n"
+    assert runtime.busy_cores() == 5  # runnable processes other than this one
 
 
 def test_batch_divides_the_cores_among_concurrent_workers(tmp_path):

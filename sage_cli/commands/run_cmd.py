@@ -111,7 +111,7 @@ def run_pipeline(
 ) -> PipelineResult:
     """Run the stage chain by calling each stage command (see the module doc).
 
-    threads: CPU threads of every stage (None: $SAGE_THREADS, else every core); it is also put in
+    threads: CPU threads of every stage (None: $SAGE_THREADS, else the idle cores); it is also put in
     $SAGE_THREADS for the rest of this process, so stage commands without the option use it too.
     render_backend: the ``render_backend`` of every stage that renders (None: their configs').
     """
