@@ -25,7 +25,7 @@ def test_split_sets_addresses_stages():
 def test_interpolated_demo_motion(tiny_capture, tmp_path):
     import numpy as np
 
-    from sage_cli.commands.demo_cmd import interpolate_keys, write_demo_motion
+    from sage_core.export.motion import interpolate_keys, write_key_motion
     from sage_core.data.capture import read_capture
     from sage_core.export.motion import load_motion
 
@@ -33,7 +33,7 @@ def test_interpolated_demo_motion(tiny_capture, tmp_path):
     out = interpolate_keys(keys, 4)["a"]
     assert out.shape == (9, 2)
     assert np.allclose(out[2], [0.5, 1.0]) and np.allclose(out[4], [1.0, 2.0]) and np.allclose(out[-1], [3.0, 2.0])
-    path, ts = write_demo_motion(tiny_capture, tmp_path / "m.npz", 3)
+    path, ts = write_key_motion(tiny_capture, tmp_path / "m.npz", 3)
     cap = read_capture(tiny_capture, check_images=False)
     assert ts == sorted({f.timestep for f in cap.split("test")})
     motion = load_motion(path)

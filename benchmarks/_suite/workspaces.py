@@ -99,12 +99,12 @@ def copy_command(src: Path, dst: Path, stages: tuple[str, ...]) -> str:
 def write_test_motion(capture: Path, out: Path, steps: int) -> tuple[Path, list[int]]:
     """The reenactment clip: the capture's test timesteps as keys, ``steps`` interpolated frames
     from one to the next (GaussianAvatars motion npz). Returns (path, key timesteps)."""
-    from sage_cli.commands.demo_cmd import write_demo_motion
+    from sage_core.export.motion import write_key_motion
 
-    return write_demo_motion(capture, out, steps)
+    return write_key_motion(capture, out, steps)
 
 
 def motion_command(capture: Path, out: Path, steps: int) -> str:
     """The shell line equivalent to :func:`write_test_motion`."""
-    code = f"from pathlib import Path; from sage_cli.commands.demo_cmd import write_demo_motion; write_demo_motion(Path('{capture}'), Path('{out}'), {steps})"
+    code = f"from pathlib import Path; from sage_core.export.motion import write_key_motion; write_key_motion(Path('{capture}'), Path('{out}'), {steps})"
     return f'python -c "{code}"'

@@ -18,9 +18,8 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Optional
 
-import numpy as np
 import typer
 
 from .._common import DeviceOpt, ProgressDisplay, RenderBackendOpt, SeedOpt, ThreadsOpt, VerboseOpt, cli_errors, console, summary_panel
@@ -41,51 +40,6 @@ FAST_CAPTURE = {"n_cameras": 9, "test_timesteps": 2, "width": 64, "height": 94}
 
 STEPS_BETWEEN_KEYS = 6
 """Frames from one test timestep to the next in the demo clip (the last key is held)."""
-
-
-def interpolate_keys(keys: dict[str, np.ndarray], steps: int) -> dict[str, np.ndarray]:
-    """Linear interpolation between consecutive rows of T-leading arrays.
-
-    keys: name -> (K, ...) key frames. Returns name -> ((K − 1)·steps + 1, ...) float32: ``steps``
-    frames from each key to the next, then the last key.
-    """
-    out: dict[str, np.ndarray] = {}
-    for name, a in keys.items():
-        a = np.asarray(a, np.float64)
-        if a.shape[0] == 1:
-            out[name] = a.astype(np.float32)
-            continue
-        frames = []
-        for i in range(a.shape[0] - 1):
-            for s in range(steps):
-                w = s / steps
-                frames.append((1.0 - w) * a[i] + w * a[i + 1])
-        frames.append(a[-1])
-        out[name] = np.stack(frames).astype(np.float32)
-    return out
-
-
-def write_demo_motion(capture: Path, out_path: Path, steps: int, fps: float = 25.0) -> tuple[Path, list[int]]:
-    """A GaussianAvatars-style motion npz interpolated between the capture's test timesteps (or its
-    training timesteps when it has no test split). Returns (path, key timesteps)."""
-    from sage_core.data.capture import read_capture
-    from sage_core.flame.params import DYNAMIC_KEYS
-    from sage_core.workspace import atomic_write_bytes
-
-    cap = read_capture(capture, check_images=False)
-    test_ts = sorted({f.timestep for f in cap.split("test")}) or sorted({f.timestep for f in cap.frames})
-    p = cap.params.select_timesteps(test_ts)
-    keys = {k: np.asarray(getattr(p, k)) for k in DYNAMIC_KEYS}
-    if p.dynamic_offset is not None:
-        keys["dynamic_offset"] = np.asarray(p.dynamic_offset)
-    arrays: dict[str, Any] = interpolate_keys(keys, steps)
-    arrays["fps"] = np.array(fps, np.float32)
-    import io
-
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    atomic_write_bytes(out_path, buf.getvalue())
-    return out_path, test_ts
 
 
 def _synth_capture(capture: Path, seed: int, fast: bool, verbose: bool) -> str:
@@ -139,7 +93,9 @@ def demo(
         )  # fmt: skip
         console.rule("[bold]reenact")
         t = time.time()
-        motion_path, keys = write_demo_motion(capture, ws / "motion" / "demo_motion.npz", 2 if fast else STEPS_BETWEEN_KEYS)
+        from sage_core.export.motion import write_key_motion
+
+        motion_path, keys = write_key_motion(capture, ws / "motion" / "demo_motion.npz", 2 if fast else STEPS_BETWEEN_KEYS)
         rec = run_reenact(ws=ws, flame_seq=motion_path, name="demo", stage=res.avatar_stage or "auto", device=device, verbose=verbose)
         reenact_s = time.time() - t
         res.stages.insert(0, ("synth", synth_outcome))

@@ -17,6 +17,7 @@ rows (GaussianAvatars indexes past the end on a mismatch, formats.md §7.2).
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from dataclasses import dataclass, replace
@@ -291,3 +292,45 @@ def orbit_cameras(
         eye = c + radius * d
         cams.append(Camera(K.copy(), look_at(eye, c, u), int(width), int(height), i, f"orbit_{i:03d}"))
     return cams
+
+
+def interpolate_keys(keys: dict[str, np.ndarray], steps: int) -> dict[str, np.ndarray]:
+    """Linear interpolation between consecutive rows of T-leading arrays.
+
+    keys: name -> (K, ...) key frames. Returns name -> ((K − 1)·steps + 1, ...) float32: ``steps``
+    frames from each key to the next, then the last key.
+    """
+    out: dict[str, np.ndarray] = {}
+    for name, a in keys.items():
+        a = np.asarray(a, np.float64)
+        if a.shape[0] == 1:
+            out[name] = a.astype(np.float32)
+            continue
+        frames = []
+        for i in range(a.shape[0] - 1):
+            for s in range(steps):
+                w = s / steps
+                frames.append((1.0 - w) * a[i] + w * a[i + 1])
+        frames.append(a[-1])
+        out[name] = np.stack(frames).astype(np.float32)
+    return out
+
+
+def write_key_motion(capture: Path, out_path: Path, steps: int, fps: float = 25.0) -> tuple[Path, list[int]]:
+    """A GaussianAvatars-style motion npz interpolated between the capture's test timesteps (or its
+    training timesteps when it has no test split). Returns (path, key timesteps)."""
+    from ..data.capture import read_capture
+    from ..workspace import atomic_write_bytes
+
+    cap = read_capture(capture, check_images=False)
+    test_ts = sorted({f.timestep for f in cap.split("test")}) or sorted({f.timestep for f in cap.frames})
+    p = cap.params.select_timesteps(test_ts)
+    keys = {k: np.asarray(getattr(p, k)) for k in DYNAMIC_KEYS}
+    if p.dynamic_offset is not None:
+        keys["dynamic_offset"] = np.asarray(p.dynamic_offset)
+    arrays: dict[str, np.ndarray] = interpolate_keys(keys, steps)
+    arrays["fps"] = np.array(fps, np.float32)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(out_path, buf.getvalue())
+    return out_path, test_ts
