@@ -319,10 +319,12 @@ def _move(obj: Any, device: Any) -> Any:
 
 @dataclass
 class Conversion:
-    """Result of :func:`convert_trusted`: the file, its kind, and the backup of the original."""
+    """Result of :func:`convert_trusted`: the file, its kind, whether it was rewritten, and the
+    backup of the original (None without one)."""
 
     path: Path
     kind: str
+    converted: bool
     backup: Path | None
 
 
@@ -358,7 +360,7 @@ def convert_trusted(path: str | Path, trust: bool, keep_backup: bool = True) -> 
     if chk.status == "missing":
         raise InputError(p, "file not found")
     if chk.status == "ok":
-        return Conversion(p, chk.kind, None)
+        return Conversion(p, chk.kind, False, None)
     if chk.status != "pickle":
         raise InputError(p, f"not a sage file that can be converted ({chk.reason})")
     if not trust:
@@ -379,7 +381,7 @@ def convert_trusted(path: str | Path, trust: bool, keep_backup: bool = True) -> 
         backup = p.with_name(p.name + ".pickle-backup")
         atomic_write_bytes(backup, p.read_bytes())
     atomic_write_bytes(p, data)
-    return Conversion(p, kind, backup)
+    return Conversion(p, kind, True, backup)
 
 
 def verify_file(path: str | Path) -> str | None:

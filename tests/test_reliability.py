@@ -157,6 +157,15 @@ def test_convert_trusted_old_avatar_round_trips(tmp_path, tiny_init_dir, tiny_ws
         assert torch.equal(v, back.state_dict()[k]), k
     res = invoke("convert", old, "--trust")
     assert res.exit_code == 0 and "already in the safe format" in text(res)
+    # a folder (an old bundle, a workspace) is searched for old pickle files; the others are left alone
+    folder = tmp_path / "old_bundle"
+    folder.mkdir()
+    torch.save(blob, folder / "avatar.pt")
+    shutil.copy(new, folder / "other.pt")
+    res = invoke("convert", folder, "--trust", "--no-backup")
+    assert res.exit_code == 0 and "avatar.pt: converted (sage-avatar)" in text(res) and "other.pt" not in text(res), text(res)
+    assert sorted(p.name for p in folder.iterdir()) == ["avatar.pt", "other.pt"]
+    Avatar.load(folder / "avatar.pt")
 
 
 # --------------------------------------------------------------------------------------------

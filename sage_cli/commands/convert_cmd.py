@@ -42,7 +42,8 @@ def convert(
             return
         for p in targets:
             res = convert_trusted(p, trust=True, keep_backup=keep_backup)
-            if res.backup is None:
+            if not res.converted:
                 console.print(f"{p}: already in the safe format ({res.kind or 'unknown kind'})")
             else:
-                console.print(f"{p}: converted ({res.kind}); original kept as {res.backup.name}")
+                kept = f"; original kept as {res.backup.name}" if res.backup is not None else ""
+                console.print(f"{p}: converted ({res.kind}){kept}")
