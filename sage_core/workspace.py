@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from . import __version__
-from .errors import InputError, StageError, WorkspaceError
+from .errors import InputError, StageError, UnsafeFileError, WorkspaceError
 
 # stage name -> folder name, in pipeline order
 STAGE_FOLDERS: dict[str, str] = {
@@ -691,6 +691,8 @@ def load_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
     p = Path(path)
     try:
         data, _ = load_file(p, CHECKPOINT_KIND, CHECKPOINT_FORMAT, "checkpoint", map_location=map_location)
+    except UnsafeFileError as e:
+        raise StageError(f"{p}: {e.problem} (or start the stage over with --force)") from None
     except InputError as e:
         raise StageError(f"{p}: {e.problem}") from None
     if not isinstance(data, dict) or "format" not in data or "state" not in data:
