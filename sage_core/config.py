@@ -264,6 +264,7 @@ class Phase2Config:
     correction_w_s: float = _f(1e-3, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|).", ge=0)
     correction_umbilic_tol: float = _f(1.0, "|k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.", ge=0)
     correction_anisotropy_tol: float = _f(0.1, "Relative stretch anisotropy (s1 - s2)/s2 above which the curvature-aligned rotation applies in full; it fades to none under isotropic deformation, so surfels keep their fitted orientation at rest (0: always in full).", ge=0)
+    lr_schedule: str = _f("constant", "Learning-rate schedule of every group: constant, or cosine (falls from the set rate to 0 over the phase's iterations, so a longer phase ends as settled as a shorter one).", choices=("constant", "cosine"))
     lr_position: float = _f(5e-5, "Learning rate of the surfel offsets mu_loc.", ge=0)
     lr_networks: float = _f(1e-4, "Learning rate of the appearance network (0: frozen).", ge=0)
     lr_shape: float = _f(1e-5, "Learning rate of the shape network (mlp attributes; 0: frozen).", ge=0)

@@ -429,3 +429,16 @@ def test_mouth_prior_by_surfel_visibility_spares_seen_surfels(phase1_avatar_path
     assert float(w.sum()) == pytest.approx(expect, rel=1e-3)
     with pytest.raises(ConfigError):
         _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="pixels")
+
+
+def test_cosine_schedule_falls_from_the_set_rate_to_zero():
+    from types import SimpleNamespace
+
+    from sage_core.config import Phase2Config
+    from sage_core.train.phase2 import Phase2Trainer
+
+    cos = SimpleNamespace(cfg=Phase2Config(iterations=100, lr_schedule="cosine"))
+    f = [Phase2Trainer.lr_factor(cos, s) for s in (0, 50, 100, 150)]
+    assert f[0] == pytest.approx(1.0) and f[1] == pytest.approx(0.5) and f[2] == pytest.approx(0.0) and f[3] == pytest.approx(0.0)
+    const = SimpleNamespace(cfg=Phase2Config(iterations=100))
+    assert {Phase2Trainer.lr_factor(const, s) for s in (0, 50, 99)} == {1.0}

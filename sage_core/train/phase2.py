@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -237,6 +238,8 @@ class Phase2Trainer:
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._images: dict[tuple[int, int], torch.Tensor] = {}
         self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
+        for g in self.optimizer.param_groups:
+            g["base_lr"] = g["lr"]
         self.distortion_curve: list[float] = []
         self.prior_colors, mouth_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
         if not cfg.mouth_prior:
@@ -273,6 +276,18 @@ class Phase2Trainer:
             lr_opacity=c.lr_opacity,
             lr_shape=c.lr_shape,
         )
+
+    def lr_factor(self, step: int) -> float:
+        """Learning-rate multiplier of step ``step`` (0-based): 1 for ``lr_schedule`` constant; for
+        cosine, 0.5·(1 + cos(π·step/iterations)), falling from 1 to 0 over the phase."""
+        if self.cfg.lr_schedule == "constant":
+            return 1.0
+        return 0.5 * (1.0 + math.cos(math.pi * min(step, self.cfg.iterations) / self.cfg.iterations))
+
+    def _set_lrs(self) -> None:
+        f = self.lr_factor(self.step_count)
+        for g in self.optimizer.param_groups:
+            g["lr"] = g.setdefault("base_lr", g["lr"]) * f
 
     def _build_rest_teacher(self) -> RestTeacher:
         """Render the (phase-1) avatar at rest from at most ``teacher_max_views`` training views."""
@@ -461,6 +476,7 @@ class Phase2Trainer:
 
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
+        self._set_lrs()
         self.optimizer.step()
         self.step_count += 1
         out = {k: float(v.detach()) for k, v in terms.items()}
