@@ -125,7 +125,7 @@ def _load() -> tuple[bool, str]:
 def available() -> tuple[bool, str]:
     """(True, where it was loaded from) once the extension is built and loaded, else (False, reason).
 
-    The first call compiles the extension (about a minute) unless a cached build exists; the result
+    The first call compiles the extension (10–40 s on 2 cores) unless a cached build exists; the result
     is remembered for the process.
     """
     with _lock:
