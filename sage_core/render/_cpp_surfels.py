@@ -125,8 +125,8 @@ def _load() -> tuple[bool, str]:
 def available() -> tuple[bool, str]:
     """(True, where it was loaded from) once the extension is built and loaded, else (False, reason).
 
-    The first call compiles the extension (10–40 s on 2 cores) unless a cached build exists; the result
-    is remembered for the process.
+    The first call compiles the extension (10–40 s on 2 cores) unless a cached build exists; the
+    result is remembered for the process.
     """
     with _lock:
         if "ok" not in _state:
