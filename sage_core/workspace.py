@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from . import __version__
+from .atomic import atomic_write_bytes, atomic_write_text
 from .errors import InputError, StageError, UnsafeFileError, WorkspaceError
 
 # stage name -> folder name, in pipeline order
@@ -63,31 +64,6 @@ log = logging.getLogger("sage")
 # --------------------------------------------------------------------------------------------
 # Atomic file helpers
 # --------------------------------------------------------------------------------------------
-
-
-def _tmp_path(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.{time.monotonic_ns()}.tmp")
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write bytes to ``path`` through a temp file and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_path(path)
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write text (UTF-8) atomically."""
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def atomic_write_json(path: str | Path, data: Any) -> None:

@@ -5,11 +5,11 @@ Images are float32 arrays in [0, 1], shape (H, W, C), linear as stored.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..errors import InputError
 
 
@@ -82,18 +82,16 @@ def write_image(path: str | Path, image: np.ndarray, bits: int = 8) -> None:
         else:
             fmt = oiio.UINT8
             data = np.round(data * 255.0).astype(np.uint8)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None:
-        raise OSError(f"{path}: no image writer for this format: {oiio.geterror()}")
-    spec = oiio.ImageSpec(w, h, c, fmt)
-    if suffix == ".exr":
-        spec.attribute("compression", "zip")
-    if not out.open(str(tmp), spec):
-        raise OSError(f"{path}: cannot write: {out.geterror()}")
-    ok = out.write_image(np.ascontiguousarray(data))
-    out.close()
-    if not ok:
-        tmp.unlink(missing_ok=True)
-        raise OSError(f"{path}: write failed")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise OSError(f"{path}: no image writer for this format: {oiio.geterror()}")
+        spec = oiio.ImageSpec(w, h, c, fmt)
+        if suffix == ".exr":
+            spec.attribute("compression", "zip")
+        if not out.open(str(tmp), spec):
+            raise OSError(f"{path}: cannot write: {out.geterror()}")
+        ok = out.write_image(np.ascontiguousarray(data))
+        out.close()
+        if not ok:
+            raise OSError(f"{path}: write failed")

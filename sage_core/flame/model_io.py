@@ -11,14 +11,13 @@ Layout of the project's npz (all arrays, ``allow_pickle=False``):
 
 from __future__ import annotations
 
-import os
 import pickle
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_writer
 from ..errors import InputError
 from ._unpickle import UnsupportedPickle, load_flame_pickle
 
@@ -311,14 +310,6 @@ def save_flame_npz(data: FlameModelData, path: str | Path) -> Path:
     }
     for name, ids in data.vertex_groups.items():
         arrays[_GROUP_PREFIX + name] = np.asarray(ids, dtype=np.int64)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_writer(path) as fh:
+        np.savez(fh, **arrays)
     return path

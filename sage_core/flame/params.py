@@ -12,14 +12,13 @@ All arrays are float32 numpy with the timestep axis first (formats.md §1.3, §7
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+from ..atomic import atomic_writer
 from ..errors import InputError
 
 if TYPE_CHECKING:
@@ -307,16 +306,8 @@ def load_param_npz(path: str | Path, timesteps: Sequence[int] | np.ndarray | Non
 
 
 def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_writer(path) as fh:
+        np.savez(fh, **arrays)
     return path
 
 
