@@ -442,3 +442,18 @@ def test_cosine_schedule_falls_from_the_set_rate_to_zero():
     assert f[0] == pytest.approx(1.0) and f[1] == pytest.approx(0.5) and f[2] == pytest.approx(0.0) and f[3] == pytest.approx(0.0)
     const = SimpleNamespace(cfg=Phase2Config(iterations=100))
     assert {Phase2Trainer.lr_factor(const, s) for s in (0, 50, 99)} == {1.0}
+
+
+def test_every_rate_zero_poses_and_prices_without_training(phase1_avatar_path, p2_data, p2_init_dir):
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, seed=3, lr_networks=0.0, lr_shape=0.0, lr_position=0.0)
+    assert tr.optimizer is None and tr.trainable_parameters() == []
+    before = {k: v.clone() for k, v in tr.avatar.state_dict().items() if not k.startswith("flame.")}
+    out = tr.step()
+    assert out["loss"] > 0 and tr.step_count == 1
+    for k, v in tr.avatar.state_dict().items():
+        if k in before:
+            torch.testing.assert_close(v, before[k], atol=0, rtol=0)
+    state = tr.state_dict()
+    tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, seed=4, lr_networks=0.0, lr_shape=0.0, lr_position=0.0)
+    tr2.load_state_dict(state)
+    assert tr2.step_count == 1

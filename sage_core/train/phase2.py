@@ -237,8 +237,11 @@ class Phase2Trainer:
         self.length_unit = float(avatar.sdf.half_extent)
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._images: dict[tuple[int, int], torch.Tensor] = {}
-        self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
-        for g in self.optimizer.param_groups:
+        groups = self._param_groups()
+        # every rate 0: the phase only attaches the mouth prior (and the wrinkle statistics) and
+        # poses with the correction, without gradient steps
+        self.optimizer: torch.optim.Adam | None = torch.optim.Adam(groups, eps=1e-15) if groups else None
+        for g in self.optimizer.param_groups if self.optimizer is not None else []:
             g["base_lr"] = g["lr"]
         self.distortion_curve: list[float] = []
         self.prior_colors, mouth_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
@@ -286,7 +289,7 @@ class Phase2Trainer:
 
     def _set_lrs(self) -> None:
         f = self.lr_factor(self.step_count)
-        for g in self.optimizer.param_groups:
+        for g in self.optimizer.param_groups if self.optimizer is not None else []:
             g["lr"] = g.setdefault("base_lr", g["lr"]) * f
 
     def _build_rest_teacher(self) -> RestTeacher:
@@ -370,7 +373,7 @@ class Phase2Trainer:
 
     def trainable_parameters(self) -> list[torch.nn.Parameter]:
         """Every parameter the optimizer updates."""
-        return [p for g in self.optimizer.param_groups for p in g["params"]]
+        return [p for g in self.optimizer.param_groups for p in g["params"]] if self.optimizer is not None else []
 
     def inputs(self, timestep: int) -> dict[str, torch.Tensor]:
         """Cached FLAME kwargs of a dataset timestep."""
@@ -474,10 +477,11 @@ class Phase2Trainer:
             terms["rgb"] = L.rgb_loss(img2.color, gt)
             total = total + c.w_photometric * terms["rgb"]
 
-        self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        self._set_lrs()
-        self.optimizer.step()
+        if self.optimizer is not None:
+            self.optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            self._set_lrs()
+            self.optimizer.step()
         self.step_count += 1
         out = {k: float(v.detach()) for k, v in terms.items()}
         out["loss"] = float(total.detach())
@@ -534,7 +538,7 @@ class Phase2Trainer:
             "teacher_app": _module_state(self.teacher_app),
             "teacher_variance": _module_state(self.teacher_variance),
             "wrinkle_stats": None if self.wrinkle_stats is None else self.wrinkle_stats.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": self.optimizer.state_dict() if self.optimizer is not None else None,
             "generator": self.generator.get_state(),
             "rng": rng_state(),
             "distortion_curve": list(self.distortion_curve),
@@ -550,7 +554,8 @@ class Phase2Trainer:
             self.teacher_variance.load_state_dict(state["teacher_variance"])
         if self.wrinkle_stats is not None and state.get("wrinkle_stats") is not None:
             self.wrinkle_stats.load_state_dict(state["wrinkle_stats"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        if self.optimizer is not None and state.get("optimizer") is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         set_rng_state(state["rng"])
         self.step_count = int(state["step"])
