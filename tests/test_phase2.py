@@ -316,13 +316,13 @@ def test_mouth_prior_faces_and_colours(phase1_avatar_path, p2_data, p2_init_dir)
     assert not bool(tr.prior_faces.any())
 
 
-def test_free_surfels_keep_opacity_scale_rotation_by_default(p2_data, p2_init_dir):
+def test_free_surfels_keep_position_opacity_scale_rotation_by_default(p2_data, p2_init_dir):
     cfg1 = resolve_config("phase1", "tiny", None, {**P1_FLAGS, "attributes": "free"})
     av = build_avatar(p2_data, p2_init_dir, cfg1, "cpu", torch.Generator().manual_seed(0))
     tr = Phase2Trainer(av, p2_data, _cfg(), "cpu", torch.Generator().manual_seed(0), p2_init_dir)
     names = {g["name"] for g in tr.optimizer.param_groups}
-    assert {"mu_loc", "sh_dc"} <= names and not names & {"opacity", "s_loc", "q_loc"}
-    before = {k: getattr(av.surfels, k).detach().clone() for k in ("opacity", "s_loc", "q_loc")}
+    assert "sh_dc" in names and not names & {"mu_loc", "opacity", "s_loc", "q_loc"}
+    before = {k: getattr(av.surfels, k).detach().clone() for k in ("mu_loc", "opacity", "s_loc", "q_loc")}
     tr.step()
     for k, v in before.items():
         assert torch.equal(getattr(av.surfels, k), v)
@@ -440,7 +440,7 @@ def test_cosine_schedule_falls_from_the_set_rate_to_zero():
     cos = SimpleNamespace(cfg=Phase2Config(iterations=100, lr_schedule="cosine"))
     f = [Phase2Trainer.lr_factor(cos, s) for s in (0, 50, 100, 150)]
     assert f[0] == pytest.approx(1.0) and f[1] == pytest.approx(0.5) and f[2] == pytest.approx(0.0) and f[3] == pytest.approx(0.0)
-    const = SimpleNamespace(cfg=Phase2Config(iterations=100))
+    const = SimpleNamespace(cfg=Phase2Config(iterations=100, lr_schedule="constant"))
     assert {Phase2Trainer.lr_factor(const, s) for s in (0, 50, 99)} == {1.0}
 
 
