@@ -29,20 +29,9 @@ from sage_core.render import RenderCamera, rasterize_surfels, resolve_backend
 from sage_core.render import _cpp_surfels
 from sage_core.render._dense_reference import random_test_scene, render_dense_reference
 
-OUTPUTS = (
-    "color",
-    "alpha",
-    "depth",
-    "depth_sum",
-    "median_depth",
-    "normal_cam",
-    "normal_world",
-    "surf_normal_cam",
-    "surf_normal_world",
-    "distortion",
-)
+from render_parity import OUTPUTS, PARAMS, compare_backends, render_with_grads, scene_tensors
+
 REF_OUTPUTS = OUTPUTS  # the dense reference returns every image output
-PARAMS = ("means", "quats", "scales", "opacities", "features")
 
 
 @pytest.fixture(scope="session")
@@ -55,38 +44,9 @@ def cpp_ext() -> float:
     return time.perf_counter() - t0
 
 
-def _tensors(scene: dict, dtype: torch.dtype) -> tuple[list[torch.Tensor], RenderCamera]:
-    t = {k: torch.as_tensor(v, dtype=dtype) for k, v in scene.items() if isinstance(v, np.ndarray)}
-    return [t[k] for k in PARAMS], RenderCamera(t["K"], t["w2c"], scene["width"], scene["height"])
-
-
-def _run(params: list[torch.Tensor], cam: RenderCamera, backend: str, **kw):
-    """Render, back-propagate a random weighting of every output; return the render and gradients."""
-    ps = [p.detach().clone().requires_grad_(True) for p in params]
-    out = rasterize_surfels(*ps, cam, backend=backend, **kw)
-    out.means2d.retain_grad()
-    g = torch.Generator().manual_seed(3)
-    loss = torch.zeros((), dtype=ps[0].dtype)
-    for name in OUTPUTS:
-        v = getattr(out, name)
-        loss = loss + (v * torch.rand(v.shape, generator=g, dtype=v.dtype)).sum()
-    loss.backward()
-    return out, [p.grad for p in ps] + [out.means2d.grad]
-
-
 def _compare(params, cam, atol: float, grad_rtol: float, **kw) -> tuple:
-    a, ga = _run(params, cam, "torch", **kw)
-    b, gb = _run(params, cam, "cpp", **kw)
-    for name in OUTPUTS:
-        x, y = getattr(a, name).detach(), getattr(b, name).detach()
-        assert x.shape == y.shape and x.dtype == y.dtype, name
-        assert float((x - y).abs().max()) <= atol, (name, float((x - y).abs().max()))
-    for name, x, y in zip(PARAMS + ("means2d",), ga, gb):
-        scale = float(x.abs().max())
-        assert scale > 0, name
-        assert float((x - y).abs().max()) <= grad_rtol * scale, (name, float((x - y).abs().max()), scale)
-    assert torch.equal(a.visible, b.visible) and torch.equal(a.radii, b.radii)
-    return a, b
+    """The backend under test against the torch backend (see ``compare_backends``)."""
+    return compare_backends(params, cam, "cpp", atol, grad_rtol, **kw)
 
 
 def _check_reference(out, scene: dict, atol: float, cam_index: int | None = None, **kw) -> dict:
@@ -137,7 +97,7 @@ def _tilted_scene(seed: int) -> dict:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_float64_parity_with_packed_and_reference(cpp_ext: float, seed: int) -> None:
     scene = random_test_scene(seed, num=60, width=24, height=20)
-    params, cam = _tensors(scene, torch.float64)
+    params, cam = scene_tensors(scene, torch.float64)
     bg = np.array([0.1, 0.9, 0.3, 0.5])
     kw = dict(near=0.2, far=10.0)
     a, b = _compare(params, cam, atol=1e-10, grad_rtol=1e-9, background=torch.tensor(bg), **kw)
@@ -156,7 +116,7 @@ def test_float64_parity_with_packed_and_reference(cpp_ext: float, seed: int) -> 
 @pytest.mark.parametrize("seed", [2, 3])
 def test_tilted_edge_on_and_tile_crossing_surfels(cpp_ext: float, seed: int) -> None:
     scene = _tilted_scene(seed)
-    params, cam = _tensors(scene, torch.float64)
+    params, cam = scene_tensors(scene, torch.float64)
     kw = dict(near=0.2, far=10.0, background=0.4)
     _, b = _compare(params, cam, atol=1e-10, grad_rtol=1e-9, **kw)
     ref = _check_reference(b, scene, 1e-9, **kw)
@@ -169,7 +129,7 @@ def test_tilted_edge_on_and_tile_crossing_surfels(cpp_ext: float, seed: int) -> 
 
 def test_float32_parity_many_overlapping_surfels(cpp_ext: float) -> None:
     scene = random_test_scene(4, num=200, width=24, height=20)
-    params, cam = _tensors(scene, torch.float32)
+    params, cam = scene_tensors(scene, torch.float32)
     kw = dict(near=0.2, far=10.0, background=0.25)
     _, b = _compare(params, cam, atol=2e-5, grad_rtol=1e-4, **kw)
     _check_reference(b, scene, 2e-5, **kw)
@@ -180,7 +140,7 @@ def test_near_plane_and_surfels_behind_camera(cpp_ext: float) -> None:
     scene = random_test_scene(5, num=50, width=24, height=20)
     scene["means"][40:44, 2] = [-1.0, -0.3, 0.05, 0.15]
     scene["scales"][42] = [0.4, 0.4]
-    params, cam = _tensors(scene, torch.float64)
+    params, cam = scene_tensors(scene, torch.float64)
     _, b = _compare(params, cam, atol=1e-10, grad_rtol=1e-9, near=2.65, far=10.0)
     ref = _check_reference(b, scene, 1e-9, near=2.65, far=10.0)
     assert ref["counts"]["near_skipped"] > 0
@@ -190,7 +150,7 @@ def test_near_plane_and_surfels_behind_camera(cpp_ext: float) -> None:
 
 def test_spherical_harmonics_and_camera_batch(cpp_ext: float) -> None:
     scene = random_test_scene(8, num=40, width=24, height=20)
-    params, cam = _tensors(scene, torch.float64)
+    params, cam = scene_tensors(scene, torch.float64)
     g = torch.Generator().manual_seed(1)
     params[4] = torch.rand(40, 4, 3, generator=g, dtype=torch.float64) - 0.3
     w2c2 = cam.w2c.clone()
@@ -203,7 +163,7 @@ def test_spherical_harmonics_and_camera_batch(cpp_ext: float) -> None:
 
 def test_empty_scene_gives_background_and_zero_gradients(cpp_ext: float) -> None:
     scene = random_test_scene(6, num=30, width=40, height=36)
-    params, cam = _tensors(scene, torch.float64)
+    params, cam = scene_tensors(scene, torch.float64)
     params[0] = params[0] * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # all behind the camera
     ps = [p.clone().requires_grad_(True) for p in params]
     out = rasterize_surfels(*ps, cam, backend="cpp", background=0.5)
@@ -215,7 +175,7 @@ def test_empty_scene_gives_background_and_zero_gradients(cpp_ext: float) -> None
 def _tiny_scene(width: int = 16, height: int = 12) -> tuple[list[torch.Tensor], RenderCamera]:
     scene = random_test_scene(11, num=8, width=width, height=height, num_features=2)
     scene["opacities"] = np.clip(scene["opacities"], 0.3, 0.9)  # away from the 0.99 clamp
-    return _tensors(scene, torch.float64)
+    return scene_tensors(scene, torch.float64)
 
 
 def test_gradcheck_float64_tiny_scene(cpp_ext: float) -> None:
@@ -265,13 +225,13 @@ def test_gradcheck_float64_compositing_full_jacobian(cpp_ext: float) -> None:
 
 def test_gradients_do_not_depend_on_the_thread_count(cpp_ext: float) -> None:
     scene = random_test_scene(7, num=120, width=40, height=36)
-    params, cam = _tensors(scene, torch.float32)
+    params, cam = scene_tensors(scene, torch.float32)
     old = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        a, ga = _run(params, cam, "cpp")
+        a, ga = render_with_grads(params, cam, "cpp")
         torch.set_num_threads(2)
-        b, gb = _run(params, cam, "cpp")
+        b, gb = render_with_grads(params, cam, "cpp")
     finally:
         torch.set_num_threads(old)
     assert torch.equal(a.color, b.color) and torch.equal(a.distortion, b.distortion)
@@ -306,7 +266,7 @@ def test_auto_resolves_to_cpp_on_cpu(cpp_ext: float) -> None:
     assert resolve_backend("cpp", torch.device("cpu")) == "cpp"
     assert resolve_backend("torch", "cpu") == "torch"
     scene = random_test_scene(2, num=30, width=24, height=20)
-    params, cam = _tensors(scene, torch.float32)
+    params, cam = scene_tensors(scene, torch.float32)
     a = rasterize_surfels(*params, cam, backend="auto", far=10.0)
     b = rasterize_surfels(*params, cam, backend="cpp", far=10.0)
     assert torch.equal(a.color, b.color) and int(a.num_pairs) == int(b.num_pairs)
@@ -320,7 +280,7 @@ def test_unavailable_extension_errors_for_cpp_and_warns_once_for_auto(monkeypatc
     with pytest.raises(ValueError, match="backend='cpp' is unavailable: no C\\+\\+ compiler"):
         resolve_backend("cpp", "cpu")
     scene = random_test_scene(2, num=20, width=16, height=16)
-    params, cam = _tensors(scene, torch.float32)
+    params, cam = scene_tensors(scene, torch.float32)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert resolve_backend("auto", "cpu") == "torch"

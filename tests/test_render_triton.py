@@ -19,12 +19,13 @@ import subprocess
 import sys
 import textwrap
 
-import numpy as np
 import pytest
 import torch
 
 from sage_core.render import RenderCamera, rasterize_surfels
 from sage_core.render._dense_reference import random_test_scene, render_dense_reference
+
+from render_parity import OUTPUTS, PARAMS, compare_backends, render_with_grads, scene_tensors
 
 
 def _import_backend():
@@ -69,60 +70,18 @@ interpreted = pytest.mark.skipif(
     not ts.INTERPRETED, reason="the Triton backend was imported with compiled kernels; the cuda tests cover it"
 )
 
-OUTPUTS = (
-    "color",
-    "alpha",
-    "depth",
-    "depth_sum",
-    "median_depth",
-    "normal_cam",
-    "normal_world",
-    "surf_normal_cam",
-    "surf_normal_world",
-    "distortion",
-)
-PARAMS = ("means", "quats", "scales", "opacities", "features")
-
-
-def _tensors(scene: dict, dtype: torch.dtype, device: str) -> tuple[list[torch.Tensor], RenderCamera]:
-    t = {k: torch.as_tensor(v, dtype=dtype, device=device) for k, v in scene.items() if isinstance(v, np.ndarray)}
-    return [t[k] for k in PARAMS], RenderCamera(t["K"], t["w2c"], scene["width"], scene["height"])
-
-
-def _run(params: list[torch.Tensor], cam: RenderCamera, backend: str, **kw):
-    """Render, back-propagate a random weighting of every output; return the render and gradients."""
-    ps = [p.detach().clone().requires_grad_(True) for p in params]
-    out = rasterize_surfels(*ps, cam, backend=backend, **kw)
-    out.means2d.retain_grad()
-    g = torch.Generator().manual_seed(3)
-    loss = torch.zeros((), dtype=ps[0].dtype, device=ps[0].device)
-    for name in OUTPUTS:
-        v = getattr(out, name)
-        loss = loss + (v * torch.rand(v.shape, generator=g, dtype=v.dtype).to(v.device)).sum()
-    loss.backward()
-    return out, [p.grad for p in ps] + [out.means2d.grad]
 
 
 def _compare(params, cam, atol: float, grad_rtol: float, **kw) -> tuple:
-    a, ga = _run(params, cam, "torch", **kw)
-    b, gb = _run(params, cam, "triton", **kw)
-    for name in OUTPUTS:
-        x, y = getattr(a, name).detach(), getattr(b, name).detach()
-        assert x.shape == y.shape and x.dtype == y.dtype, name
-        assert float((x - y).abs().max()) <= atol, (name, float((x - y).abs().max()))
-    for name, x, y in zip(PARAMS + ("means2d",), ga, gb):
-        scale = float(x.abs().max())
-        assert scale > 0, name
-        assert float((x - y).abs().max()) <= grad_rtol * scale, (name, float((x - y).abs().max()), scale)
-    assert torch.equal(a.visible, b.visible) and torch.equal(a.radii, b.radii)
-    return a, b
+    """The backend under test against the torch backend (see ``compare_backends``)."""
+    return compare_backends(params, cam, "triton", atol, grad_rtol, **kw)
 
 
 @interpreted
 @pytest.mark.parametrize("seed", [0, 1])
 def test_float64_parity_with_torch_backend(seed: int) -> None:
     scene = random_test_scene(seed, num=60, width=24, height=20)
-    params, cam = _tensors(scene, torch.float64, "cpu")
+    params, cam = scene_tensors(scene, torch.float64, "cpu")
     kw = dict(background=torch.tensor([0.1, 0.9, 0.3, 0.5], dtype=torch.float64), near=0.2, far=10.0)
     a, b = _compare(params, cam, atol=1e-10, grad_rtol=1e-9, **kw)
     ref = render_dense_reference(*(scene[k] for k in PARAMS), scene["K"], scene["w2c"], 24, 20, near=0.2, far=10.0)
@@ -140,7 +99,7 @@ def test_float64_parity_with_torch_backend(seed: int) -> None:
 @interpreted
 def test_float32_parity_many_overlapping_surfels() -> None:
     scene = random_test_scene(4, num=200, width=24, height=20)
-    params, cam = _tensors(scene, torch.float32, "cpu")
+    params, cam = scene_tensors(scene, torch.float32, "cpu")
     _, b = _compare(params, cam, atol=2e-5, grad_rtol=1e-4, near=0.2, far=10.0, background=0.25)
     assert b.color.dtype == torch.float32 and int(b.num_pairs) > 3000
 
@@ -151,7 +110,7 @@ def test_near_plane_and_surfels_behind_camera() -> None:
     # a few surfels behind the camera, one straddling the camera plane, one centred just past near
     scene["means"][40:44, 2] = [-1.0, -0.3, 0.05, 0.15]
     scene["scales"][42] = [0.4, 0.4]
-    params, cam = _tensors(scene, torch.float64, "cpu")
+    params, cam = scene_tensors(scene, torch.float64, "cpu")
     a, b = _compare(params, cam, atol=1e-10, grad_rtol=1e-9, near=2.65, far=10.0)
     ref = render_dense_reference(*(scene[k] for k in PARAMS), scene["K"], scene["w2c"], 24, 20, near=2.65, far=10.0)
     assert ref["counts"]["near_skipped"] > 0
@@ -168,7 +127,7 @@ def test_empty_tiles_and_empty_scene() -> None:
     scene["means"][:, 0] = scene["means"][:, 0] * 0.1 + (8.0 - scene["K"][0, 2]) / scene["K"][0, 0] * z
     scene["means"][:, 1] = scene["means"][:, 1] * 0.1 + (8.0 - scene["K"][1, 2]) / scene["K"][1, 1] * z
     scene["scales"] *= 0.2
-    params, cam = _tensors(scene, torch.float64, "cpu")
+    params, cam = scene_tensors(scene, torch.float64, "cpu")
     a, b = _compare(params, cam, atol=1e-10, grad_rtol=1e-9, near=0.2, far=10.0)
     alpha = b.alpha.detach()
     assert float(alpha[:16, :16].max()) > 0.5 and float(alpha[20:, :].abs().max()) == 0.0
@@ -185,7 +144,7 @@ def test_empty_tiles_and_empty_scene() -> None:
 @interpreted
 def test_spherical_harmonics_and_camera_batch() -> None:
     scene = random_test_scene(8, num=40, width=24, height=20)
-    params, cam = _tensors(scene, torch.float64, "cpu")
+    params, cam = scene_tensors(scene, torch.float64, "cpu")
     g = torch.Generator().manual_seed(1)
     params[4] = torch.rand(40, 4, 3, generator=g, dtype=torch.float64) - 0.3
     w2c2 = cam.w2c.clone()
@@ -225,7 +184,7 @@ def test_auto_backend_never_picks_interpreted_triton_for_cpu_tensors() -> None:
     from sage_core.render import resolve_backend
 
     scene = random_test_scene(2, num=30, width=24, height=20)
-    params, cam = _tensors(scene, torch.float64, "cpu")
+    params, cam = scene_tensors(scene, torch.float64, "cpu")
     chosen = resolve_backend("auto", "cpu")  # the native CPU backend when it builds, else torch
     assert chosen in ("cpp", "torch")
     a = rasterize_surfels(*params, cam, backend="auto", far=10.0)
@@ -286,9 +245,9 @@ def test_kernels_compile_for_sm90_without_a_gpu() -> None:
 
 
 def _cuda_parity(scene: dict, dtype: torch.dtype, **kw) -> None:
-    params, cam = _tensors(scene, dtype, "cuda")
-    a, ga = _run(params, cam, "torch", **kw)
-    b, gb = _run(params, cam, "triton", **kw)
+    params, cam = scene_tensors(scene, dtype, "cuda")
+    a, ga = render_with_grads(params, cam, "torch", **kw)
+    b, gb = render_with_grads(params, cam, "triton", **kw)
     for name in OUTPUTS:
         x, y = getattr(a, name).detach(), getattr(b, name).detach()
         bad = (x - y).abs() > 1e-4
@@ -312,7 +271,7 @@ def test_cuda_parity_small_scenes(seed: int, dtype: torch.dtype) -> None:
 def test_cuda_parity_larger_scene_and_auto() -> None:
     scene = random_test_scene(9, num=3000, width=160, height=120)
     _cuda_parity(scene, torch.float32, near=0.2, far=10.0)
-    params, cam = _tensors(scene, torch.float32, "cuda")
+    params, cam = scene_tensors(scene, torch.float32, "cuda")
     a = rasterize_surfels(*params, cam, backend="auto", far=10.0)
     b = rasterize_surfels(*params, cam, backend="triton", far=10.0)
     assert torch.equal(a.color, b.color)
