@@ -123,6 +123,16 @@ def duplicate_frame(root: Path) -> str:
     return "transforms_train.json"
 
 
+def image_path_escapes_the_capture(root: Path) -> str:
+    _edit_json(root / "transforms_train.json", lambda d: _train_frame(d).update(file_path="../../etc/hostname"))
+    return "../../etc/hostname"
+
+
+def absolute_flame_path(root: Path) -> str:
+    _edit_json(root / "transforms_train.json", lambda d: _train_frame(d).update(flame_param_path="/etc/hostname"))
+    return "/etc/hostname"
+
+
 def missing_folder(root: Path) -> str:
     import shutil
 
@@ -134,7 +144,7 @@ CASES = [
     missing_transforms, missing_all_transforms, invalid_json, missing_fl_x, non_numeric_cx, bad_transform_matrix,
     missing_image, garbage_image, wrong_image_size, missing_mask, npz_missing_expr, npz_with_nan,
     npz_missing_file, npz_changing_shape, static_offset_rows_incompatible, empty_train_split, duplicate_frame,
-    missing_folder,
+    image_path_escapes_the_capture, absolute_flame_path, missing_folder,
 ]
 
 

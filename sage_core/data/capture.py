@@ -144,6 +144,27 @@ def _resolve(json_dir: Path, rel: str) -> Path:
     return Path(os.path.normpath(p if p.is_absolute() else json_dir / p))
 
 
+def _outside_capture(json_dir: Path, rel: str) -> str | None:
+    """Why the frame path ``rel`` (relative to the split file's folder) leaves the capture, or None.
+
+    A path stays in the capture when it is relative and resolves inside the capture folder or inside
+    a sequence folder beside it (union exports name ``../<sequence>/images/...``). Absolute paths and
+    anything that climbs further (``../../etc/hostname``) are refused, so a capture can never make
+    sage read files elsewhere on the machine.
+    """
+    if Path(rel).is_absolute():
+        return "is an absolute path; capture paths are relative to the split file"
+    resolved = _resolve(json_dir, rel)
+    root = Path(os.path.normpath(json_dir.parent))
+    try:
+        inner = resolved.relative_to(root)
+    except ValueError:
+        return "points outside the capture folder and the sequence folders beside it"
+    if len(inner.parts) < 2:
+        return "points outside the capture folder and the sequence folders beside it"
+    return None
+
+
 def _as_int(value: Any) -> int | None:
     if isinstance(value, bool):
         return None
@@ -314,6 +335,12 @@ def read_capture(path: str | Path, *, check_images: bool = True, progress: Progr
             continue
         seen[key] = jpath
         cam = camera_from_nerf_frame(fr)
+        bad = [(k, why) for k in ("file_path", "fg_mask_path", "flame_param_path")
+               if isinstance(fr.get(k), str) and fr.get(k) and (why := _outside_capture(jdir, fr[k]))]
+        if bad:
+            for k, why in bad:
+                problems.add(jpath, f"frame for timestep {ti}, camera {ci}: {k} '{fr[k]}' {why}")
+            continue
         img = _resolve(jdir, fr["file_path"])
         mask_rel = fr.get("fg_mask_path")
         mask = _resolve(jdir, mask_rel) if mask_rel else None
