@@ -332,7 +332,7 @@ def classify_legacy(blob: Any) -> tuple[str, int]:
     """(kind, format) of an object loaded from an old pickle file; ValueError when it is none of
     sage's file kinds."""
     from .avatar.model import AVATAR_FORMAT, AVATAR_KIND
-    from .train.init_mesh import SDF_FILE_FORMAT, SDF_KIND
+    from .fields.sdf_file import SDF_FILE_FORMAT, SDF_KIND
     from .workspace import CHECKPOINT_FORMAT, CHECKPOINT_KIND
 
     if not isinstance(blob, dict):

@@ -7,7 +7,7 @@ import pytest
 
 from sage_core.data.cameras import look_at
 from sage_core.geometry.rotations import axis_angle_to_matrix
-from sage_core.train.coverage import Coverage, camera_angles, coverage_of_frames
+from sage_core.data.coverage import Coverage, camera_angles, coverage_of_frames
 
 
 def _rot_y(deg: float) -> np.ndarray:

@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 from sage_cli.app import app
 from sage_core.config import resolve_config
 from sage_core.data.dataset import IngestedData
-from sage_core.train.init_mesh import load_sdf, run_init_mesh
+from sage_core.fields.sdf_file import load_sdf
+from sage_core.train.init_mesh import run_init_mesh
 
 
 def _cfg(steps):
@@ -79,7 +80,7 @@ def test_interrupted_pretraining_resumes_exactly(tiny_ws, tmp_path, one_thread):
     assert sorted(p.name for p in ck.glob("ckpt_*.pt"))[-1] == "ckpt_00000020.pt"
     resumed = run_init_mesh(data, out, cfg, checkpoint_dir=ck)
     assert resumed["final_loss"] == pytest.approx(ref["final_loss"], rel=1e-6, abs=1e-9)
-    from sage_core.train.init_mesh import read_sdf_file
+    from sage_core.fields.sdf_file import read_sdf_file
 
     a = read_sdf_file(ref_dir / "sdf.pt")[1]
     b = read_sdf_file(out / "sdf.pt")[1]

@@ -254,7 +254,7 @@ def test_clip_cameras_seen_from_the_canonical_head(svhr_ws):
     from sage_core.avatar.model import _clip_cameras_at_canonical, _rigid_world_from_canonical
     from sage_core.flame import FlameModel
     from sage_core.flame.canonical import canonical_inputs
-    from sage_core.train.coverage import Coverage
+    from sage_core.data.coverage import Coverage
 
     data = IngestedData.open(svhr_ws / "data")
     params, ct = data.params, data.canonical_timestep

@@ -92,7 +92,7 @@ def _payload_files(tmp_path: Path) -> tuple[Path, dict[str, Path]]:
 def test_payloads_of_every_file_kind_never_run(tmp_path):
     from sage_core.avatar.model import Avatar
     from sage_core.errors import StageError, UnsafeFileError
-    from sage_core.train.init_mesh import load_sdf, read_sdf_file
+    from sage_core.fields.sdf_file import load_sdf, read_sdf_file
     from sage_core.workspace import latest_checkpoint, load_checkpoint
 
     marker, files = _payload_files(tmp_path)

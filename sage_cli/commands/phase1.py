@@ -123,7 +123,7 @@ def _print_coverage(summary: dict, verbose: bool) -> None:
     cov = summary.get("coverage")
     if not isinstance(cov, dict):
         return
-    from sage_core.train.coverage import Coverage
+    from sage_core.data.coverage import Coverage
 
     c = Coverage.from_dict(cov)
     if verbose:

@@ -277,7 +277,7 @@ class Avatar(nn.Module):
 
         from ..flame import load_flame_model
         from ..flame.regions import Regions
-        from ..train.init_mesh import read_sdf_file
+        from ..fields.sdf_file import read_sdf_file
 
         d = Path(ws_init_dir)
         model_path = d / "flame_model.npz"

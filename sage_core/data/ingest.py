@@ -96,7 +96,7 @@ class IngestSummary:
         has_masks: whether ``masks/`` holds a mask for every frame.
         warnings: non-fatal findings.
         coverage: sv-hr / one-shot: the yaw/pitch of the training camera relative to the head
-            (:meth:`sage_core.train.coverage.Coverage.to_dict`), else None.
+            (:meth:`sage_core.data.coverage.Coverage.to_dict`), else None.
     """
 
     out_dir: Path
@@ -149,7 +149,7 @@ class IngestSummary:
             ("background", self.background + ("" if self.has_masks else " (no masks)")),
         ]
         if self.coverage is not None:
-            from ..train.coverage import Coverage
+            from .coverage import Coverage
 
             rows.append(("head coverage", Coverage.from_dict(self.coverage).text()))
         rows += [("warning", w) for w in self.warnings]
@@ -514,7 +514,7 @@ def ingest(
     bbox = _head_bbox(model, params, sel.canonical_timestep, canon_src)
     coverage: dict[str, Any] | None = None
     if regime in ("sv-hr", "one-shot"):
-        from ..train.coverage import coverage_of_frames
+        from .coverage import coverage_of_frames
 
         cov = coverage_of_frames(model, params, [(f.timestep, f.camera) for f in sel.train])
         coverage = cov.to_dict()

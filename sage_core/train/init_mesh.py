@@ -14,8 +14,6 @@ Outputs (into the stage's work folder):
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable
 
@@ -28,18 +26,13 @@ from ..errors import InputError
 from ..fields.pretrain import PretrainConfig as _EnginePretrainConfig
 from ..fields.pretrain import SDFPretrainer
 from ..fields.sdf import SDFNetwork
+from ..fields.sdf_file import save_sdf
 from ..flame import FlameModel, FlameModelData, Regions, add_mouth_interior, has_mouth_interior, save_flame_npz
 from ..flame.canonical import canonical_vertices
 from ..geometry.marching import extract_mesh
-from ..geometry.mesh_metrics import mesh_chamfer
 from ..workspace import atomic_write_bytes, atomic_write_json, latest_checkpoint, load_checkpoint, save_checkpoint
 
 Progress = Callable[..., None]
-
-SDF_FILE_FORMAT = 2
-"""Format 1 was a torch.save pickle (refused now); 2 is a safetensors file (sage_core.serialization)."""
-SDF_KIND = "sage-sdf"
-
 
 def build_model(data: IngestedData, mouth_interior: bool) -> tuple[FlameModelData, Regions | None]:
     """The ingested FLAME model, with the mouth interior appended when asked and possible.
@@ -92,39 +85,6 @@ def sdf_constructor_args(cfg: InitMeshConfig, bbox_min: np.ndarray, bbox_max: np
         "feature_dim": cfg.sdf.feature_dim,
         "sphere_radius": cfg.sphere_radius,
     }
-
-
-def save_sdf(path: str | Path, args: dict[str, Any], net: SDFNetwork) -> Path:
-    """Write an SDF file atomically: ``{"format", "args": constructor kwargs, "state": state dict}``
-    as a safetensors file (loading it cannot run code)."""
-    from ..serialization import save_file
-
-    state = {k: v.detach().cpu() for k, v in net.state_dict().items()}
-    return save_file(path, {"format": SDF_FILE_FORMAT, "args": args, "state": state}, SDF_KIND, SDF_FILE_FORMAT)
-
-
-def read_sdf_file(path: str | Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
-    """(constructor kwargs, CPU state dict) of an SDF file; InputError (UnsafeFileError for an old
-    pickle file, which is not loaded) when it is not a readable sage SDF file."""
-    from ..serialization import load_file
-
-    p = Path(path)
-    blob, _ = load_file(p, SDF_KIND, SDF_FILE_FORMAT, "SDF file")
-    if not isinstance(blob, dict) or not isinstance(blob.get("args"), dict) or not isinstance(blob.get("state"), dict):
-        raise InputError(p, "not a sage SDF file")
-    return blob["args"], blob["state"]
-
-
-def load_sdf(path: str | Path, device: str | torch.device = "cpu") -> SDFNetwork:
-    """Load ``sdf.pt`` written by this stage."""
-    p = Path(path)
-    args, state = read_sdf_file(p)
-    try:
-        net = SDFNetwork(**args).to(device)
-        net.load_state_dict(state)
-    except (TypeError, ValueError, RuntimeError) as e:
-        raise InputError(p, f"malformed SDF file: {e}") from None
-    return net
 
 
 def _mesh_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> bytes:
