@@ -49,6 +49,17 @@ def parse_sets(values: list[str] | None) -> dict[str, Any]:
     return out
 
 
+def require_workspace(ws: Path, hint: str = "") -> None:
+    """The workspace folder must exist: WorkspaceError when ``ws`` is a file (or lies under one),
+    InputError naming it when it is missing (``hint`` says which command creates what is needed)."""
+    from sage_core.errors import InputError
+    from sage_core.workspace import check_workspace_path
+
+    check_workspace_path(ws)
+    if not ws.is_dir():
+        raise InputError(ws, "workspace folder not found" + hint)
+
+
 def resolve_stage_config(stage: str, preset: str, config_file: Path | None, flags: dict[str, Any], regime: str | None = None) -> Any:
     """preset < regime defaults < config file < flags, for one stage."""
     from sage_core.config import load_config_file, resolve_config

@@ -22,6 +22,7 @@ from typing import Annotated, Any, Callable, Optional
 import typer
 
 from .._common import (
+    require_workspace,
     ConfigOpt,
     DeviceOpt,
     ForceOpt,
@@ -94,12 +95,10 @@ def eval_(
 ) -> None:
     """Evaluate the avatar: PSNR, SSIM and LPIPS per image, per camera, frontal and overall; results accumulate in WS/eval/<stage>/<split>/."""
     with cli_errors():
-        from sage_core.errors import InputError
 
         flags = {"split": split, "stage": stage, "samples": samples, "render_backend": render_backend, **parse_sets(set_)}
         cfg = resolve_stage_config("eval", preset, config, flags)
-        if not ws.is_dir():
-            raise InputError(ws, "workspace folder not found")
+        require_workspace(ws)
         run_eval(ws, cfg, lpips_weights, StageOptions(ws, preset, config, seed, device, force, verbose, threads))
 
 

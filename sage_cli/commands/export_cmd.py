@@ -30,6 +30,7 @@ from typing import Annotated, Any, Optional
 import typer
 
 from .._common import (
+    require_workspace,
     ConfigOpt,
     DeviceOpt,
     ForceOpt,
@@ -75,7 +76,7 @@ def export(
 ) -> None:
     """Export the avatar: viewer files (canonical, a timestep, or a sequence), GaussianAvatars folder, web player, meshes, and an animatable bundle (default: --ply --bundle)."""
     with cli_errors():
-        from sage_core.errors import ConfigError, InputError
+        from sage_core.errors import ConfigError
 
         known = {"ply", "splat", "compressed-ply", "gaussian-avatars", "web", "mesh", "bundle"}
         for f in formats or []:
@@ -106,8 +107,7 @@ def export(
             viewer, bundle = ["ply"], True
         if flame_seq is not None and not (viewer or gaussian_avatars or web):
             raise ConfigError("--flame-seq drives per-frame viewer files, --gaussian-avatars or --web: add one of them")
-        if not ws.is_dir():
-            raise InputError(ws, "workspace folder not found")
+        require_workspace(ws)
         run_export(ws, cfg, viewer=viewer, mesh=mesh, bundle=bundle, frame=frame, flame_seq=flame_seq, max_frames=max_frames,
                    gaussian_avatars=gaussian_avatars, web=web,
                    opts=StageOptions(ws, preset, config, seed, device, force, verbose))  # fmt: skip

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .._common import cli_errors, console, fmt_metric
+from .._common import cli_errors, console, fmt_metric, require_workspace
 
 
 def _age(iso: str | None) -> str:
@@ -97,12 +97,10 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
     """Show every stage of a workspace: status, age, wall time, device / threads / render backend, and key metrics."""
     from rich.table import Table
 
-    from sage_core.errors import InputError
     from sage_core.workspace import Workspace
 
     with cli_errors():
-        if not ws.is_dir():
-            raise InputError(ws, "workspace folder not found")
+        require_workspace(ws)
         w = Workspace(ws)
         t = Table(title=f"sage workspace {w.root}")
         t.add_column("stage", no_wrap=True)

@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from .._common import (
+    require_workspace,
     ConfigOpt,
     DeviceOpt,
     ForceOpt,
@@ -40,12 +41,10 @@ def init_mesh(
 ) -> None:
     """Build the canonical FLAME mesh (+ mouth interior), pretrain the SDF on it, extract its zero level set."""
     with cli_errors():
-        from sage_core.errors import InputError
 
         flags = {"pretrain.steps": steps, "mouth_interior": mouth_interior, "mc_resolution": mc_resolution, **parse_sets(set_)}
         cfg = resolve_stage_config("init-mesh", preset, config, flags)
-        if not ws.is_dir():
-            raise InputError(ws, "workspace folder not found (run `sage ingest` first)")
+        require_workspace(ws, " (run `sage ingest` first)")
 
         def body(run, progress) -> None:
             from sage_core.data.dataset import IngestedData

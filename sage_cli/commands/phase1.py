@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 import typer
 
 from .._common import (
+    require_workspace,
     ConfigOpt,
     console,
     DeviceOpt,
@@ -42,11 +43,9 @@ def phase1(
 ) -> None:
     """Train the avatar: surfels bound to FLAME, jointly with the canonical SDF (phase 1)."""
     with cli_errors():
-        from sage_core.errors import InputError
 
         flags = {"attributes": attributes, "iterations": iterations, "n_surfels": surfels, "render_backend": render_backend, **parse_sets(set_)}
-        if not ws.is_dir():
-            raise InputError(ws, "workspace folder not found (run `sage ingest` and `sage init-mesh` first)")
+        require_workspace(ws, " (run `sage ingest` and `sage init-mesh` first)")
         ingest_summary = _ingest_summary(ws)
         regime = ingest_summary.get("regime")
         from sage_core.config import load_config_file, resolve_config

@@ -8,6 +8,7 @@ from typing import Annotated, Any, Optional
 import typer
 
 from .._common import (
+    require_workspace,
     MISSING,
     ConfigOpt,
     DeviceOpt,
@@ -61,8 +62,7 @@ def phase2(
             corr = correction.lower() == "on"
         flags = {"correction": corr, "iterations": iterations, "render_backend": render_backend, **parse_sets(set_)}
         cfg = resolve_stage_config("phase2", preset, config, flags)
-        if not ws.is_dir():
-            raise InputError(ws, "workspace folder not found (run `sage ingest`, `sage init-mesh` and `sage phase1` first)")
+        require_workspace(ws, " (run `sage ingest`, `sage init-mesh` and `sage phase1` first)")
         if lpips_weights is not None and not lpips_weights.is_file():
             raise InputError(lpips_weights, "LPIPS weights file not found")
         external = None

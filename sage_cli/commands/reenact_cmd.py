@@ -16,7 +16,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from .._common import DeviceOpt, ProgressDisplay, VerboseOpt, cli_errors, summary_panel
+from .._common import DeviceOpt, ProgressDisplay, VerboseOpt, cli_errors, require_workspace, summary_panel
 
 
 def _seq_label(seq: Path) -> str:
@@ -56,7 +56,7 @@ def reenact(
 ) -> None:
     """Drive the avatar with a FLAME sequence (self- or cross-reenactment) and write frames and an MP4."""
     with cli_errors():
-        from sage_core.errors import ConfigError, InputError
+        from sage_core.errors import ConfigError
 
         if flame_seq is None:
             raise ConfigError("--flame-seq is required (a motion .npz, a flame_param folder or a capture)")
@@ -72,8 +72,8 @@ def reenact(
             raise ConfigError(f"--fps must be positive, got {fps}")
         if max_frames is not None and max_frames < 1:
             raise ConfigError(f"--max-frames must be >= 1, got {max_frames}")
-        if ws is not None and not ws.is_dir():
-            raise InputError(ws, "workspace folder not found")
+        if ws is not None:
+            require_workspace(ws)
         if name is not None and (not name or "/" in name or name in (".", "..")):
             raise ConfigError(f"--name must be a plain folder name, got {name!r}")
         run_reenact(

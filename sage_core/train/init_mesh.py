@@ -30,6 +30,7 @@ from ..fields.sdf_file import save_sdf
 from ..flame import FlameModel, FlameModelData, Regions, add_mouth_interior, has_mouth_interior, save_flame_npz
 from ..flame.canonical import canonical_vertices
 from ..geometry.marching import extract_mesh
+from ..runtime import StepClock
 from ..workspace import atomic_write_bytes, atomic_write_json, latest_checkpoint, load_checkpoint, save_checkpoint
 
 Progress = Callable[..., None]
@@ -171,9 +172,13 @@ def run_init_mesh(
             trainer.load_state_dict(load_checkpoint(ck, map_location=device)["state"]["pretrainer"])
     total = pcfg.steps
     losses: dict[str, float] = {}
+    clock = StepClock(total, trainer.step_count)
     while trainer.step_count < total:
         losses = trainer.step()
         step = trainer.step_count
+        estimate = clock.tick(step)
+        if estimate is not None and progress is not None:
+            progress(step, total, "init-mesh", **estimate.as_stats())
         if progress is not None:
             progress(step, total, "pretrain SDF", **{k: float(v) for k, v in losses.items() if k in ("loss", "value", "normal", "eikonal")})
         if checkpoint_dir is not None and (step % cfg.checkpoint_every == 0) and step < total:
