@@ -61,3 +61,30 @@ def compare_backends(params, cam, backend: str, atol: float, grad_rtol: float, *
         assert float((x - y).abs().max()) <= grad_rtol * scale, (name, float((x - y).abs().max()), scale)
     assert torch.equal(a.visible, b.visible) and torch.equal(a.radii, b.radii)
     return a, b
+
+
+def check_tile_binning(bin_tiles) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Assert that ``bin_tiles(boxes, W, H) -> (offsets, list)`` lists every surfel, in order, in each
+    16×16 tile its (half-open) pixel box touches, and no other, on 40 random boxes over a 70×37 image
+    (some empty, none reaching the last tile column). Returns (boxes, offsets, list)."""
+    g = torch.Generator().manual_seed(0)
+    W, H, n = 70, 37, 40
+    x0 = torch.randint(-5, 40, (n,), generator=g)  # nothing reaches the last tile column (x ≥ 64)
+    y0 = torch.randint(-5, H, (n,), generator=g)
+    x1 = x0 + torch.randint(0, 20, (n,), generator=g)
+    boxes = torch.stack([x0, y0, x1, y0 + torch.randint(0, 30, (n,), generator=g)], 1)
+    boxes[:, 0::2] = boxes[:, 0::2].clamp(0, W)
+    boxes[:, 1::2] = boxes[:, 1::2].clamp(0, H)
+    offsets, lst = bin_tiles(boxes, W, H)
+    gx, gy = (W + 15) // 16, (H + 15) // 16
+    assert offsets.shape == (gx * gy + 1,) and int(offsets[-1]) == lst.shape[0]
+    for tile in range(gx * gy):
+        tx, ty = tile % gx, tile // gx
+        expect = [
+            i
+            for i, (a0, b0, a1, b1) in enumerate(boxes.tolist())
+            if a1 > a0 and b1 > b0 and a0 < 16 * (tx + 1) and a1 > 16 * tx and b0 < 16 * (ty + 1) and b1 > 16 * ty
+        ]
+        assert lst[int(offsets[tile]) : int(offsets[tile + 1])].tolist() == expect, tile
+    assert int(((boxes[:, 2] <= boxes[:, 0]) | (boxes[:, 3] <= boxes[:, 1])).sum()) > 0  # empty boxes occur
+    return boxes, offsets, lst

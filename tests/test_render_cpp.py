@@ -29,7 +29,7 @@ from sage_core.render import RenderCamera, rasterize_surfels, resolve_backend
 from sage_core.render import _cpp_surfels
 from sage_core.render._dense_reference import random_test_scene, render_dense_reference
 
-from render_parity import OUTPUTS, PARAMS, compare_backends, render_with_grads, scene_tensors
+from render_parity import OUTPUTS, PARAMS, check_tile_binning, compare_backends, render_with_grads, scene_tensors
 
 REF_OUTPUTS = OUTPUTS  # the dense reference returns every image output
 
@@ -239,26 +239,7 @@ def test_gradients_do_not_depend_on_the_thread_count(cpp_ext: float) -> None:
 
 
 def test_bin_tiles_lists_each_surfel_in_its_tiles(cpp_ext: float) -> None:
-    g = torch.Generator().manual_seed(0)
-    W, H, n = 70, 37, 40
-    x0 = torch.randint(-5, 40, (n,), generator=g)
-    y0 = torch.randint(-5, H, (n,), generator=g)
-    x1 = x0 + torch.randint(0, 20, (n,), generator=g)
-    boxes = torch.stack([x0, y0, x1, y0 + torch.randint(0, 30, (n,), generator=g)], 1)
-    boxes[:, 0::2] = boxes[:, 0::2].clamp(0, W)
-    boxes[:, 1::2] = boxes[:, 1::2].clamp(0, H)
-    offsets, lst = _cpp_surfels.bin_tiles(boxes, W, H)
-    gx, gy = (W + 15) // 16, (H + 15) // 16
-    assert offsets.shape == (gx * gy + 1,) and int(offsets[-1]) == lst.shape[0]
-    for tile in range(gx * gy):
-        tx, ty = tile % gx, tile // gx
-        expect = [
-            i
-            for i, (a0, b0, a1, b1) in enumerate(boxes.tolist())
-            if a1 > a0 and b1 > b0 and a0 < 16 * (tx + 1) and a1 > 16 * tx and b0 < 16 * (ty + 1) and b1 > 16 * ty
-        ]
-        assert lst[int(offsets[tile]) : int(offsets[tile + 1])].tolist() == expect, tile
-    assert int(((boxes[:, 2] <= boxes[:, 0]) | (boxes[:, 3] <= boxes[:, 1])).sum()) > 0
+    check_tile_binning(_cpp_surfels.bin_tiles)
 
 
 def test_auto_resolves_to_cpp_on_cpu(cpp_ext: float) -> None:

@@ -17,18 +17,7 @@ from sage_core.render._dense_reference import (
 from sage_core.render._packed import _segment_starts, distortion_autograd, distortion_closed_form
 from sage_core.render._project import project_surfels
 
-OUTPUTS = (
-    "color",
-    "alpha",
-    "depth",
-    "depth_sum",
-    "median_depth",
-    "normal_cam",
-    "normal_world",
-    "surf_normal_cam",
-    "surf_normal_world",
-    "distortion",
-)
+from render_parity import OUTPUTS
 
 
 def _render(scene: dict, dtype: torch.dtype, **kw) -> object:
