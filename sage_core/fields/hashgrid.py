@@ -6,6 +6,11 @@ Level l of L uses ``scale_l = N_min * b**l - 1`` with ``b = exp((ln N_max - ln N
 hash the integer corner with ``x*1 ^ y*2654435761 ^ z*805459861`` (uint32 wrap emulated in int64). All
 levels live in one ``(sum_l size_l, F)`` table. Interpolation gathers the 8 corners and multiplies three
 explicit 1-D weights, so second derivatives (eikonal loss) are exact and zero along an axis inside a cell.
+
+Backends (``HashGrid.backend``): ``torch`` is the reference below; ``cpp`` is the native C++/OpenMP
+kernel of ``_cpp_hashgrid`` (same rules, exact first and second derivatives); ``auto`` (the default)
+uses ``cpp`` for CPU tensors when the extension builds and ``torch`` otherwise (CUDA tensors always
+use ``torch``). The normalization and its clamp stay in torch for both.
 """
 
 from __future__ import annotations
@@ -18,6 +23,29 @@ from torch import nn
 
 _PRIMES = (1, 2654435761, 805459861)
 _UINT32 = 0xFFFFFFFF
+BACKENDS = ("auto", "torch", "cpp")
+
+
+def resolve_backend(backend: str, device: torch.device | str) -> str:
+    """``auto|torch|cpp`` for tensors on ``device`` -> the backend that runs: ``torch`` or ``cpp``.
+
+    ``auto`` picks ``cpp`` on CPU when the native extension is available (building it on first use)
+    and otherwise warns once and picks ``torch``. CUDA tensors always use ``torch``. An explicit
+    ``cpp`` on CPU whose extension cannot be built raises ValueError with the reason.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"HashGrid: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+    if backend == "torch" or torch.device(device).type != "cpu":
+        return "torch"
+    from . import _cpp_hashgrid
+
+    ok, reason = _cpp_hashgrid.available()
+    if ok:
+        return "cpp"
+    if backend == "cpp":
+        raise ValueError(f"HashGrid: backend='cpp' is unavailable: {reason}")
+    _cpp_hashgrid.warn_unavailable_once(reason)
+    return "torch"
 
 
 def _level_scales(n_levels: int, base_res: int, max_res: int) -> list[float]:
@@ -52,6 +80,8 @@ class HashGrid(nn.Module):
         base_res: N_min, coarsest resolution (vertices per axis, tcnn convention).
         max_res: N_max, finest resolution.
         init_range: table entries start as U(-init_range, init_range).
+        backend: ``auto`` | ``torch`` | ``cpp`` (see the module docstring); an attribute that may be
+            changed later, not part of the state dict.
 
     Presets: ``tiny`` (CPU) L=8..12, F=2, log2 T=14..16, N_min=16, N_max=256;
     ``default`` (paper, GPU) L=16, F=2, log2 T=19, N_min=16, N_max=2048 (12.2M parameters).
@@ -69,10 +99,14 @@ class HashGrid(nn.Module):
         base_res: int = 16,
         max_res: int = 2048,
         init_range: float = 1e-4,
+        backend: str = "auto",
     ) -> None:
         super().__init__()
         if n_levels < 1 or n_features < 1:
             raise ValueError("n_levels and n_features must be positive")
+        if backend not in BACKENDS:
+            raise ValueError(f"HashGrid: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+        self.backend = backend
         if max_res < base_res:
             raise ValueError("max_res must be >= base_res")
         self.n_levels = int(n_levels)
@@ -110,6 +144,8 @@ class HashGrid(nn.Module):
         self.register_buffer("_dense", torch.tensor(dense, dtype=torch.bool))
         self.register_buffer("_offsets", torch.tensor(offsets, dtype=torch.int64))
         self.register_buffer("_primes", torch.tensor(_PRIMES, dtype=torch.int64))
+        layout = [[r, n, o, int(d)] for r, n, o, d in zip(resolutions, sizes, offsets, dense)]
+        self.register_buffer("_layout", torch.tensor(layout, dtype=torch.int64), persistent=False)
         self.register_buffer("level_mask", torch.ones(self.n_levels))
         self.table = nn.Parameter(torch.empty(total, self.n_features).uniform_(-init_range, init_range))
 
@@ -145,9 +181,20 @@ class HashGrid(nn.Module):
     def level_features(self, x: torch.Tensor) -> torch.Tensor:
         """Interpolated features per level.
 
-        x: (N, 3) world points -> (N, L, F); masked (inactive) levels are 0.
+        x: (N, 3) world points -> (N, L, F); masked (inactive) levels are 0. Runs the backend that
+        ``resolve_backend(self.backend, x.device)`` picks (float16/bfloat16 inputs use torch).
         """
         x01 = self.normalize(x)
+        if x01.dtype in (torch.float32, torch.float64) and resolve_backend(self.backend, x01.device) == "cpp":
+            from . import _cpp_hashgrid
+
+            scales = self._scales.to(torch.float64)
+            mask = self.level_mask.to(torch.float64)
+            return _cpp_hashgrid.encode(x01, self.table, self._layout, scales, mask)
+        return self._level_features_torch(x01)
+
+    def _level_features_torch(self, x01: torch.Tensor) -> torch.Tensor:
+        """The pure-torch reference: x01 (N, 3) box coordinates in [0, 1] -> (N, L, F)."""
         scales = self._scales.to(x01.dtype)
         pos = x01[:, None, :] * scales[None, :, None] + 0.5  # (N, L, 3)
         base = torch.floor(pos)
@@ -159,7 +206,7 @@ class HashGrid(nn.Module):
         sizes = self._sizes[None, :]
         offsets = self._offsets[None, :]
         table = self.table.to(x01.dtype) if self.table.dtype != x01.dtype else self.table
-        out = x01.new_zeros(x.shape[0], self.n_levels, self.n_features)
+        out = x01.new_zeros(x01.shape[0], self.n_levels, self.n_features)
         for corner in range(8):
             bits = ((corner >> 0) & 1, (corner >> 1) & 1, (corner >> 2) & 1)
             cx = base_i[..., 0] + bits[0]

@@ -5,121 +5,32 @@ with the packed backend; this module replaces the compositing of one camera with
 ``csrc/surfels_cpu.cpp`` (16×16 tile binning, a forward per tile and an exact backward that walks
 each pixel's contributors back to front). The rules are the packed backend's; see that file's header.
 
-The extension is compiled by ``torch.utils.cpp_extension.load`` on first use, never at import, into
-``$SAGE_CACHE_DIR`` or ``~/.cache/sage/torch_extensions/<torch version>/``. Its name carries a hash
-of the source, the build flags and the torch version, so different versions never share a build
-folder, and an ``fcntl`` lock (released by the OS if its holder dies) serializes concurrent builds.
+The extension is compiled on first use, never at import, by ``sage_core.native_build`` (cached in
+``$SAGE_CACHE_DIR`` or ``~/.cache/sage/torch_extensions/<torch version>/`` under a hash of the source,
+the build flags and the torch version; concurrent builds serialized by an ``fcntl`` lock).
 """
 
 from __future__ import annotations
 
-import fcntl
-import hashlib
-import os
-import shutil
-import threading
-import warnings
 from collections.abc import Callable
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any
 
 import torch
 
+from ..native_build import NativeExtension, cache_dir, warn_unavailable
 from ._packed import PackedImages
 
-_SOURCE = Path(__file__).parent / "csrc" / "surfels_cpu.cpp"
-_CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
-_LDFLAGS = ["-fopenmp"]
-_NAMESPACE = "sage_surfels_cpu"
+__all__ = ["available", "bin_tiles", "cache_dir", "composite_cpp", "depth_to_normal_cpp", "warn_unavailable_once"]
 
-_lock = threading.Lock()
-_state: dict[str, object] = {}  # "ok": bool, "reason": str once a load was attempted
+_EXT = NativeExtension(
+    name="sage_surfels_cpu",
+    source=Path(__file__).parent / "csrc" / "surfels_cpu.cpp",
+    namespace="sage_surfels_cpu",
+    probe_op="forward",
+)
+_state: dict[str, Any] = {}  # "ok": bool, "reason": str once a load was attempted
 _warned = False
-
-
-def _build_key() -> str:
-    h = hashlib.sha256()
-    h.update(_SOURCE.read_bytes())
-    h.update(" ".join(_CFLAGS + _LDFLAGS).encode())
-    h.update(torch.__version__.encode())
-    return h.hexdigest()[:16]
-
-
-def cache_dir() -> Path:
-    """Folder holding the compiled extension (one sub-folder per source/flags/torch hash)."""
-    root = os.environ.get("SAGE_CACHE_DIR")
-    base = Path(root) if root else Path.home() / ".cache" / "sage"
-    return base / "torch_extensions" / f"torch{torch.__version__.replace('+', '_')}"
-
-
-@contextmanager
-def _file_lock(path: Path) -> Iterator[None]:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+") as fh:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
-
-
-def _ninja_on_path() -> str | None:
-    """Make sure a ``ninja`` executable is on PATH (the PyPI package's when the system has none)."""
-    if shutil.which("ninja"):
-        return None
-    try:
-        import ninja  # type: ignore[import-not-found]
-    except ImportError:
-        return "no 'ninja' executable on PATH and the 'ninja' Python package is not installed"
-    os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
-    return None if shutil.which("ninja") else f"'ninja' not found (looked on PATH and in {ninja.BIN_DIR})"
-
-
-def _load() -> tuple[bool, str]:
-    if hasattr(torch.ops, _NAMESPACE) and hasattr(getattr(torch.ops, _NAMESPACE), "forward"):
-        return True, "loaded"
-    if not _SOURCE.is_file():
-        return False, f"the extension source {_SOURCE} is missing from the installed package"
-    name = f"sage_surfels_cpu_{_build_key()}"
-    build = cache_dir() / name
-    lib = build / f"{name}.so"
-    try:
-        with _file_lock(cache_dir() / f"{name}.lock"):
-            if lib.is_file():
-                try:
-                    torch.ops.load_library(str(lib))
-                    return True, f"loaded {lib}"
-                except OSError:  # a damaged cached library (e.g. an interrupted link): build it again
-                    lib.unlink()
-            if not lib.is_file():
-                cxx = os.environ.get("CXX", "c++")
-                if shutil.which(cxx) is None:
-                    return False, f"no C++ compiler ('{cxx}') on PATH"
-                why = _ninja_on_path()
-                if why:
-                    return False, why
-                from torch.utils.cpp_extension import load
-
-                build.mkdir(parents=True, exist_ok=True)
-                stale = build / "lock"  # torch's own build baton; a crashed build may have left it
-                if stale.exists():
-                    stale.unlink()
-                load(
-                    name=name,
-                    sources=[str(_SOURCE)],
-                    extra_cflags=_CFLAGS,
-                    extra_ldflags=_LDFLAGS,
-                    build_directory=str(build),
-                    is_python_module=False,
-                    verbose=False,
-                )
-    except Exception as exc:  # compiler errors, missing headers, unwritable cache: report, fall back
-        lines = str(exc).strip().splitlines()
-        errors = [ln.strip() for ln in lines if "error" in ln.lower()]
-        detail = errors[0] if errors else (lines[-1] if lines else type(exc).__name__)
-        return False, f"building the C++ extension in {build} failed: {detail}"
-    return True, f"loaded {lib}"
 
 
 def available() -> tuple[bool, str]:
@@ -128,11 +39,7 @@ def available() -> tuple[bool, str]:
     The first call compiles the extension (10–40 s on 2 cores) unless a cached build exists; the
     result is remembered for the process.
     """
-    with _lock:
-        if "ok" not in _state:
-            ok, reason = _load()
-            _state["ok"], _state["reason"] = ok, reason
-        return bool(_state["ok"]), str(_state["reason"])
+    return _EXT.available(_state)
 
 
 def warn_unavailable_once(reason: str) -> None:
@@ -140,19 +47,11 @@ def warn_unavailable_once(reason: str) -> None:
     global _warned
     if not _warned:
         _warned = True
-        warnings.warn(
-            f"sage: the native CPU rasterizer is unavailable ({reason}); rendering with the slower pure-torch "
-            "backend. Install a C++ compiler (g++) and ninja to enable it.",
-            RuntimeWarning,
-            stacklevel=3,
-        )
+        warn_unavailable("rasterizer", "pure-torch backend for rendering", reason)
 
 
 def _ops():  # noqa: ANN202 - a torch.ops namespace
-    ok, reason = available()
-    if not ok:
-        raise RuntimeError(f"rasterize_surfels(backend='cpp'): {reason}")
-    return getattr(torch.ops, _NAMESPACE)
+    return _EXT.ops(_state, "rasterize_surfels(backend='cpp')")
 
 
 def bin_tiles(boxes: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
