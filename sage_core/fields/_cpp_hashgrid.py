@@ -54,6 +54,23 @@ def _ops():  # noqa: ANN202 - a torch.ops namespace
     return _EXT.ops(_state, "HashGrid(backend='cpp')")
 
 
+def _needed(ctx: Any, i: int) -> bool:
+    """Whether the running backward pass uses the gradient of input ``i`` of this node.
+
+    ``needs_input_grad`` only says the input requires a gradient; ``autograd.grad(sdf.sum(), x)``
+    never uses the table's, so the engine's execution plan is asked as well (when this torch has
+    ``torch._C._will_engine_execute_node``; otherwise every required gradient is computed).
+    """
+    if not ctx.needs_input_grad[i]:
+        return False
+    will_execute = getattr(torch._C, "_will_engine_execute_node", None)
+    try:
+        node = ctx.next_functions[i][0]
+        return node is not None and (will_execute is None or bool(will_execute(node)))
+    except (AttributeError, IndexError, RuntimeError):
+        return True
+
+
 class _Encode(torch.autograd.Function):
     """x01 (N, 3), table (T, F) -> features (N, L, F); levels/scales/mask describe the layout."""
 
@@ -66,7 +83,7 @@ class _Encode(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_feats):  # type: ignore[override]
         x01, table = ctx.saved_tensors
-        need_x, need_table = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
+        need_x, need_table = _needed(ctx, 0), _needed(ctx, 1)
         if not (need_x or need_table):
             return None, None, None, None, None
         gx, gt = _EncodeBackward.apply(grad_feats, x01, table, *ctx.layout, need_x, need_table)
@@ -94,7 +111,7 @@ class _EncodeBackward(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, gg_x, gg_table):  # type: ignore[override]
         g, x01, table = ctx.saved_tensors
-        need_g, need_x, need_table = (bool(v) for v in ctx.needs_input_grad[:3])
+        need_g, need_x, need_table = _needed(ctx, 0), _needed(ctx, 1), _needed(ctx, 2)
         gg_x = gg_x.contiguous() if gg_x is not None and gg_x.numel() else None
         gg_table = gg_table.contiguous() if gg_table is not None and gg_table.numel() else None
         if (gg_x is None and gg_table is None) or not (need_g or need_x or need_table):

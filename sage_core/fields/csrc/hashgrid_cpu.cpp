@@ -33,6 +33,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <type_traits>
 #include <vector>
 
 #ifdef _OPENMP
@@ -49,6 +50,7 @@ int num_threads() { return std::max(1, at::get_num_threads()); }
 struct Level {
   int64_t res, size, offset;
   bool dense;
+  bool pow2;  // size is a power of two: index mod size is a mask
 };
 
 // The 8 corners of one point at one level: table row offsets, weights and weight derivatives.
@@ -60,7 +62,7 @@ struct Corners {
   S t[3], omt[3];  // t and 1 - t
 };
 
-template <typename S>
+template <typename S, bool kDerivs = true>
 inline void corners(const S* x, S scale, const Level& lv, int64_t F, Corners<S>& c) {
   int64_t cell[3];
   for (int k = 0; k < 3; ++k) {
@@ -81,11 +83,13 @@ inline void corners(const S* x, S scale, const Level& lv, int64_t F, Corners<S>&
                          (static_cast<uint32_t>(cz) * 805459861u);
       idx = static_cast<int64_t>(h);
     }
-    c.row[q] = (idx % lv.size + lv.offset) * F;
+    if (idx >= lv.size) idx = lv.pow2 ? (idx & (lv.size - 1)) : idx % lv.size;
+    c.row[q] = (idx + lv.offset) * F;
     const S wx = b0 ? c.t[0] : c.omt[0];
     const S wy = b1 ? c.t[1] : c.omt[1];
     const S wz = b2 ? c.t[2] : c.omt[2];
     c.w[q] = wx * wy * wz;
+    if (!kDerivs) continue;
     const S sx = b0 ? S(1) : S(-1), sy = b1 ? S(1) : S(-1), sz = b2 ? S(1) : S(-1);
     c.dw[q][0] = sx * wy * wz;
     c.dw[q][1] = sy * wx * wz;
@@ -109,7 +113,7 @@ std::vector<Level> read_levels(const at::Tensor& levels) {
   const int64_t* p = levels.data_ptr<int64_t>();
   std::vector<Level> out(levels.size(0));
   for (int64_t l = 0; l < levels.size(0); ++l) {
-    out[l] = Level{p[4 * l], p[4 * l + 1], p[4 * l + 2], p[4 * l + 3] != 0};
+    out[l] = Level{p[4 * l], p[4 * l + 1], p[4 * l + 2], p[4 * l + 3] != 0, (p[4 * l + 1] & (p[4 * l + 1] - 1)) == 0};
     TORCH_CHECK(out[l].res > 0 && out[l].size > 0 && out[l].offset >= 0, "hashgrid_cpu: bad level layout");
   }
   return out;
@@ -156,29 +160,56 @@ void for_levels(const std::vector<Level>& lv, const std::vector<double>& mask, i
 
 std::vector<double> mask_values(const at::Tensor& mask, int64_t L) { return read_scalars<double>(mask, L, "mask"); }
 
+// Per-point feature scratch: on the stack for a compile-time F (FC > 0), else on the heap.
+template <typename S, int FC>
+struct Scratch {
+  S fixed[FC > 0 ? FC : 1];
+  std::vector<S> heap;
+  explicit Scratch(int64_t F) : heap(FC > 0 ? 0 : F) {}
+  S& operator[](int64_t i) {
+    if constexpr (FC > 0) return fixed[i];
+    return heap[i];
+  }
+};
+
+// Calls fn.template operator()<FC>() with FC = F for the common feature counts (unrolled inner loops),
+// FC = 0 (runtime F) otherwise.
+template <typename Fn>
+void dispatch_features(int64_t F, const Fn& fn) {
+  switch (F) {
+    case 1: fn(std::integral_constant<int, 1>{}); break;
+    case 2: fn(std::integral_constant<int, 2>{}); break;
+    case 4: fn(std::integral_constant<int, 4>{}); break;
+    case 8: fn(std::integral_constant<int, 8>{}); break;
+    default: fn(std::integral_constant<int, 0>{}); break;
+  }
+}
+
 // ---------------------------------------------------------------------------------------------
 // forward: feats (N, L, F)
 
-template <typename S>
+template <typename S, int FC>
 void forward_impl(const at::Tensor& x01, const at::Tensor& table, const std::vector<Level>& lv,
                   const std::vector<S>& scale, const std::vector<S>& maskS, const std::vector<double>& mask,
                   at::Tensor& feats) {
-  const int64_t N = x01.size(0), F = table.size(1), L = static_cast<int64_t>(lv.size());
+  const int64_t N = x01.size(0), F = FC > 0 ? FC : table.size(1), L = static_cast<int64_t>(lv.size());
   const S* x = x01.data_ptr<S>();
   const S* T = table.data_ptr<S>();
   S* out = feats.data_ptr<S>();
   for_levels(lv, mask, N, [&](int64_t l) {
     Corners<S> c;
-    std::vector<S> acc(F);
+    Scratch<S, FC> acc(F);
+    const Level lev = lv[l];
+    const S s = scale[l], ml = maskS[l];
     for (int64_t n = 0; n < N; ++n) {
-      corners(x + 3 * n, scale[l], lv[l], F, c);
-      std::fill(acc.begin(), acc.end(), S(0));
+      corners<S, false>(x + 3 * n, s, lev, F, c);
+      for (int64_t f = 0; f < F; ++f) acc[f] = S(0);
       for (int q = 0; q < 8; ++q) {
         const S* row = T + c.row[q];
         for (int64_t f = 0; f < F; ++f) acc[f] = acc[f] + c.w[q] * row[f];
       }
       S* o = out + (n * L + l) * F;
-      for (int64_t f = 0; f < F; ++f) o[f] = acc[f] * maskS[l];
+      for (int64_t f = 0; f < F; ++f) o[f] = acc[f] * ml;
     }
   });
 }
@@ -191,8 +222,9 @@ at::Tensor encode_forward(const at::Tensor& x01, const at::Tensor& table, const 
   const std::vector<double> m = mask_values(mask, L);
   at::Tensor feats = at::zeros({N, L, F}, x01.options());
   AT_DISPATCH_FLOATING_TYPES(x01.scalar_type(), "hashgrid_forward", [&] {
-    forward_impl<scalar_t>(x01, table, lv, read_scalars<scalar_t>(scales, L, "scales"),
-                           read_scalars<scalar_t>(mask, L, "mask"), m, feats);
+    const auto sc = read_scalars<scalar_t>(scales, L, "scales");
+    const auto ms = read_scalars<scalar_t>(mask, L, "mask");
+    dispatch_features(F, [&](auto fc) { forward_impl<scalar_t, decltype(fc)::value>(x01, table, lv, sc, ms, m, feats); });
   });
   return feats;
 }
@@ -200,28 +232,29 @@ at::Tensor encode_forward(const at::Tensor& x01, const at::Tensor& table, const 
 // ---------------------------------------------------------------------------------------------
 // backward: gx (N, 3) = d<G, feats>/dx01 and gT (T, F) = d<G, feats>/dtable (undefined when not needed)
 
-template <typename S>
+template <typename S, int FC>
 void backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor& table, const std::vector<Level>& lv,
                    const std::vector<S>& scale, const std::vector<S>& maskS, const std::vector<double>& mask,
                    S* gx_part, S* gT) {
-  const int64_t N = x01.size(0), F = table.size(1), L = static_cast<int64_t>(lv.size());
+  const int64_t N = x01.size(0), F = FC > 0 ? FC : table.size(1), L = static_cast<int64_t>(lv.size());
   const S* x = x01.data_ptr<S>();
   const S* T = table.data_ptr<S>();
   const S* g = G.data_ptr<S>();
   for_levels(lv, mask, N, [&](int64_t l) {
     Corners<S> c;
-    std::vector<S> gm(F);
+    Scratch<S, FC> gm(F);
     S* part = gx_part ? gx_part + l * N * 3 : nullptr;
-    const S s = scale[l];
+    const Level lev = lv[l];
+    const S s = scale[l], ml = maskS[l];
     for (int64_t n = 0; n < N; ++n) {
       const S* gn = g + (n * L + l) * F;
       bool any = false;
       for (int64_t f = 0; f < F; ++f) {
-        gm[f] = gn[f] * maskS[l];
+        gm[f] = gn[f] * ml;
         any = any || gm[f] != S(0);
       }
       if (!any) continue;  // the partial buffer starts at 0
-      corners(x + 3 * n, s, lv[l], F, c);
+      corners(x + 3 * n, s, lev, F, c);
       if (gT) {
         for (int q = 0; q < 8; ++q) {
           S* row = gT + c.row[q];
@@ -273,9 +306,11 @@ std::vector<at::Tensor> encode_backward(const at::Tensor& G, const at::Tensor& x
   }
   if (need_table) gT = at::zeros_like(table);
   AT_DISPATCH_FLOATING_TYPES(x01.scalar_type(), "hashgrid_backward", [&] {
-    backward_impl<scalar_t>(G, x01, table, lv, read_scalars<scalar_t>(scales, L, "scales"),
-                            read_scalars<scalar_t>(mask, L, "mask"), m,
-                            need_x ? part.data_ptr<scalar_t>() : nullptr, need_table ? gT.data_ptr<scalar_t>() : nullptr);
+    const auto sc = read_scalars<scalar_t>(scales, L, "scales");
+    const auto ms = read_scalars<scalar_t>(mask, L, "mask");
+    scalar_t* px = need_x ? part.data_ptr<scalar_t>() : nullptr;
+    scalar_t* pt = need_table ? gT.data_ptr<scalar_t>() : nullptr;
+    dispatch_features(F, [&](auto fc) { backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, lv, sc, ms, m, px, pt); });
     if (need_x) reduce_levels<scalar_t>(part.data_ptr<scalar_t>(), L, N, gx.data_ptr<scalar_t>());
   });
   return {gx, gT};
@@ -290,17 +325,18 @@ std::vector<at::Tensor> encode_backward(const at::Tensor& G, const at::Tensor& x
 //   dT[q] += m * u_q * G
 //   dx_j += m * s * (sum_q sum_{k != j} s ggx_k d2w_q/dt_k dt_j gt_q + sum_q dw_q/dt_j <G, ggT[q]>)
 
-template <typename S>
+template <typename S, int FC>
 void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor& table, const S* ggx,
                           const S* ggT, const std::vector<Level>& lv, const std::vector<S>& scale,
                           const std::vector<S>& maskS, const std::vector<double>& mask, S* dG, S* dT, S* dx_part) {
-  const int64_t N = x01.size(0), F = table.size(1), L = static_cast<int64_t>(lv.size());
+  const int64_t N = x01.size(0), F = FC > 0 ? FC : table.size(1), L = static_cast<int64_t>(lv.size());
   const S* x = x01.data_ptr<S>();
   const S* T = table.data_ptr<S>();
   const S* g = G.data_ptr<S>();
   for_levels(lv, mask, N, [&](int64_t l) {
     Corners<S> c;
-    std::vector<S> gm(F), acc(F);
+    Scratch<S, FC> gm(F), acc(F);
+    const Level lev = lv[l];
     const S s = scale[l], ml = maskS[l];
     S* part = dx_part ? dx_part + l * N * 3 : nullptr;
     for (int64_t n = 0; n < N; ++n) {
@@ -315,11 +351,11 @@ void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::
       }
       if (!any_x && !ggT) continue;
       for (int64_t f = 0; f < F; ++f) gm[f] = gn[f] * ml;
-      corners(x + 3 * n, s, lv[l], F, c);
+      corners(x + 3 * n, s, lev, F, c);
       S u[8];
       for (int q = 0; q < 8; ++q) u[q] = c.dw[q][0] * a[0] + c.dw[q][1] * a[1] + c.dw[q][2] * a[2];
       if (dG) {
-        std::fill(acc.begin(), acc.end(), S(0));
+        for (int64_t f = 0; f < F; ++f) acc[f] = S(0);
         for (int q = 0; q < 8; ++q) {
           const S* row = T + c.row[q];
           if (any_x)
@@ -386,12 +422,16 @@ std::vector<at::Tensor> encode_double_backward(const at::Tensor& G, const at::Te
     part = at::zeros({L, N, 3}, x01.options());
   }
   AT_DISPATCH_FLOATING_TYPES(x01.scalar_type(), "hashgrid_double_backward", [&] {
-    double_backward_impl<scalar_t>(G, x01, table, has_x ? ggx->data_ptr<scalar_t>() : nullptr,
-                                   has_T ? ggT->data_ptr<scalar_t>() : nullptr, lv,
-                                   read_scalars<scalar_t>(scales, L, "scales"), read_scalars<scalar_t>(mask, L, "mask"),
-                                   m, need_G ? dG.data_ptr<scalar_t>() : nullptr,
-                                   need_table ? dT.data_ptr<scalar_t>() : nullptr,
-                                   need_x ? part.data_ptr<scalar_t>() : nullptr);
+    const auto sc = read_scalars<scalar_t>(scales, L, "scales");
+    const auto ms = read_scalars<scalar_t>(mask, L, "mask");
+    const scalar_t* gx_in = has_x ? ggx->data_ptr<scalar_t>() : nullptr;
+    const scalar_t* gt_in = has_T ? ggT->data_ptr<scalar_t>() : nullptr;
+    scalar_t* pg = need_G ? dG.data_ptr<scalar_t>() : nullptr;
+    scalar_t* pt = need_table ? dT.data_ptr<scalar_t>() : nullptr;
+    scalar_t* px = need_x ? part.data_ptr<scalar_t>() : nullptr;
+    dispatch_features(F, [&](auto fc) {
+      double_backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, gx_in, gt_in, lv, sc, ms, m, pg, pt, px);
+    });
     if (need_x) reduce_levels<scalar_t>(part.data_ptr<scalar_t>(), L, N, dx.data_ptr<scalar_t>());
   });
   return {dG, dT, dx};
