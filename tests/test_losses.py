@@ -99,3 +99,21 @@ def test_neus_rgb_loss():
     assert float(loss.detach()) == pytest.approx(0.5)
     loss.backward()
     assert torch.allclose(a.grad, torch.full((4, 3), -1.0 / 12, dtype=torch.float64))
+
+
+def test_mask_losses_match_their_formulas():
+    from sage_core.train.losses import alpha_mask_loss, mask_bce_loss
+
+    o = torch.tensor([0.0, 0.3, 0.9, 0.6], requires_grad=True)
+    m = torch.tensor([0.0, 1.0, 1.0, 0.0])
+    oc = o.detach().clamp(1e-3, 1 - 1e-3)
+    ref = -(m * oc.log() + (1 - m) * (1 - oc).log()).mean()
+    loss = mask_bce_loss(o, m)
+    assert torch.allclose(loss, ref)
+    loss.backward()
+    # foreground rays are pushed towards opacity, a background ray towards transparency
+    assert float(o.grad[1]) < 0 and float(o.grad[2]) < 0 and float(o.grad[3]) > 0
+    a = torch.tensor([[0.2, 1.0], [0.0, 0.5]])
+    mk = torch.tensor([[0.0, 1.0], [0.0, 1.0]])
+    assert torch.isclose(alpha_mask_loss(a, mk), torch.tensor(0.7 / 4))
+    assert float(alpha_mask_loss(mk, mk)) == 0.0

@@ -126,3 +126,27 @@ def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
     assert res.exit_code == 0 and "skipping" in res.output
     bad = CliRunner().invoke(app, ["phase1", str(ws), "--attributes", "nope", "--quiet"])
     assert bad.exit_code != 0
+
+
+def test_background_band_rays_and_mask_terms(init_ws, one_thread):
+    tr = _trainer(init_ws, "mlp", iterations=4, neus_background_rays=0.5, neus_background_band=3, w_neus_mask=0.1, w_mask=0.1)
+    assert tr.frames[0].mask is not None
+    _, mask, _ = tr._frame(0)
+    band = tr._background_band(0, mask)
+    assert band.numel() > 0
+    flat = mask.reshape(-1)
+    assert bool((flat[band] <= 0.5).all())
+    # every band pixel lies within 3 pixels (Chebyshev) of a foreground pixel
+    h, w = mask.shape
+    fg = torch.nonzero(mask > 0.5)
+    by, bx = band // w, band % w
+    cheb = torch.maximum((by[:, None] - fg[None, :, 0]).abs(), (bx[:, None] - fg[None, :, 1]).abs()).min(1).values
+    assert int(cheb.max()) <= 3 and int(cheb.min()) >= 1
+    seen = set()
+    for _ in range(4):
+        out = tr.step()
+        seen |= set(out)
+        for key in ("neus_mask", "mask"):
+            if key in out:
+                assert np.isfinite(out[key]) and out[key] >= 0, key
+    assert {"neus_mask", "mask"} <= seen

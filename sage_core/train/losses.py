@@ -90,3 +90,18 @@ def distortion_loss(distortion: torch.Tensor) -> torch.Tensor:
 def neus_rgb_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """L1 between the NeuS colours of sampled rays and the image. (R, 3) each."""
     return (pred - gt).abs().mean()
+
+
+def mask_bce_loss(opacity: torch.Tensor, mask: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """Binary cross-entropy of ray opacities against a soft foreground mask (NeuS "with mask").
+
+    opacity: (R,) accumulated weights in [0, 1]; mask: (R,) in [0, 1]. The opacity is clamped to
+    [eps, 1 - eps] so a fully transparent or opaque ray keeps a finite loss.
+    """
+    o = opacity.clamp(eps, 1.0 - eps)
+    return F.binary_cross_entropy(o, mask.to(o.dtype))
+
+
+def alpha_mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean |alpha − mask| of a rendered alpha against the foreground mask. (H, W) each."""
+    return (alpha.reshape(mask.shape) - mask).abs().mean()

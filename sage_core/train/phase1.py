@@ -223,6 +223,7 @@ class Phase1Trainer:
         if not self.frames:
             raise ValueError("no training frames")
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._bands: dict[int, torch.Tensor] = {}
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
         self.warp = make_warp(cfg.canonical_warp)
@@ -293,6 +294,17 @@ class Phase1Trainer:
         for g in self.optimizer.param_groups:
             if g["name"] == "mu_loc":
                 g["lr"] = lr
+
+    def _background_band(self, i: int, mask: torch.Tensor) -> torch.Tensor:
+        """Flat indices (M,) of the background pixels of training frame ``i`` within
+        ``neus_background_band`` pixels of its foreground mask (H, W); cached per frame."""
+        if i not in self._bands:
+            fg = (mask > 0.5).to(torch.float32)[None, None]
+            k = 2 * int(self.cfg.neus_background_band) + 1
+            near = torch.nn.functional.max_pool2d(fg, k, stride=1, padding=k // 2)[0, 0] > 0
+            band = near & ~(fg[0, 0] > 0)
+            self._bands[i] = torch.nonzero(band.reshape(-1), as_tuple=False).reshape(-1)
+        return self._bands[i]
 
     def _frame(self, i: int) -> tuple[torch.Tensor, torch.Tensor, RenderCamera]:
         if i not in self._cache:
@@ -382,6 +394,9 @@ class Phase1Trainer:
         if weight is None:
             terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight)
             total = terms["rgb"]
+            if c.w_mask > 0 and i is not None and self.frames[i].mask is not None:
+                terms["mask"] = L.alpha_mask_loss(render.alpha, mask)
+                total = total + c.w_mask * terms["mask"]
         else:
             terms["pseudo_rgb"] = weighted_rgb_loss(color, img, weight, c.ssim_weight)
             total = view_weight * terms["pseudo_rgb"]
@@ -439,6 +454,10 @@ class Phase1Trainer:
             fg = torch.nonzero(mask.reshape(-1) > 0.5, as_tuple=False).reshape(-1)
             if fg.numel() > 0 and c.rays_per_step > 0:
                 pix = fg[self._randint(fg.numel(), c.rays_per_step).to(fg.device)]
+                n_bg = int(round(c.neus_background_rays * c.rays_per_step))
+                bg = self._background_band(fi, mask) if (n_bg > 0 and self.frames[fi].mask is not None) else None
+                if bg is not None and bg.numel() > 0:
+                    pix = torch.cat([pix, bg[self._randint(bg.numel(), n_bg).to(bg.device)]])
                 cr = self.warp.map(av, {k: v.detach() for k, v in inputs.items()}, cam, pix, rigid)
                 o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
                 out = render_neus(
@@ -456,6 +475,9 @@ class Phase1Trainer:
                     neus_color = self.exposure.apply(neus_color, out.weights_sum, fi, c.background)
                 terms["neus_rgb"] = L.neus_rgb_loss(neus_color[ok], gt[ok])
                 total = total + c.w_neus_rgb * terms["neus_rgb"]
+                if c.w_neus_mask > 0 and self.frames[fi].mask is not None:
+                    terms["neus_mask"] = L.mask_bce_loss(out.weights_sum[ok], mask.reshape(-1)[pix][ok])
+                    total = total + c.w_neus_mask * terms["neus_mask"]
                 # surfel depth (camera z) -> distance along the world ray -> canonical distance
                 with torch.no_grad():
                     Rw = cam.w2c[:3, :3]
