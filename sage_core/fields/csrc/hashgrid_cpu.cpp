@@ -25,7 +25,7 @@
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/zeros.h>
-#include <ATen/ops/zeros_like.h>
+#include <ATen/ops/empty_like.h>
 #include <c10/util/Exception.h>
 #include <c10/util/Optional.h>
 #include <torch/library.h>
@@ -34,6 +34,7 @@
 #include <cmath>
 #include <cstdint>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #ifdef _OPENMP
@@ -160,6 +161,23 @@ void for_levels(const std::vector<Level>& lv, const std::vector<double>& mask, i
 
 std::vector<double> mask_values(const at::Tensor& mask, int64_t L) { return read_scalars<double>(mask, L, "mask"); }
 
+// Zeroes the rows of a (rows, F) table-shaped buffer that no active level owns (masked levels and any
+// rows past the last level). Active levels zero their own rows just before scattering into them, on
+// the thread that owns the level, so those rows are written while in cache.
+template <typename S>
+void zero_unowned_rows(S* buf, const std::vector<Level>& lv, const std::vector<double>& mask, int64_t rows, int64_t F) {
+  std::vector<std::pair<int64_t, int64_t>> spans;  // active [begin, end) row ranges
+  for (size_t l = 0; l < lv.size(); ++l)
+    if (mask[l] != 0.0) spans.emplace_back(lv[l].offset, lv[l].offset + lv[l].size);
+  std::sort(spans.begin(), spans.end());
+  int64_t row = 0;
+  for (const auto& sp : spans) {
+    if (sp.first > row) std::fill(buf + row * F, buf + sp.first * F, S(0));
+    row = std::max(row, sp.second);
+  }
+  if (rows > row) std::fill(buf + row * F, buf + rows * F, S(0));
+}
+
 // Per-point feature scratch: on the stack for a compile-time F (FC > 0), else on the heap.
 template <typename S, int FC>
 struct Scratch {
@@ -246,6 +264,7 @@ void backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor&
     S* part = gx_part ? gx_part + l * N * 3 : nullptr;
     const Level lev = lv[l];
     const S s = scale[l], ml = maskS[l];
+    if (gT) std::fill(gT + lev.offset * F, gT + (lev.offset + lev.size) * F, S(0));
     for (int64_t n = 0; n < N; ++n) {
       const S* gn = g + (n * L + l) * F;
       bool any = false;
@@ -304,12 +323,13 @@ std::vector<at::Tensor> encode_backward(const at::Tensor& G, const at::Tensor& x
     gx = at::empty({N, 3}, x01.options());
     part = at::zeros({L, N, 3}, x01.options());
   }
-  if (need_table) gT = at::zeros_like(table);
+  if (need_table) gT = at::empty_like(table);
   AT_DISPATCH_FLOATING_TYPES(x01.scalar_type(), "hashgrid_backward", [&] {
     const auto sc = read_scalars<scalar_t>(scales, L, "scales");
     const auto ms = read_scalars<scalar_t>(mask, L, "mask");
     scalar_t* px = need_x ? part.data_ptr<scalar_t>() : nullptr;
     scalar_t* pt = need_table ? gT.data_ptr<scalar_t>() : nullptr;
+    if (pt) zero_unowned_rows<scalar_t>(pt, lv, m, table.size(0), F);
     dispatch_features(F, [&](auto fc) { backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, lv, sc, ms, m, px, pt); });
     if (need_x) reduce_levels<scalar_t>(part.data_ptr<scalar_t>(), L, N, gx.data_ptr<scalar_t>());
   });
@@ -338,6 +358,7 @@ void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::
     Scratch<S, FC> gm(F), acc(F);
     const Level lev = lv[l];
     const S s = scale[l], ml = maskS[l];
+    if (dT) std::fill(dT + lev.offset * F, dT + (lev.offset + lev.size) * F, S(0));
     S* part = dx_part ? dx_part + l * N * 3 : nullptr;
     for (int64_t n = 0; n < N; ++n) {
       const S* gn = g + (n * L + l) * F;
@@ -416,7 +437,7 @@ std::vector<at::Tensor> encode_double_backward(const at::Tensor& G, const at::Te
   const std::vector<double> m = mask_values(mask, L);
   at::Tensor dG, dT, dx, part;
   if (need_G) dG = at::zeros({N, L, F}, x01.options());
-  if (need_table) dT = at::zeros_like(table);
+  if (need_table) dT = at::empty_like(table);
   if (need_x) {
     dx = at::empty({N, 3}, x01.options());
     part = at::zeros({L, N, 3}, x01.options());
@@ -429,6 +450,7 @@ std::vector<at::Tensor> encode_double_backward(const at::Tensor& G, const at::Te
     scalar_t* pg = need_G ? dG.data_ptr<scalar_t>() : nullptr;
     scalar_t* pt = need_table ? dT.data_ptr<scalar_t>() : nullptr;
     scalar_t* px = need_x ? part.data_ptr<scalar_t>() : nullptr;
+    if (pt) zero_unowned_rows<scalar_t>(pt, lv, m, table.size(0), F);
     dispatch_features(F, [&](auto fc) {
       double_backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, gx_in, gt_in, lv, sc, ms, m, pg, pt, px);
     });
