@@ -31,6 +31,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..geometry.rotations import quat_normalize, quat_to_matrix
 from ..geometry.sh import sh_basis
 
 SHADING_MODES: tuple[str, ...] = ("none", "sh2")
@@ -94,3 +95,34 @@ def shade_foreground(
     bg = torch.as_tensor(background, dtype=color.dtype, device=color.device)
     back = (1.0 - alpha)[:, None] * bg
     return irradiance * (color - back) + back
+
+
+def world_normals(quats: torch.Tensor, triangle_normals: torch.Tensor) -> torch.Tensor:
+    """Outward unit world normals of posed surfels, without gradient.
+
+    quats: (N, 4) posed surfel rotations (wxyz); triangle_normals: (N, 3) outward normals of their
+    posed bound triangles (the third column of the surfel frame) -> (N, 3): ±t3, towards the triangle
+    normal.
+    """
+    with torch.no_grad():
+        n = quat_to_matrix(quat_normalize(quats.detach()))[..., 2]
+        return orient_outward(n, triangle_normals.detach().to(n))
+
+
+def shade(
+    light: SHIrradiance,
+    colors: torch.Tensor,
+    quats: torch.Tensor,
+    triangle_normals: torch.Tensor,
+    light_transform: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Albedo × world irradiance: c = albedo · E(n_w) with n_w = :func:`world_normals` (no gradient).
+
+    colors: (N, 3) albedo; quats, triangle_normals as in :func:`world_normals`; light_transform:
+    optional (3, 3) orthogonal map applied to the normals before the irradiance (a mirrored view sees
+    the mirror image of the light) -> (N, 3).
+    """
+    n = world_normals(quats, triangle_normals)
+    if light_transform is not None:
+        n = n @ light_transform.to(n).T
+    return colors * light.irradiance(n)

@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
 
+from ..geometry.rigid import canonical_to_world as rigid_head_map
+from ..geometry.rigid import world_to_canonical as rigid_head_map_inverse
 from .warp import CanonicalRays, pixel_rays, rigid_rays_to_canonical, warp_pixels_to_canonical
 
 if TYPE_CHECKING:
@@ -51,16 +53,6 @@ class CanonicalWarp(Protocol):
         rigid motion of canonical (:meth:`Avatar.rigid_transform`), else None. Returns the rays
         (R of them), computed without gradients."""
         ...
-
-
-def rigid_head_map(x: torch.Tensor, R0: torch.Tensor, t: torch.Tensor, J0: torch.Tensor) -> torch.Tensor:
-    """Canonical → world of a rigidly moved frame: x_w = R0·(x_c − J0) + J0 + t. x: (M, 3)."""
-    return (x - J0) @ R0.T + J0 + t
-
-
-def rigid_head_map_inverse(x: torch.Tensor, R0: torch.Tensor, t: torch.Tensor, J0: torch.Tensor) -> torch.Tensor:
-    """World → canonical: x_c = R0ᵀ·(x_w − t − J0) + J0. x: (M, 3)."""
-    return (x - t - J0) @ R0 + J0
 
 
 class RigidFlameWarp:

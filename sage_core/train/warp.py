@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from ..flame.frames import surfel_frames
+from ..geometry.rigid import rays_world_to_canonical
 from ..render.mesh_raster import MeshRaster, points_on_mesh, ray_directions, rasterize_mesh
 
 Frames = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
@@ -89,8 +90,7 @@ def rigid_rays_to_canonical(
     origins, dirs: (R, 3); R0: (3, 3); t, root_joint: (3,). Every ray is valid; face_id is −1.
     """
     R = origins.shape[0]
-    o_c = (origins - t - root_joint) @ R0 + root_joint
-    d_c = dirs @ R0
+    o_c, d_c = rays_world_to_canonical(origins, dirs, R0, t, root_joint)
     ones = torch.ones(R, dtype=origins.dtype, device=origins.device)
     return CanonicalRays(
         o_c, d_c, ones, R0.T.expand(R, 3, 3), torch.full((R,), -1, dtype=torch.long, device=origins.device),

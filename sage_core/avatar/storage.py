@@ -1,0 +1,176 @@
+"""Saving and loading an :class:`~sage_core.avatar.model.Avatar` file (``docs/workspace.md``).
+
+An avatar file is a safetensors file (:mod:`sage_core.serialization`, format :data:`AVATAR_FORMAT`,
+kind :data:`AVATAR_KIND`) holding the constructor data (:func:`avatar_args`), the subject's FLAME
+parameters, the state dict without the FLAME buffers, the exposure gains, and either the FLAME model
+arrays (``flame``, self-contained) or a reference to the workspace's ``init/flame_model.npz`` with
+its content hash (``flame_ref``, :func:`flame_model_sha256`), found again on loading in one of the
+:data:`FLAME_REF_SEARCH_DEPTH` folders above the file. Loading runs no code from the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..flame.model_io import FlameModelData
+from ..flame.params import FlameParams
+from .rendering import exposure_gains_plain
+from .surfels import SurfelSet
+
+if TYPE_CHECKING:
+    from .model import Avatar
+
+AVATAR_FORMAT = 2
+"""Format 1 was a torch.save pickle (refused now, ``sage convert FILE --trust`` rewrites it); 2 is a
+safetensors file (:mod:`sage_core.serialization`) that may reference the workspace's FLAME model."""
+AVATAR_KIND = "sage-avatar"
+FLAME_REF_SEARCH_DEPTH = 4
+"""How many folders above an avatar file :meth:`Avatar.load` looks for the FLAME model it references."""
+
+
+def plain(obj: Any) -> Any:
+    """Dataclasses and dicts as nested dicts (numpy arrays copied), for the file's structure."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {k: plain(v) for k, v in obj.items()}
+    if isinstance(obj, np.ndarray):
+        return obj.copy()
+    return obj
+
+
+def avatar_args(avatar: Avatar) -> dict[str, Any]:
+    """The constructor data of an avatar as plain data (the file's ``args``)."""
+    return {
+        "canonical_timestep": avatar.canonical_timestep,
+        "sdf_args": plain(avatar.sdf_args),
+        "attributes": avatar.attributes,
+        "app_args": plain(avatar.app_args),
+        "shape_args": plain(avatar.shape_args),
+        "n_surfels": len(avatar.surfels),
+        "sh_degree": avatar.surfels.sh_degree,
+        "shading": avatar.shading,
+    }
+
+
+def flame_model_sha256(md: FlameModelData) -> str:
+    """Content hash of a FLAME model: every field's name, dtype, shape and bytes, in field order."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in dataclasses.fields(md):
+        v = getattr(md, f.name)
+        items = sorted(v.items()) if isinstance(v, dict) else [("", v)]
+        for key, x in items:
+            h.update(f"{f.name}\0{key}\0".encode())
+            if isinstance(x, np.ndarray):
+                a = np.ascontiguousarray(x)
+                h.update(f"{a.dtype.str}{a.shape}".encode())
+                h.update(a.tobytes())
+            else:
+                h.update(repr(x).encode())
+    return h.hexdigest()
+
+
+def flame_reference(avatar: Avatar, path: Path) -> dict[str, Any] | None:
+    """``{"file", "sha256"}`` referencing the workspace FLAME model when ``path`` lies in the
+    workspace the avatar was built from (``WS/init/flame_model.npz``), else None."""
+    src = avatar.flame_source
+    if src is None or src.parent.name != "init" or not src.is_file():
+        return None
+    root = src.parent.parent
+    if not (root / "data").is_dir():
+        return None
+    try:
+        path.resolve().relative_to(root)
+    except ValueError:
+        return None
+    return {"file": src.relative_to(root).as_posix(), "sha256": flame_model_sha256(avatar.model_data)}
+
+
+def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = None) -> Path:
+    """Write the avatar file atomically (the arguments of :meth:`Avatar.save`); returns its path."""
+    from .. import __version__
+    from ..serialization import save_file
+
+    p = Path(path)
+    state = {k: v.detach().cpu() for k, v in avatar.state_dict().items() if not k.startswith("flame.")}
+    blob: dict[str, Any] = {
+        "format": AVATAR_FORMAT,
+        "kind": AVATAR_KIND,
+        "version": __version__,
+        "args": avatar_args(avatar),
+        "params": plain(avatar.params),
+        "state": state,
+    }
+    ref = None if embed_flame else flame_reference(avatar, p)
+    if ref is None:
+        blob["flame"] = plain(avatar.model_data)
+    else:
+        blob["flame_ref"] = ref
+    if avatar.exposure_gains:
+        blob["exposure_gains"] = exposure_gains_plain(avatar.exposure_gains)
+    return save_file(p, blob, AVATAR_KIND, AVATAR_FORMAT)
+
+
+def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.device = "cpu") -> Avatar:
+    """Read a file written by :func:`save_avatar` into a new ``cls`` (the arguments of
+    :meth:`Avatar.load`)."""
+    from ..serialization import load_file
+
+    p = Path(path)
+    blob, _ = load_file(p, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
+    if not isinstance(blob, dict) or blob.get("kind") != AVATAR_KIND:
+        raise InputError(p, "not a sage avatar file")
+    source: Path | None = None
+    try:
+        args = blob["args"]
+        if "flame_ref" in blob:
+            model_data, source = resolve_flame_ref(p, blob["flame_ref"])
+        else:
+            model_data = FlameModelData(**blob["flame"])
+        params = FlameParams(**blob["params"])
+        state = blob["state"]
+        surf_state = {k[len("surfels."):]: v for k, v in state.items() if k.startswith("surfels.")}
+        surfels = SurfelSet.from_state_dict(surf_state)
+        obj = cls(
+            model_data, params, args["canonical_timestep"], surfels, args["sdf_args"], args["attributes"],
+            args["app_args"], args["shape_args"] or None, base_scale=state["base_scale"],
+            shading=args.get("shading", "none"),
+        )  # fmt: skip
+        missing, unexpected = obj.load_state_dict(state, strict=False)
+        obj.set_exposure_gains({(e["timestep"], e["camera"]): e["gain"] for e in blob.get("exposure_gains", [])})
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
+        raise InputError(p, f"malformed avatar file: {e}") from None
+    bad = [k for k in missing if not k.startswith("flame.")]
+    if bad or unexpected:
+        raise InputError(p, f"avatar state does not match: missing {bad[:5]}, unexpected {list(unexpected)[:5]}")
+    obj.flame_source = source
+    return obj.to(device)
+
+
+def resolve_flame_ref(path: Path, ref: dict[str, Any]) -> tuple[FlameModelData, Path]:
+    """Find and check the FLAME model an avatar file references: ``ref["file"]`` relative to one of
+    the folders above the avatar file (its workspace), with the recorded content hash."""
+    from ..flame import load_flame_model
+
+    rel = str(ref["file"])
+    if Path(rel).is_absolute() or ".." in Path(rel).parts:
+        raise InputError(path, f"references the FLAME model {rel!r} outside its workspace")
+    for anc in list(path.resolve().parents)[:FLAME_REF_SEARCH_DEPTH]:
+        cand = anc / rel
+        if cand.is_file():
+            md = load_flame_model(cand)
+            if flame_model_sha256(md) != ref.get("sha256"):
+                raise InputError(path, f"the FLAME model it references ({cand}) changed since the avatar was saved; "
+                                       "re-run the stage that wrote the avatar")
+            return md, cand
+    raise InputError(path, f"references the workspace FLAME model {rel}, which is not found in the folders above it; "
+                           "keep avatar files inside their workspace, or export a self-contained bundle "
+                           "(`sage export WS --bundle`)")
