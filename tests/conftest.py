@@ -91,3 +91,38 @@ def tiny_init_dir(tiny_ws, tmp_path_factory):
     run_init_mesh(IngestedData.open(tiny_ws / "data"), out, resolve_config("init-mesh", "tiny", None, flags), seed=0)
     torch.set_num_threads(before)
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_avatar_ws(tiny_ws, tiny_init_dir, tmp_path_factory):
+    """A workspace with complete ingest, init-mesh (the quick ``tiny_init_dir``) and phase1 stages;
+    the phase-1 avatar is an untrained 300-surfel one moved off its initial state. Shared read-only."""
+    import shutil
+
+    import torch
+
+    from sage_core.avatar.model import Avatar
+    from sage_core.config import config_hash, resolve_config, to_dict
+    from sage_core.data.dataset import IngestedData
+    from sage_core.workspace import Workspace, begin_stage
+
+    ws = tmp_path_factory.mktemp("avatar_ws") / "ws"
+    shutil.copytree(tiny_ws, ws)
+    w = Workspace(ws)
+    data = IngestedData.open(w.stage_dir("ingest"))
+    with w.lock:
+        icfg = resolve_config("init-mesh", "tiny")
+        run = begin_stage(w, "init-mesh", to_dict(icfg), config_hash(icfg), requires=["ingest"])
+        assert run is not None
+        shutil.copytree(tiny_init_dir, run.work_dir, dirs_exist_ok=True)
+        run.finish()
+        pcfg = resolve_config("phase1", "tiny", None, {"n_surfels": 300})
+        run = begin_stage(w, "phase1", to_dict(pcfg), config_hash(pcfg), requires=["init-mesh"])
+        assert run is not None
+        g = torch.Generator().manual_seed(0)
+        av = Avatar.build(w.stage_dir("init-mesh"), data, 300, "mlp", app_args={"hidden": 16}, shape_args={"hidden": 16}, generator=g)
+        with torch.no_grad():
+            av.surfels.mu_loc.add_(0.05 * torch.randn(av.surfels.mu_loc.shape, generator=g))
+        av.save(run.work_dir / "avatar.pt")
+        run.finish()
+    return ws
