@@ -1,4 +1,4 @@
-"""Shared CLI pieces: option types, error handling, logging, progress display, config resolution.
+"""Shared CLI pieces: option types, error handling, progress display, config resolution.
 
 Only typer and rich are imported at module level, so ``sage --help`` stays instant.
 """
@@ -100,26 +100,6 @@ def cli_errors() -> Iterator[None]:
         raise
 
 
-def setup_logging(ws_root: Path | None, stage: str, verbose: bool) -> Path | None:
-    """Log file ``WS/logs/<stage>-<UTC time>.log`` for the ``sage`` logger; returns its path."""
-    logger = logging.getLogger("sage")
-    logger.setLevel(logging.DEBUG)
-    for h in list(logger.handlers):
-        if getattr(h, "_sage_file", False):
-            logger.removeHandler(h)
-            h.close()
-    if ws_root is None:
-        return None
-    logs = ws_root / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    path = logs / f"{stage}-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}.log"
-    fh = logging.FileHandler(path, encoding="utf-8")
-    fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    fh._sage_file = True  # type: ignore[attr-defined]
-    logger.addHandler(fh)
-    return path
-
-
 LONG_STAGE_S = 2 * 3600.0
 """A stage expected to train longer than this on a CPU gets a hint naming the preset that fits."""
 
@@ -145,7 +125,9 @@ def estimate_lines(title: str, estimate_s: float, s_per_step: float, device: str
 
 
 class ProgressDisplay:
-    """A rich progress bar fed by the engine's ``progress(done, total, message=..., **stats)`` callback.
+    """A rich progress bar fed by the engine's ``progress(done, total, message=..., **stats)`` callback
+(:class:`sage_cli._stage.StageDisplay` feeds it the stages' events; the stage functions write the
+progress lines of the log file).
 
     A call carrying ``estimate_s`` (and ``s_per_step``; :meth:`sage_core.runtime.Estimate.as_stats`)
     prints the stage's expected duration once, with :func:`estimate_lines`; ``device`` and ``preset``
@@ -160,7 +142,6 @@ class ProgressDisplay:
         self._progress: Progress | None = None
         self._task: Any = None
         self._log = logging.getLogger("sage")
-        self._last_log = 0.0
 
     def __enter__(self) -> "ProgressDisplay":
         if self.enabled:
@@ -200,10 +181,6 @@ class ProgressDisplay:
         rate = f"{done / elapsed:.1f} it/s" if done else ""
         if self._progress is not None:
             self._progress.update(self._task, completed=done, total=total, info=info, rate=rate)
-        now = time.time()
-        if now - self._last_log > 5.0 or (total is not None and done >= total):
-            self._log.info("%s %s/%s %s", self.title, done, total, info)
-            self._last_log = now
 
 
 MISSING = "—"

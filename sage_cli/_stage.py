@@ -1,110 +1,61 @@
-"""Running one workspace stage from the CLI: config, lock, skip/resume, log, progress, panel."""
+"""Showing a stage run from the CLI: the engine's stage events drawn as rich output.
+
+:class:`StageDisplay` consumes :class:`sage_core.stages.StageEvent` objects: notes and the skip line
+are printed, ``running`` opens a progress bar (it/s, loss, PSNR, ETA; closed when the stage finishes
+or fails), ``estimate`` prints the duration estimate. ``rules=True`` (``sage run``, ``sage demo``)
+puts a rule with the stage's name above each stage.
+"""
 
 from __future__ import annotations
 
-import logging
-import shutil
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-from ._common import ProgressDisplay, console, setup_logging
+from ._common import ProgressDisplay, console
 
 
-@dataclass
-class StageOptions:
-    """The options every stage command shares."""
+class StageDisplay:
+    """The ``on_event`` callback of the stage functions, drawing with rich; use it as a context
+    manager so a failing stage closes its progress bar."""
 
-    ws: Path
-    preset: str
-    config_file: Path | None
-    seed: int
-    device: str
-    force: bool
-    verbose: bool
-    threads: int | None = None  # --threads (None: $SAGE_THREADS, else the idle cores)
+    def __init__(self, verbose: bool = True, preset: str | None = None, rules: bool = False) -> None:
+        self.verbose = verbose
+        self.preset = preset
+        self.rules = rules
+        self._bar: ProgressDisplay | None = None
 
+    def __enter__(self) -> "StageDisplay":
+        return self
 
-def execute_stage(
-    stage: str,
-    opts: StageOptions,
-    cfg: Any,
-    body: Callable[[Any, ProgressDisplay], None],
-    *,
-    requires: tuple[str, ...] = (),
-    external_inputs: dict[str, str] | None = None,
-    title: str | None = None,
-    validate: Callable[[], None] | None = None,
-    remove_new_workspace_on_failure: bool = False,
-    discard_work_on_failure: bool = False,
-) -> dict[str, Any] | None:
-    """Run ``body(run, progress)`` as stage ``stage`` of workspace ``opts.ws``.
+    def __exit__(self, *exc: Any) -> None:
+        self._close(*exc)
 
-    ``validate`` runs first, before anything is written. Returns the manifest, or None when the
-    stage was skipped (already complete with the same config and inputs). ``body`` writes into
-    ``run.work_dir`` and fills ``run.metrics`` / ``run.outputs``; it must not call ``finish``.
-    A failure keeps the work folder (and its checkpoints) for a resume, or discards it with
-    ``discard_work_on_failure``; a workspace created by this call is removed again on failure
-    with ``remove_new_workspace_on_failure``.
-    """
-    from sage_core.config import config_hash, to_dict
-    from sage_core.workspace import Workspace, begin_stage, resolve_device
+    def _close(self, *exc: Any) -> None:
+        if self._bar is not None:
+            bar, self._bar = self._bar, None
+            bar.__exit__(*(exc or (None, None, None)))
 
-    from sage_core.runtime import apply_threads, resolve_render_backend
-
-    device = resolve_device(opts.device)
-    threads = apply_threads(opts.threads)
-    backend = resolve_render_backend(cfg.render_backend, device) if hasattr(cfg, "render_backend") else None
-    if validate is not None:
-        validate()
-    existed = opts.ws.exists()
-    ws = Workspace(opts.ws)
-    ws.root.mkdir(parents=True, exist_ok=True)
-    try:
-        with ws.lock:
-            run = begin_stage(
-                ws,
-                stage,
-                to_dict(cfg),
-                config_hash(cfg),
-                requires=list(requires),
-                external_inputs=external_inputs,
-                seed=opts.seed,
-                device=device,
-                force=opts.force,
-            )
-            if run is None:
-                m = ws.manifest(stage) or {}
-                console.print(
-                    f"[green]{stage}[/]: already complete with the same config and inputs "
-                    f"(finished {m.get('finished_at', '?')}); skipping. Use --force to redo it."
-                )
-                return None
-            run.metrics["threads"] = threads
-            if backend is not None:
-                run.metrics["render_backend"] = backend
-            log_path = setup_logging(ws.root, stage, opts.verbose)
-            log = logging.getLogger("sage")
-            log.info("stage %s started: config %s, seed %s, device %s, resumed %s, threads %s, render backend %s",
-                     stage, run.config_hash, opts.seed, device, run.resumed, threads, backend)  # fmt: skip
-            if run.resumed:
-                console.print(f"[yellow]{stage}[/]: resuming an interrupted run")
-            try:
-                with ProgressDisplay(title or stage, enabled=opts.verbose, device=device, preset=opts.preset) as progress:
-                    body(run, progress)
-            except BaseException as e:
-                log.exception("stage %s failed", stage)
-                if discard_work_on_failure:
-                    shutil.rmtree(run.work_dir, ignore_errors=True)
-                else:
-                    run.fail(f"{type(e).__name__}: {e}")
-                raise
-            manifest = run.finish()
-            log.info("stage %s complete: %s", stage, manifest.get("metrics"))
-            if log_path is not None:
-                log.info("log written to %s", log_path)
-            return manifest
-    except BaseException:
-        if remove_new_workspace_on_failure and not existed and ws.root.exists():
-            shutil.rmtree(ws.root, ignore_errors=True)
-        raise
+    def __call__(self, ev: Any) -> None:
+        kind = ev.kind
+        if kind == "started":
+            if self.rules:
+                console.rule(f"[bold]{ev.stage}")
+        elif kind == "note":
+            if ev.level == "warning":
+                console.print(f"[yellow]warning:[/] {ev.message}")
+            elif ev.level == "notice":
+                console.print(f"[yellow]{ev.stage}[/]: {ev.message}")
+            elif self.verbose:
+                console.print(f"[bold]{ev.title}[/]: {ev.message}" if ev.title else ev.message)
+        elif kind == "skipped":
+            console.print(f"[green]{ev.stage}[/]: {ev.message}")
+        elif kind == "running":
+            self._close()
+            if ev.metrics.get("resumed"):
+                console.print(f"[yellow]{ev.stage}[/]: resuming an interrupted run")
+            self._bar = ProgressDisplay(ev.title or ev.stage, enabled=self.verbose, device=ev.metrics.get("device"), preset=self.preset)
+            self._bar.__enter__()
+        elif kind in ("progress", "estimate"):
+            if self._bar is not None:
+                self._bar(ev.step or 0, ev.total, ev.message, **ev.metrics)
+        elif kind == "finished":
+            self._close()

@@ -44,7 +44,7 @@ def test_interpolated_demo_motion(tiny_capture, tmp_path):
 
 @pytest.mark.slow
 def test_demo_fast_smoke_and_run_skips(tmp_path):
-    from sage_cli.commands.demo_cmd import FAST_SETS
+    from sage_core.stages.demo import FAST_SETS
 
     ws = tmp_path / "demo"
     res = invoke(["demo", ws, "--fast", "--device", "cpu", "--quiet"])
@@ -53,14 +53,15 @@ def test_demo_fast_smoke_and_run_skips(tmp_path):
     from sage_core.workspace import Workspace
 
     w = Workspace(ws)
-    for stage in ("ingest", "init-mesh", "phase1", "eval", "export"):
+    for stage in ("ingest", "init-mesh", "phase1", "phase2", "eval", "export"):
         assert w.status(stage).status == "complete", stage
-    av_stage = "phase2" if w.status("phase2").status == "complete" else "phase1"
+    av_stage = "phase2"  # the chain runs phase 2 unless --skip-phase2
+    assert (ws / "phase2" / "avatar.pt").is_file() and (ws / "eval" / "phase2" / "val" / "metrics.json").is_file()
     for split in ("val", "test"):
         doc = json.loads((ws / "eval" / av_stage / split / "metrics.json").read_text())
         assert doc["counts"]["images"] > 0 and doc["overall"]["lpips"] is None  # no weights by default
         own = ws / av_stage / f"eval_{split}" / "metrics.json"
-        if av_stage == "phase2" and own.is_file():  # eval renders the phase-2 avatar as phase 2 does (with correction)
+        if own.is_file():  # eval renders the phase-2 avatar as phase 2 does (with correction)
             ref = json.loads(own.read_text())["overall"]
             assert doc["overall"]["psnr"] == pytest.approx(ref["psnr"], abs=0.01)
             assert doc["overall"]["ssim"] == pytest.approx(ref["ssim"], abs=1e-4)

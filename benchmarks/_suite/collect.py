@@ -126,7 +126,7 @@ def geometry_vs_gt(ws: Path, capture: Path, n_samples: int = 20000, seed: int = 
     import torch
     import trimesh
 
-    from sage_core.avatar.model import Avatar
+    from sage_core.avatar import Avatar
     from sage_core.geometry.mesh_metrics import mesh_chamfer, normal_error
 
     with torch.no_grad():

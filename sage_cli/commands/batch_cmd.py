@@ -2,10 +2,11 @@
 
 Every subject gets the workspace ``ROOT/<id>/`` and runs in its own process: ``python -m
 sage_cli.commands.batch_cmd ROOT/<id>/.batch_job.json --device D --cpus C`` (this module's
-worker), which calls :func:`run_pipeline` exactly as ``sage run`` does, with stdout/stderr in
-``ROOT/<id>/logs/batch-<UTC time>.log``. The worker keeps ``ROOT/<id>/.batch_status.json`` up to
-date (stage, progress, elapsed, PSNR) from the stages' progress log records; the batch process
-polls these files for its live table. A subject whose stages are all complete with the same batch
+worker), which runs :func:`sage_core.stages.run_pipeline` and shows it as ``sage run`` does, with
+stdout/stderr in ``ROOT/<id>/logs/batch-<UTC time>.log``. The worker keeps
+``ROOT/<id>/.batch_status.json`` up to date (stage, progress, elapsed, PSNR) from the stages' events
+(:class:`sage_core.batch.StatusWriter`); the batch process polls these files for its live table and
+reads each subject's metrics from its eval manifest. A subject whose stages are all complete with the same batch
 options is skipped without starting a process; a failed subject does not stop the others; the
 summary goes to ``ROOT/batch_summary.json`` and ``ROOT/batch_summary.md``.
 """
@@ -14,9 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import os
-import re
 import signal
 import sys
 import time
@@ -27,25 +26,16 @@ import typer
 
 from .._common import ConfigOpt, ForceOpt, PresetOpt, SeedOpt, SetOpt, VerboseOpt, cli_errors, console, err_console, fmt_metric
 
-_PSNR_RE = re.compile(r"(?<![\w])psnr (-?[0-9][0-9.eE+-]*)")
-
 
 # --------------------------------------------------------------------------------------------
 # Subject specs
 # --------------------------------------------------------------------------------------------
 
 
-def pipeline_stages(skip_phase2: bool) -> list[str]:
-    """The stages ``sage run`` runs with these options (phase2 only when installed and not skipped)."""
-    from .run_cmd import phase2_command
-
-    mid = [] if skip_phase2 or phase2_command() is None else ["phase2"]
-    return ["ingest", "init-mesh", "phase1", *mid, "eval", "export"]
-
-
 def subject_spec(subject: Any, root: Path, opts: dict[str, Any], subjects_file: Path) -> dict[str, Any]:
     """The ``run_pipeline`` arguments of one subject (plain JSON data) with its ``run_key``."""
     from sage_core.errors import InputError
+    from sage_core.stages import pipeline_stages
 
     from .run_cmd import split_sets
 
@@ -105,45 +95,6 @@ def _input_fingerprints(spec: dict[str, Any]) -> dict[str, str]:
 # --------------------------------------------------------------------------------------------
 
 
-class _StatusHandler(logging.Handler):
-    """Turns the stages' log records (start, progress, completion) into ``.batch_status.json`` updates."""
-
-    def __init__(self, ws: Path, min_interval: float = 0.5) -> None:
-        super().__init__(level=logging.INFO)
-        self.ws = ws
-        self.min_interval = min_interval
-        self._last = 0.0
-
-    def emit(self, record: logging.LogRecord) -> None:
-        from sage_core.batch import write_status
-
-        try:
-            msg, args = str(record.msg), record.args if isinstance(record.args, tuple) else ()
-            if msg.startswith("stage %s started") and args:
-                write_status(self.ws, stage=str(args[0]), done=0, total=None, message="started")
-                self._last = time.time()
-            elif msg.startswith("stage %s complete") and args:
-                write_status(self.ws, stage=str(args[0]), message="complete")
-            elif msg == "%s %s/%s %s" and len(args) == 4:
-                _, done, total, info = args
-                final = total is not None and done is not None and done >= total
-                if not final and time.time() - self._last < self.min_interval:
-                    return
-                fields: dict[str, Any] = {"done": done, "total": total, "message": str(info)[:120]}
-                m = _PSNR_RE.search(str(info))
-                if m:
-                    try:
-                        v = float(m.group(1))
-                        if v == v:
-                            fields["psnr"] = v
-                    except ValueError:
-                        pass
-                write_status(self.ws, **fields)
-                self._last = time.time()
-        except Exception:  # noqa: BLE001 - a status update must never break the stage
-            pass
-
-
 def worker_main(argv: list[str] | None = None) -> int:
     """Run one subject's pipeline from its job file; returns the exit code."""
     import argparse
@@ -156,7 +107,7 @@ def worker_main(argv: list[str] | None = None) -> int:
     spec = json.loads(a.job.read_text(encoding="utf-8"))
     ws = Path(spec["ws"])
 
-    from sage_core.batch import subject_metrics, write_status
+    from sage_core.batch import StatusWriter, subject_metrics, write_status
     from sage_core.errors import SageError
 
     if a.cpus > 0:
@@ -167,32 +118,29 @@ def worker_main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     write_status(ws, state="running", stage=None, done=0, total=None, message="", psnr=None, started_at=t0, pid=os.getpid(),
                  device=a.device, error=None, run_key=None)  # fmt: skip
-    handler = _StatusHandler(ws)
-    logging.getLogger("sage").addHandler(handler)
-    from .run_cmd import run_pipeline
+    from .run_cmd import run_chain
 
     def opt(key: str) -> Path | None:
         return None if spec.get(key) is None else Path(spec[key])
 
     try:
-        res = run_pipeline(
-            Path(spec["dataset"]), ws, Path(spec["flame_model"]), flame_masks=opt("flame_masks"),
-            ingest_flags=spec["ingest_flags"], skip_phase2=spec["skip_phase2"], lpips_weights=opt("lpips_weights"),
-            preset=spec["preset"], config=opt("config"), sets=spec["sets"], seed=spec["seed"], device=a.device,
-            force=spec["force"], verbose=False,
-        )  # fmt: skip
-    except SageError as e:
-        err_console.print(f"error: {e}", soft_wrap=True, markup=False)
-        write_status(ws, state="failed", error=str(e), elapsed_s=time.time() - t0)
-        return e.exit_code
-    except typer.Exit as e:  # a stage command reported its own error (printed above) and exit code
+        with cli_errors():  # other failures are shown and mapped to exit codes as `sage run` does
+            try:
+                res = run_chain(
+                    Path(spec["dataset"]), ws, Path(spec["flame_model"]), flame_masks=opt("flame_masks"),
+                    ingest_flags=spec["ingest_flags"], skip_phase2=spec["skip_phase2"], lpips_weights=opt("lpips_weights"),
+                    preset=spec["preset"], config=opt("config"), sets=spec["sets"], seed=spec["seed"], device=a.device,
+                    force=spec["force"], verbose=False, on_event=StatusWriter(ws),
+                )  # fmt: skip
+            except SageError as e:
+                err_console.print(f"error: {e}", soft_wrap=True, markup=False)
+                write_status(ws, state="failed", error=str(e), elapsed_s=time.time() - t0)
+                return e.exit_code
+    except typer.Exit as e:  # an interrupt, an out-of-memory or a file-system refusal, printed by cli_errors
         code = int(getattr(e, "exit_code", 1) or 0)
-        if code == 0:
-            write_status(ws, state="failed", error="a stage stopped without finishing", elapsed_s=time.time() - t0)
-            return 1
         state = "interrupted" if code == 130 else "failed"
-        write_status(ws, state=state, error="interrupted" if code == 130 else None, elapsed_s=time.time() - t0)
-        return code
+        write_status(ws, state=state, error="interrupted" if code == 130 else f"exit code {code}", elapsed_s=time.time() - t0)
+        return code or 1
     except KeyboardInterrupt:
         err_console.print("interrupted: the subject resumes from its last checkpoint when the batch runs again")
         write_status(ws, state="interrupted", error="interrupted", elapsed_s=time.time() - t0)
@@ -204,8 +152,6 @@ def worker_main(argv: list[str] | None = None) -> int:
         line = f"{type(e).__name__}: {e}".splitlines()[0]
         write_status(ws, state="failed", error=line, elapsed_s=time.time() - t0)
         return 1
-    finally:
-        logging.getLogger("sage").removeHandler(handler)
     metrics = subject_metrics(ws)
     for name, outcome in res.stages:
         console.print(f"{name}: {outcome}")

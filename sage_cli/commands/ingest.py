@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 
@@ -21,7 +21,7 @@ from .._common import (
     resolve_stage_config,
     summary_panel,
 )
-from .._stage import StageOptions, execute_stage
+from .._stage import StageDisplay
 
 
 def ingest(
@@ -46,8 +46,6 @@ def ingest(
 ) -> None:
     """Read a capture: cameras (OpenCV), frames and splits, FLAME parameters, resized images and masks, and the FLAME model."""
     with cli_errors():
-        from sage_core.errors import InputError
-
         flags = {
             "regime": regime,
             "timestep": timestep,
@@ -58,64 +56,15 @@ def ingest(
             **parse_sets(set_),
         }
         cfg = resolve_stage_config("ingest", preset, config, flags)
-        if not dataset.is_dir():
-            raise InputError(dataset, "capture folder not found")
-        if not flame_model.is_file():
-            raise InputError(flame_model, "FLAME model file not found")
-        masks = flame_masks
-        if masks is None and (flame_model.parent / "FLAME_masks.pkl").is_file():
-            masks = flame_model.parent / "FLAME_masks.pkl"
-        if masks is not None and not masks.is_file():
-            raise InputError(masks, "FLAME masks file not found")
 
-        from sage_core.data.capture import read_capture
-        from sage_core.data.ingest import ingest as run_ingest
-        from sage_core.workspace import file_fingerprint
+        from sage_core.stages import StageSettings, ingest_stage
 
-        capture = read_capture(dataset)  # validates everything before anything is written
-        external = {"flame_model": file_fingerprint(flame_model)}
-        if masks is not None:
-            external["flame_masks"] = file_fingerprint(masks)
-        for name in sorted(p.name for p in dataset.glob("transforms*.json")):
-            external[name] = file_fingerprint(dataset / name)
-        external["dataset"] = str(dataset.resolve())
-        from sage_core.data.ingest import capture_fingerprint
-        from sage_core.workspace import HASH_CACHE, Workspace
+        with StageDisplay(verbose, preset) as display:
+            r = ingest_stage(dataset, ws, cfg, flame_model, flame_masks, StageSettings(seed, device, force, threads), display)
+        if not r.skipped:
+            show(r, ws)
 
-        external["capture_content"] = capture_fingerprint(capture, Workspace(ws).root / HASH_CACHE if ws.is_dir() else None)
 
-        summary_holder: dict = {}
-
-        def body(run, progress) -> None:
-            s = run_ingest(
-                capture,
-                flame_model,
-                run.work_dir,
-                masks_path=masks,
-                regime=cfg.regime,
-                timestep=cfg.timestep,
-                camera=cfg.camera,
-                downsample=cfg.downsample,
-                height=cfg.height,
-                background=cfg.background,
-                progress=progress,
-            )
-            summary_holder["s"] = s
-            run.metrics.update(s.metrics())
-            run.outputs.update({"data": str(run.ws.stage_dir("ingest"))})
-
-        opts = StageOptions(ws, preset, config, seed, device, force, verbose, threads)
-        manifest = execute_stage(
-            "ingest",
-            opts,
-            cfg,
-            body,
-            external_inputs=external,
-            title="ingest",
-            remove_new_workspace_on_failure=True,
-            discard_work_on_failure=True,
-        )
-        if manifest is None:
-            return
-        s = summary_holder["s"]
-        summary_panel("sage ingest", list(s.rows()) + [("wall time", f"{manifest['wall_time_s']:.1f} s")], [("data", ws / "data")])
+def show(r: Any, ws: Path) -> None:
+    """The closing panel of a finished (not skipped) ingest result (``sage ingest``, ``sage run``)."""
+    summary_panel("sage ingest", list(r.summary.rows()) + [("wall time", f"{r.wall_time_s:.1f} s")], [("data", ws / "data")])

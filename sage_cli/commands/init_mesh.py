@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 
@@ -22,7 +22,7 @@ from .._common import (
     resolve_stage_config,
     summary_panel,
 )
-from .._stage import StageOptions, execute_stage
+from .._stage import StageDisplay
 
 
 def init_mesh(
@@ -46,31 +46,27 @@ def init_mesh(
         cfg = resolve_stage_config("init-mesh", preset, config, flags)
         require_workspace(ws, " (run `sage ingest` first)")
 
-        def body(run, progress) -> None:
-            from sage_core.data.dataset import IngestedData
-            from sage_core.train.init_mesh import run_init_mesh
+        from sage_core.stages import StageSettings, init_mesh_stage
 
-            data = IngestedData.open(run.ws.stage_dir("ingest"))
-            metrics = run_init_mesh(
-                data, run.work_dir, cfg, device=run.device, seed=run.seed, checkpoint_dir=run.checkpoint_dir, progress=progress
-            )
-            run.metrics.update(metrics)
-            run.outputs.update({n: str(run.ws.stage_dir("init-mesh") / n) for n in ("canonical_mesh.ply", "sdf_mesh.ply", "sdf.pt")})
+        with StageDisplay(verbose, preset) as display:
+            r = init_mesh_stage(ws, cfg, StageSettings(seed, device, force, threads), display)
+        if not r.skipped:
+            show(r, ws)
 
-        opts = StageOptions(ws, preset, config, seed, device, force, verbose, threads)
-        manifest = execute_stage("init-mesh", opts, cfg, body, requires=("ingest",), title="init-mesh")
-        if manifest is None:
-            return
-        m = manifest["metrics"]
-        out = ws / "init"
-        summary_panel(
-            "sage init-mesh",
-            [
-                ("canonical mesh", f"{m['n_vertices']} vertices, {m['n_faces']} faces ({m['n_mouth_faces']} mouth interior)"),
-                ("mean |SDF| at vertices", f"{m['mean_abs_sdf_vertices_m'] * 1000:.3f} mm ({m['mean_abs_sdf_rel'] * 100:.3f} % of the head diagonal)"),
-                ("normal agreement (mean cos)", m["normal_cos"]),
-                ("Chamfer to the mesh", f"{m['chamfer_m'] * 1000:.3f} mm ({m['chamfer_rel'] * 100:.3f} %)"),
-                ("wall time", f"{manifest['wall_time_s']:.1f} s"),
-            ],
-            [("canonical mesh", out / "canonical_mesh.ply"), ("SDF mesh", out / "sdf_mesh.ply"), ("SDF", out / "sdf.pt")],
-        )
+
+def show(r: Any, ws: Path) -> None:
+    """The closing panel of a finished (not skipped) init-mesh result (``sage init-mesh``, ``sage run``)."""
+    manifest = r.manifest
+    m = manifest["metrics"]
+    out = ws / "init"
+    summary_panel(
+        "sage init-mesh",
+        [
+            ("canonical mesh", f"{m['n_vertices']} vertices, {m['n_faces']} faces ({m['n_mouth_faces']} mouth interior)"),
+            ("mean |SDF| at vertices", f"{m['mean_abs_sdf_vertices_m'] * 1000:.3f} mm ({m['mean_abs_sdf_rel'] * 100:.3f} % of the head diagonal)"),
+            ("normal agreement (mean cos)", m["normal_cos"]),
+            ("Chamfer to the mesh", f"{m['chamfer_m'] * 1000:.3f} mm ({m['chamfer_rel'] * 100:.3f} %)"),
+            ("wall time", f"{manifest['wall_time_s']:.1f} s"),
+        ],
+        [("canonical mesh", out / "canonical_mesh.ply"), ("SDF mesh", out / "sdf_mesh.ply"), ("SDF", out / "sdf.pt")],
+    )

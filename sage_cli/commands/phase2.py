@@ -25,7 +25,7 @@ from .._common import (
     resolve_stage_config,
     summary_panel,
 )
-from .._stage import StageOptions, execute_stage
+from .._stage import StageDisplay
 
 
 def _fmt_means(m: dict[str, Any] | None) -> str:
@@ -53,7 +53,7 @@ def phase2(
     """Self-supervised phase 2: sampled expressions, normal consistency, distortion and appearance
     consistency with the canonical volume rendering; the SDF and hash grid stay frozen."""
     with cli_errors():
-        from sage_core.errors import ConfigError, InputError
+        from sage_core.errors import ConfigError
 
         corr: bool | None = None
         if correction is not None:
@@ -63,49 +63,35 @@ def phase2(
         flags = {"correction": corr, "iterations": iterations, "render_backend": render_backend, **parse_sets(set_)}
         cfg = resolve_stage_config("phase2", preset, config, flags)
         require_workspace(ws, " (run `sage ingest`, `sage init-mesh` and `sage phase1` first)")
-        if lpips_weights is not None and not lpips_weights.is_file():
-            raise InputError(lpips_weights, "LPIPS weights file not found")
-        external = None
-        if lpips_weights is not None:
-            from sage_core.workspace import file_fingerprint
+        from sage_core.stages import StageSettings, phase2_stage
 
-            external = {"lpips_weights": file_fingerprint(lpips_weights)}
+        with StageDisplay(verbose, preset) as display:
+            r = phase2_stage(ws, cfg, lpips_weights, StageSettings(seed, device, force, threads), display)
+        if not r.skipped:
+            show(r, ws)
 
-        def body(run, progress) -> None:
-            from sage_core.data.dataset import IngestedData
-            from sage_core.train.phase2 import run_phase2
 
-            data = IngestedData.open(run.ws.stage_dir("ingest"))
-            metrics = run_phase2(
-                data, run.ws.stage_dir("phase1"), run.ws.stage_dir("init-mesh"), run.work_dir, cfg, device=run.device,
-                seed=run.seed, checkpoint_dir=run.checkpoint_dir, progress=progress, lpips_weights=lpips_weights,
-            )  # fmt: skip
-            run.metrics.update({k: v for k, v in metrics.items() if k != "final_losses"})
-            out = run.ws.stage_dir("phase2")
-            run.outputs.update({n: str(out / n) for n in ("avatar.pt", "metrics.json", "distortion_curve.json", "eval_test", "eval_val")})
-
-        opts = StageOptions(ws, preset, config, seed, device, force, verbose, threads)
-        manifest = execute_stage("phase2", opts, cfg, body, requires=("phase1",), external_inputs=external, title="phase 2")
-        if manifest is None:
-            return
-        m = manifest["metrics"]
-        out = ws / "phase2"
-        test = m.get("test") or {}
-        rows = [
-            ("correction / surfels", f"{'on' if m['correction'] else 'off'} / {m['n_surfels']}"),
-            ("self-reenactment (test, all cams)", _fmt_means(test.get("overall"))),
-            ("self-reenactment (test, frontal)", _fmt_means(test.get("frontal"))),
-            ("novel view (val)", _fmt_means((m.get("val") or {}).get("overall"))),
-        ]
-        if m.get("phase1_test"):
-            rows.append(("phase 1 alone (test, all cams)", _fmt_means(m["phase1_test"].get("overall"))))
-        rows += [
-            ("distortion, first 100 steps", f"{m['distortion_first100_mean']:.3e}"),
-            ("speed", f"{m['iterations_per_s']:.2f} it/s"),
-            ("wall time", f"{manifest['wall_time_s']:.1f} s"),
-        ]
-        summary_panel(
-            "sage phase2", rows,
-            [("avatar", out / "avatar.pt"), ("metrics", out / "metrics.json"), ("distortion curve", out / "distortion_curve.json"),
-             ("evaluation", out / "eval_test")],
-        )  # fmt: skip
+def show(r: Any, ws: Path) -> None:
+    """The closing panel of a finished (not skipped) phase2 result (``sage phase2``, ``sage run``)."""
+    manifest = r.manifest
+    m = manifest["metrics"]
+    out = ws / "phase2"
+    test = m.get("test") or {}
+    rows = [
+        ("correction / surfels", f"{'on' if m['correction'] else 'off'} / {m['n_surfels']}"),
+        ("self-reenactment (test, all cams)", _fmt_means(test.get("overall"))),
+        ("self-reenactment (test, frontal)", _fmt_means(test.get("frontal"))),
+        ("novel view (val)", _fmt_means((m.get("val") or {}).get("overall"))),
+    ]
+    if m.get("phase1_test"):
+        rows.append(("phase 1 alone (test, all cams)", _fmt_means(m["phase1_test"].get("overall"))))
+    rows += [
+        ("distortion, first 100 steps", f"{m['distortion_first100_mean']:.3e}"),
+        ("speed", f"{m['iterations_per_s']:.2f} it/s"),
+        ("wall time", f"{manifest['wall_time_s']:.1f} s"),
+    ]
+    summary_panel(
+        "sage phase2", rows,
+        [("avatar", out / "avatar.pt"), ("metrics", out / "metrics.json"), ("distortion curve", out / "distortion_curve.json"),
+         ("evaluation", out / "eval_test")],
+    )  # fmt: skip

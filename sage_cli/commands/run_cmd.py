@@ -1,21 +1,17 @@
-"""``sage run DATASET WS``: every stage in order, with the single stages' own options and logic.
+"""``sage run DATASET WS``: every stage in order (:func:`sage_core.stages.run_pipeline`), shown as
+the single stage commands show them.
 
-ingest → init-mesh → phase1 → phase2 (when the command is installed; ``--skip-phase2`` leaves it
-out) → eval (test and val) → export (PLY at the canonical pose + the avatar bundle). Each stage is
-the stage command itself, so a finished stage with the same config and inputs is skipped, an
-interrupted one resumes from its checkpoint, and a failing one stops the chain with its own
-message and exit code. ``--set stage.key=value`` addresses one stage's config (``--set
+ingest → init-mesh → phase1 → phase2 (``--skip-phase2`` leaves it out) → eval (test and val) →
+export (PLY at the canonical pose + the avatar bundle). A finished stage with the same config and
+inputs is skipped, an interrupted one resumes from its checkpoint, and a failing one stops the
+chain with its own message and exit code. ``--set stage.key=value`` addresses one stage's config (``--set
 phase1.iterations=500``); a ``--config`` file holds one section per stage.
 """
 
 from __future__ import annotations
 
-import importlib
-import inspect
-import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Callable, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 
@@ -30,9 +26,9 @@ from .._common import (
     ThreadsOpt,
     VerboseOpt,
     cli_errors,
-    console,
     summary_panel,
 )
+from .._stage import StageDisplay
 
 # stage name -> accepted --set prefixes
 STAGE_PREFIXES: dict[str, tuple[str, ...]] = {
@@ -43,10 +39,6 @@ STAGE_PREFIXES: dict[str, tuple[str, ...]] = {
     "eval": ("eval",),
     "export": ("export",),
 }
-
-
-RENDER_STAGES: tuple[str, ...] = ("phase1", "phase2", "eval", "export")
-"""Stages of ``sage run`` whose config has ``render_backend``."""
 
 
 def split_sets(values: list[str] | None) -> dict[str, list[str]]:
@@ -64,33 +56,45 @@ def split_sets(values: list[str] | None) -> dict[str, list[str]]:
     return out
 
 
-def phase2_command() -> Callable[..., None] | None:
-    """The ``sage phase2`` command function when it is installed, else None."""
-    try:
-        mod = importlib.import_module("sage_cli.commands.phase2")
-    except ImportError:
-        return None
-    return getattr(mod, "phase2", None)
+def stage_flags(sets: dict[str, list[str]] | None) -> dict[str, dict[str, Any]]:
+    """Per-stage ``--set`` lists (:func:`split_sets`) as per-stage config flags."""
+    from .._common import parse_sets
+
+    return {stage: parse_sets(values) for stage, values in (sets or {}).items()}
 
 
-def _call(fn: Callable[..., None], **kwargs: Any) -> None:
-    """Call a command function with the keyword arguments it accepts."""
-    params = inspect.signature(fn).parameters
-    fn(**{k: v for k, v in kwargs.items() if k in params})
+def show_result(result: Any, ws: Path) -> None:
+    """The closing output of one stage of a chain, as the stage's own command prints it."""
+    from . import eval_cmd, export_cmd, ingest, init_mesh, phase1, phase2, reenact_cmd
+
+    stage = getattr(result, "stage", None)
+    single = {"ingest": ingest.show, "init-mesh": init_mesh.show, "phase1": phase1.show, "phase2": phase2.show}
+    if stage in single:
+        if not result.skipped:
+            single[stage](result, ws)
+    elif stage == "eval":
+        eval_cmd.show(result, ws)
+    elif stage == "export":
+        export_cmd.show(result)
+    elif hasattr(result, "report") and hasattr(result, "record"):
+        reenact_cmd.show(result)
 
 
-@dataclass
-class PipelineResult:
-    """What ``run`` did: per-stage outcome lines, the avatar stage used and the wall time."""
+class ChainDisplay(StageDisplay):
+    """:class:`StageDisplay` for a chain of stages (``sage run``, ``sage demo``, a ``sage batch``
+    subject): a rule above each stage and each stage's closing panel."""
 
-    ws: Path
-    stages: list[tuple[str, str]] = field(default_factory=list)
-    avatar_stage: str | None = None
-    wall_time_s: float = 0.0
-    notes: list[str] = field(default_factory=list)
+    def __init__(self, ws: Path, verbose: bool = True, preset: str | None = None) -> None:
+        super().__init__(verbose, preset, rules=True)
+        self.ws = ws
+
+    def __call__(self, ev: Any) -> None:
+        super().__call__(ev)
+        if ev.kind == "finished" and ev.result is not None:
+            show_result(ev.result, self.ws)
 
 
-def run_pipeline(
+def run_chain(
     dataset: Path,
     ws: Path,
     flame_model: Path,
@@ -108,64 +112,26 @@ def run_pipeline(
     verbose: bool = True,
     threads: int | None = None,
     render_backend: str | None = None,
-) -> PipelineResult:
-    """Run the stage chain by calling each stage command (see the module doc).
+    on_event: Any = None,
+) -> Any:
+    """:func:`sage_core.stages.run_pipeline` with the chain's display (and ``on_event`` after it)."""
+    from sage_core.stages import StageSettings, run_pipeline
 
-    threads: CPU threads of every stage (None: $SAGE_THREADS, else the idle cores); it is also put in
-    $SAGE_THREADS for the rest of this process, so stage commands without the option use it too.
-    render_backend: the ``render_backend`` of every stage that renders (None: their configs').
-    """
-    import os
+    flags = stage_flags(sets)
+    flags["ingest"] = {**(ingest_flags or {}), **flags.get("ingest", {})}
+    with ChainDisplay(ws, verbose, preset) as display:
 
-    from sage_core.runtime import THREADS_ENV
-    from sage_core.workspace import Workspace
+        def events(ev: Any) -> None:
+            display(ev)
+            if on_event is not None:
+                on_event(ev)
 
-    from . import eval_cmd, export_cmd, ingest, init_mesh, phase1
-
-    sets = {s: list(v) for s, v in (sets or {s: [] for s in STAGE_PREFIXES}).items()}
-    if render_backend is not None:
-        for s in RENDER_STAGES:
-            sets.setdefault(s, []).append(f"render_backend={render_backend}")
-    if threads is not None:
-        from sage_core.runtime import apply_threads
-
-        os.environ[THREADS_ENV] = str(apply_threads(threads))
-    common = {"preset": preset, "config": config, "seed": seed, "device": device, "force": force, "verbose": verbose, "threads": threads}
-    t0 = time.time()
-    res = PipelineResult(ws=ws)
-    w = Workspace(ws)
-
-    def stage(name: str, fn: Callable[[], None]) -> None:
-        before = (w.manifest(name) or {}).get("finished_at") if ws.exists() else None
-        console.rule(f"[bold]{name}")
-        t = time.time()
-        fn()
-        after = (w.manifest(name) or {}).get("finished_at")
-        outcome = "skipped (already complete)" if after is not None and after == before else f"done in {time.time() - t:.1f} s"
-        res.stages.append((name, outcome))
-
-    stage("ingest", lambda: _call(ingest.ingest, dataset=dataset, ws=ws, flame_model=flame_model, flame_masks=flame_masks,
-                                  set_=sets["ingest"], **(ingest_flags or {}), **common))  # fmt: skip
-    stage("init-mesh", lambda: _call(init_mesh.init_mesh, ws=ws, set_=sets["init-mesh"], **common))
-    stage("phase1", lambda: _call(phase1.phase1, ws=ws, set_=sets["phase1"], **common))
-    p2 = phase2_command()
-    if skip_phase2:
-        res.stages.append(("phase2", "left out (--skip-phase2)"))
-    elif p2 is None:
-        res.stages.append(("phase2", "not available in this installation"))
-        res.notes.append("phase 2 is not installed: the phase-1 avatar is evaluated and exported")
-    else:
-        stage("phase2", lambda: _call(p2, ws=ws, set_=sets["phase2"], lpips_weights=lpips_weights, **common))
-    av_stage = "phase1" if skip_phase2 or p2 is None else "phase2"
-    res.avatar_stage = av_stage
-    stage("eval", lambda: _call(eval_cmd.eval_, ws=ws, split="all", stage=av_stage, lpips_weights=lpips_weights,
-                                set_=sets["eval"], **common))  # fmt: skip
-    stage("export", lambda: _call(export_cmd.export, ws=ws, ply=True, bundle=True, stage=av_stage, set_=sets["export"], **common))
-    res.wall_time_s = time.time() - t0
-    return res
+        return run_pipeline(dataset, ws, flame_model, flame_masks=flame_masks, skip_phase2=skip_phase2, lpips_weights=lpips_weights,
+                            preset=preset, config_file=config, flags=flags, render_backend=render_backend,
+                            settings=StageSettings(seed, device, force, threads), on_event=events)  # fmt: skip
 
 
-def pipeline_rows(res: PipelineResult) -> tuple[list[tuple[str, Any]], list[tuple[str, Path]]]:
+def pipeline_rows(res: Any) -> tuple[list[tuple[str, Any]], list[tuple[str, Path]]]:
     """Panel rows (stages, metrics) and paths of a finished pipeline."""
     from sage_core.workspace import read_json
 
@@ -221,7 +187,7 @@ def run(
     with cli_errors():
         sets = split_sets(set_)
         ingest_flags = {"regime": regime, "timestep": timestep, "camera": camera, "downsample": downsample, "height": height, "background": background}
-        res = run_pipeline(
+        res = run_chain(
             dataset, ws, flame_model, flame_masks=flame_masks, ingest_flags=ingest_flags, skip_phase2=skip_phase2,
             lpips_weights=lpips_weights, preset=preset, config=config, sets=sets, seed=seed, device=device, force=force,
             verbose=verbose, threads=threads, render_backend=render_backend,

@@ -1,9 +1,10 @@
 """Many subjects at once (``sage batch``): the SUBJECTS list, the local and Ray engines, per-subject
-status files and the batch summary."""
+status files (written from the stages' events) and the batch summary."""
 
 from __future__ import annotations
 
-from .engines import Job, JobResult, error_line, run_job, run_local, run_ray, visible_gpus
+from .engines import Job, JobResult, run_job, run_local, run_ray, visible_gpus
+from .progress import StatusWriter
 from .subjects import FIELDS, REGIMES, Subject, load_subjects
 from .summary import (
     METRIC_KEYS,
@@ -31,8 +32,8 @@ __all__ = [
     "Job",
     "JobResult",
     "Subject",
+    "StatusWriter",
     "SubjectOutcome",
-    "error_line",
     "load_subjects",
     "read_status",
     "run_job",

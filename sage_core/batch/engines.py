@@ -6,7 +6,8 @@ replaced by the interpreter of the machine that runs the job, the subject's devi
 ``cuda:i`` locally, ``cuda`` inside a Ray task whose GPUs Ray exposes through
 ``CUDA_VISIBLE_DEVICES``) and its CPU count (also exported as ``OMP_NUM_THREADS`` /
 ``MKL_NUM_THREADS`` and as ``SAGE_THREADS``, the thread count every stage of the job applies). Results come back through ``on_result`` as they finish; ``on_poll`` is
-called about every ``poll_interval`` seconds while subjects run.
+called about every ``poll_interval`` seconds while subjects run. A failed job's error is its exit
+code (the logs are never parsed); what went wrong is in the subject's status file.
 
 Ray is imported only inside :func:`run_ray`.
 """
@@ -91,22 +92,6 @@ class _Processes:
                 p.wait()
 
 
-def error_line(log_path: str | Path, start: int = 0) -> str | None:
-    """The most telling line of a failed run's log (from byte ``start``): the last ``error:`` line,
-    else the last non-empty line (a traceback's exception)."""
-    try:
-        with open(log_path, "rb") as fh:
-            fh.seek(start)
-            text = fh.read().decode("utf-8", errors="replace")
-    except OSError:
-        return None
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    for ln in reversed(lines):
-        if ln.lower().startswith("error:"):
-            return ln
-    return lines[-1] if lines else None
-
-
 def run_job(job: Job, device: str, cpus: int, procs: _Processes | None = None) -> JobResult:
     """Run one job's subprocess to completion (in the calling thread / Ray worker)."""
     subst = {"{device}": device, "{cpus}": str(cpus), "{python}": sys.executable}
@@ -116,7 +101,6 @@ def run_job(job: Job, device: str, cpus: int, procs: _Processes | None = None) -
     job.log_path.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     with open(job.log_path, "ab") as log:
-        start = log.tell()
         log.write(f"# sage batch: {job.id} on {device} with {cpus} CPU(s)\n# {' '.join(argv)}\n".encode())
         log.flush()
         if procs is not None and procs.stopping:
@@ -130,7 +114,7 @@ def run_job(job: Job, device: str, cpus: int, procs: _Processes | None = None) -
             if procs is not None:
                 procs.discard(p)
     wall = time.time() - t0
-    err = None if rc == 0 else (error_line(job.log_path, start) or f"exit code {rc}")
+    err = None if rc == 0 else f"exit code {rc}"
     return JobResult(job.id, rc, wall, device, err)
 
 

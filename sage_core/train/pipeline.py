@@ -28,7 +28,7 @@ from ..errors import InputError, StageError
 from ..export.bundle import RenderSettings
 
 if TYPE_CHECKING:
-    from ..avatar.model import Avatar, PosedSurfels
+    from ..avatar import Avatar, PosedSurfels
     from ..data.cameras import Camera
     from ..data.dataset import IngestedData
     from ..workspace import Workspace
@@ -107,7 +107,7 @@ class StageAvatar:
 
 def load_stage_avatar(ws: Workspace, stage: str, data: IngestedData | None, device: str | torch.device = "cpu") -> StageAvatar:
     """Load ``WS/<stage>/avatar.pt`` (the stage must be complete and fresh: StageError otherwise)."""
-    from ..avatar.model import Avatar
+    from ..avatar import Avatar
 
     manifest = ws.require(stage, "loading the avatar")
     path = ws.stage_dir(stage) / AVATAR_FILE

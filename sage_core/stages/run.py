@@ -1,0 +1,113 @@
+"""The whole chain of stages for one subject (``sage run``, ``sage batch``, ``sage demo``).
+
+ingest → init-mesh → phase1 → phase2 (unless ``skip_phase2``) → eval (test and val) → export (PLY
+at the canonical pose + the avatar bundle). Each stage is its stage function, so a finished stage
+with the same config and inputs is skipped, an interrupted one resumes from its checkpoint, and a
+failing one stops the chain with its own error. Every stage's config is resolved when it starts
+(phase 1 with the ingested regime): preset < regime defaults < config file (one section per stage)
+< the per-stage flags.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ._runner import StageResult, StageSettings
+from .events import EventFn
+
+PIPELINE_STAGES: tuple[str, ...] = ("ingest", "init-mesh", "phase1", "phase2", "eval", "export")
+RENDER_STAGES: tuple[str, ...] = ("phase1", "phase2", "eval", "export")
+"""Stages of the chain whose config has ``render_backend``."""
+
+
+def pipeline_stages(skip_phase2: bool) -> list[str]:
+    """The stages :func:`run_pipeline` runs with these options."""
+    return [s for s in PIPELINE_STAGES if not (skip_phase2 and s == "phase2")]
+
+
+@dataclass
+class PipelineResult:
+    """What :func:`run_pipeline` did: per-stage outcome lines (``skipped (already complete)``,
+    ``done in 12.3 s``, ``left out (--skip-phase2)``), each stage's result object, the avatar stage
+    evaluated and exported, and the wall time."""
+
+    ws: Path
+    stages: list[tuple[str, str]] = field(default_factory=list)
+    results: dict[str, StageResult] = field(default_factory=dict)
+    avatar_stage: str | None = None
+    wall_time_s: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+
+def run_pipeline(
+    dataset: str | Path,
+    ws: str | Path,
+    flame_model: str | Path,
+    *,
+    flame_masks: str | Path | None = None,
+    skip_phase2: bool = False,
+    lpips_weights: str | Path | None = None,
+    preset: str = "default",
+    config_file: str | Path | None = None,
+    flags: dict[str, dict[str, Any]] | None = None,
+    render_backend: str | None = None,
+    settings: StageSettings = StageSettings(),
+    on_event: EventFn | None = None,
+) -> PipelineResult:
+    """Run the stage chain on the capture ``dataset`` into workspace ``ws``.
+
+    flags: per-stage config overrides (stage -> {dotted key: value}; None values are unset), e.g.
+    ``{"ingest": {"height": 128}, "phase1": {"iterations": 500}}``. render_backend: the
+    ``render_backend`` of every stage that renders (None: their configs'). settings.threads: CPU
+    threads of every stage (None: ``$SAGE_THREADS``, else the idle cores); also put in
+    ``$SAGE_THREADS`` for the rest of this process. Each stage's events go to ``on_event``.
+    """
+    import os
+
+    from ..config import load_config_file, resolve_config
+    from ..runtime import THREADS_ENV, apply_threads
+    from .eval import eval_stage
+    from .export import export_stage
+    from .ingest import ingest_stage
+    from .init_mesh import init_mesh_stage
+    from .phase1 import phase1_stage, workspace_regime
+    from .phase2 import phase2_stage
+
+    per_stage = {s: dict((flags or {}).get(s) or {}) for s in PIPELINE_STAGES}
+    if render_backend is not None:
+        for s in RENDER_STAGES:
+            per_stage[s]["render_backend"] = render_backend
+    if settings.threads is not None:
+        os.environ[THREADS_ENV] = str(apply_threads(settings.threads))
+    cfg_path = None if config_file is None else Path(config_file)
+    label = str(cfg_path) if cfg_path is not None else "config file"
+
+    def config(stage: str, extra: dict[str, Any] | None = None, regime: str | None = None) -> Any:
+        data = load_config_file(cfg_path) if cfg_path is not None else None
+        return resolve_config(stage, preset, data, {**(extra or {}), **per_stage[stage]}, file_label=label, regime=regime)
+
+    t0 = time.time()
+    ws = Path(ws)
+    res = PipelineResult(ws=ws)
+
+    def record(r: StageResult) -> None:
+        res.results[r.stage] = r
+        res.stages.append((r.stage, "skipped (already complete)" if r.skipped else f"done in {r.duration_s:.1f} s"))
+
+    record(ingest_stage(dataset, ws, config("ingest"), flame_model, flame_masks, settings, on_event))
+    record(init_mesh_stage(ws, config("init-mesh"), settings, on_event))
+    record(phase1_stage(ws, config("phase1", regime=workspace_regime(ws)), settings, on_event))
+    if skip_phase2:
+        res.stages.append(("phase2", "left out (--skip-phase2)"))
+    else:
+        record(phase2_stage(ws, config("phase2"), lpips_weights, settings, on_event))
+    av_stage = "phase1" if skip_phase2 else "phase2"
+    res.avatar_stage = av_stage
+    record(eval_stage(ws, config("eval", {"split": "all", "stage": av_stage}), lpips_weights, settings, on_event))
+    record(export_stage(ws, config("export", {"stage": av_stage}), viewer=["ply"], bundle=True, settings=settings, on_event=on_event))
+    res.wall_time_s = time.time() - t0
+    return res
+
