@@ -8,6 +8,8 @@ It writes ``frames/frame_000.png`` ... : the avatar seen by the workspace's refe
 expression blended from neutral towards a smile-like mix of the first FLAME expression components
 with the jaw opening, and ``frames/normal_000.png`` ... with the world normals of the same frames.
 Any workspace of ``sage run``, a bundle folder of ``sage export --bundle`` or an avatar file works.
+``--motion FILE`` renders the first frames of a FLAME sequence instead (``sage demo`` writes one:
+``sage-demo/motion/demo_motion.npz``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--camera", type=int, default=None, help="camera index of the workspace (default: its reference camera)")
     p.add_argument("--strength", type=float, default=1.5, help="size of the expression coefficients at the last frame")
     p.add_argument("--jaw", type=float, default=0.25, help="jaw opening (radians) at the last frame")
+    p.add_argument("--motion", type=Path, default=None, help="FLAME sequence (.npz, folder or capture) to render instead")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:N] (default: cpu)")
     return p.parse_args(argv)
 
@@ -44,13 +47,18 @@ def main(argv: list[str] | None = None) -> list[Path]:
     direction = np.zeros(avatar.params.n_expr, np.float32)
     direction[: min(4, direction.size)] = [1.0, -0.6, 0.4, 0.3][: min(4, direction.size)]
 
+    motion = None if args.motion is None else sage.load_flame_params(args.motion, n_expr=avatar.params.n_expr)
+    n = args.frames if motion is None else min(args.frames, motion.n_timesteps)
+
     written: list[Path] = []
-    for i in range(args.frames):
-        w = i / max(args.frames - 1, 1)
-        expr = args.strength * w * direction
-        jaw = [args.jaw * w, 0.0, 0.0]
-        posed = avatar.pose(expr=expr, jaw_pose=jaw)  # world-space surfels: means (N, 3), colors (N, 3), ...
-        out = sage.render_avatar(avatar, camera, expr=expr, jaw_pose=jaw)  # image (H, W, 3), alpha, depth, normal
+    for i in range(n):
+        if motion is not None:  # row i of the sequence, with the avatar's own identity
+            frame: dict = {"flame": motion, "row": i}
+        else:
+            w = i / max(args.frames - 1, 1)
+            frame = {"expr": args.strength * w * direction, "jaw_pose": [args.jaw * w, 0.0, 0.0]}
+        posed = avatar.pose(**frame)  # world-space surfels: means (N, 3), colors (N, 3), ...
+        out = sage.render_avatar(avatar, camera, **frame)  # image (H, W, 3), alpha, depth, normal (H, W, 3)
         image = out.image.clamp(0, 1).cpu().numpy()
         normal = (0.5 * (out.normal + 1.0) * out.alpha[..., None]).cpu().numpy()
         for name, img in (("frame", image), ("normal", normal)):

@@ -11,14 +11,18 @@ A small flat API (``import sage_core as sage``; ``examples/python_api.py`` shows
 * ``avatar.pose(flame=None, row=0, *, view_from=None, **overrides)`` -> :class:`PosedSurfels`
   (means (N, 3), quats (N, 4) wxyz, scales (N, 2), opacities (N,), colors (N, 3), vertices (V, 3));
 * ``sage.render_avatar(avatar, camera, flame=None, row=0, *, background=None, backend="auto",
-  **overrides)`` -> :class:`RenderOutput` (image (H, W, 3), alpha (H, W), depth (H, W), normal (H, W, 3));
-  (``sage_core.render`` is the rasterizer package);
+  **overrides)`` -> :class:`RenderOutput` (image (H, W, 3), alpha (H, W), depth (H, W), normal
+  (H, W, 3)); not ``sage.render``, which is the rasterizer package :mod:`sage_core.render`;
 * ``sage.load_cameras(path)`` -> {index: :class:`Camera`}, ``sage.reference_camera(path)`` -> Camera;
   ``sage.RenderCamera`` (torch tensors, unbatched or batched);
 * ``sage.FlameParams``, ``sage.load_flame_params(path)`` (a motion ``.npz``, a folder of per-frame
   files or a capture);
 * ``sage.load_config(path)`` (YAML/JSON mapping), ``sage.resolve_config(stage, preset, file_data,
   flags)`` (the CLI's config resolution), ``sage.PRESETS``, ``sage.STAGE_CONFIGS``;
+* ``sage.run_pipeline(capture, ws, flame_model, preset=..., config_file=...)`` (what ``sage run``
+  does), ``sage.StageSettings`` (seed, device, force, threads), ``sage.StageEvent`` (the progress
+  events stages report), ``sage.workspace_regime(ws)``; one function per stage in
+  :mod:`sage_core.stages` (``phase1_stage(ws, cfg, settings)``, ...);
 * ``sage.read_image(path)`` -> (H, W, C) float32 [0, 1], ``sage.write_image(path, image)`` (atomic);
 * errors: ``sage.SageError`` and its subclasses ``InputError``, ``ConfigError``, ``StageError``.
 
@@ -53,6 +57,11 @@ _EXPORTS: dict[str, tuple[str, str]] = {
     "resolve_config": ("sage_core.config", "resolve_config"),
     "PRESETS": ("sage_core.config", "PRESETS"),
     "STAGE_CONFIGS": ("sage_core.config", "STAGE_CONFIGS"),
+    # stages (sage_core.stages has one function per stage: ingest_stage, phase1_stage, ...)
+    "StageSettings": ("sage_core.stages", "StageSettings"),
+    "StageEvent": ("sage_core.stages", "StageEvent"),
+    "run_pipeline": ("sage_core.stages", "run_pipeline"),
+    "workspace_regime": ("sage_core.stages", "workspace_regime"),
     # images
     "read_image": ("sage_core.data.imageio", "read_image"),
     "write_image": ("sage_core.data.imageio", "write_image"),
@@ -92,3 +101,4 @@ if TYPE_CHECKING:
     from .errors import ConfigError, InputError, SageError, StageError
     from .flame.params import FlameParams
     from .render._camera import RenderCamera
+    from .stages import StageEvent, StageSettings, run_pipeline, workspace_regime

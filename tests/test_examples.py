@@ -106,3 +106,22 @@ def test_python_api_example_runs_on_a_small_workspace(tiny_avatar_ws, tmp_path):
     a, b = (read_image(p) for p in frames)
     assert a.ndim == 3 and a.shape[2] >= 3
     assert float(abs(a - b).max()) > 1 / 255, "the expression should change between the frames"
+
+    # --motion: rows of a FLAME sequence (here 3 rows; --frames 2 renders the first two)
+    import numpy as np
+
+    from sage_core.data.dataset import IngestedData
+
+    E = IngestedData.open(tiny_avatar_ws / "data").params.n_expr
+    arrays = {k: np.zeros((3, 3), np.float32) for k in ("rotation", "neck_pose", "jaw_pose", "translation")}
+    arrays["expr"] = np.linspace(0, 1.5, 3 * E, dtype=np.float32).reshape(3, E)
+    arrays["eyes_pose"] = np.zeros((3, 6), np.float32)
+    np.savez(tmp_path / "motion.npz", **arrays)
+    out2 = tmp_path / "motion_frames"
+    res = subprocess.run(
+        [sys.executable, str(EXAMPLES / "python_api.py"), str(tiny_avatar_ws), "--out", str(out2), "--frames", "2",
+         "--motion", str(tmp_path / "motion.npz")],
+        capture_output=True, text=True, timeout=600, env={**__import__("os").environ, "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert len(sorted(out2.glob("frame_*.png"))) == 2

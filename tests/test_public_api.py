@@ -38,6 +38,13 @@ def test_public_names_are_documented():
     assert "(N, 3)" in (sage.Avatar.pose.__doc__ or "")
 
 
+def test_stage_names_are_the_stage_functions():
+    from sage_core import stages
+
+    assert sage.run_pipeline is stages.run_pipeline and sage.StageSettings is stages.StageSettings
+    assert sage.workspace_regime is stages.workspace_regime and sage.StageEvent is stages.StageEvent
+
+
 def test_config_names_are_the_engines():
     from sage_core import config
 

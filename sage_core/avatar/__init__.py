@@ -1,4 +1,10 @@
-"""Surfels bound to FLAME triangles: binding maths, initialization, rebinding, surfel correction, shading."""
+"""Surfels bound to FLAME triangles: binding maths, initialization, rebinding, surfel correction, shading.
+
+The :class:`Avatar` (``model``) holds the data; its jobs live in ``build`` (from init-mesh outputs),
+``storage`` (the avatar file), ``posing`` (canonical state, FLAME posing, the rigid head map, the
+correction hook) and ``rendering`` (rasterizing, shading, exposure gains); see ``model``'s docstring
+for the public surface with tensor shapes.
+"""
 
 from .binding import local_to_world, nearest_triangles, point_triangle_distance, world_to_local
 from .correction import CorrectionResult, SurfelCorrection
