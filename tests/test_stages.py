@@ -78,8 +78,11 @@ def test_init_mesh_stage_runs_then_skips(tiny_ws, tmp_path):
     assert again.skipped and again.manifest["finished_at"] == r.manifest["finished_at"] and again.metrics == r.metrics
 
 
-def test_eval_stage_result_and_skip(avatar_ws):
+def test_eval_stage_result_and_skip(avatar_ws, tmp_path, monkeypatch):
     from sage_core.stages import EvalResult, eval_stage
+
+    monkeypatch.setenv("SAGE_LPIPS_WEIGHTS", "")  # LPIPS unavailable wherever the weights are
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
 
     cfg = resolve_config("eval", "tiny", None, {"split": "val", "samples": 1})
     events: list[StageEvent] = []

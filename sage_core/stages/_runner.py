@@ -54,13 +54,12 @@ class StageResult:
         return float((self.manifest or {}).get("wall_time_s") or 0.0)
 
     def fill(self, manifest: dict[str, Any] | None, t0: float) -> None:
-        """Take metrics and outputs from ``manifest`` and set the duration since ``t0``."""
+        """Take metrics, outputs and device from ``manifest`` and set the duration since ``t0``."""
         self.manifest = manifest
         if manifest is not None:
             self.metrics = dict(manifest.get("metrics") or {})
             self.outputs = {k: Path(v) for k, v in (manifest.get("outputs") or {}).items() if v}
             self.device = manifest.get("device", self.device)
-            self.resumed = bool(manifest.get("resumed", self.resumed)) and not self.skipped
         self.duration_s = time.time() - t0
 
 
@@ -176,10 +175,8 @@ def execute_stage(
 def finish_result(result: StageResult, outcome: Outcome, ws: Workspace, emitter: Emitter, t0: float) -> StageResult:
     """Fill ``result`` from the outcome (or, when skipped, from the manifest already there), then
     emit ``finished`` with it."""
-    result.skipped = outcome.manifest is None
+    result.skipped, result.resumed = outcome.manifest is None, outcome.resumed
     result.device, result.threads, result.render_backend = outcome.device, outcome.threads, outcome.render_backend
-    result.resumed = outcome.resumed
     result.fill(outcome.manifest if outcome.manifest is not None else ws.manifest(result.stage), t0)
-    result.resumed = outcome.resumed
     emitter.emit("finished", result=result)
     return result

@@ -236,12 +236,9 @@ def eval_stage(
 def _done(result: EvalResult, t: _Target, entries: dict[str, Any], index: dict[str, Any], outcome: Any, emitter: Emitter,
           t0: float) -> EvalResult:  # fmt: skip
     """Fill the result (a skip when ``outcome`` is None) and emit ``finished``."""
-    from ._runner import Outcome
-
     result.entries, result.index = entries, index
     result.documents = _documents(t, result.names)
     if outcome is None:
-        outcome = Outcome(None, "", 0, None)
         result.skipped = True
         result.fill(t.ws.manifest("eval"), t0)
         emitter.emit("finished", result=result)
