@@ -12,6 +12,10 @@ operation order; in practice they are bit-identical). Gradients: within 1e-10 (f
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
 import warnings
 
 import pytest
@@ -85,6 +89,18 @@ def test_values_match_reference(cpp_ext: None, dtype: torch.dtype, atol: float, 
     assert float((a - b).abs().max()) <= atol
     assert torch.all(b[:, active:] == 0)
     assert float(b[:, :active].abs().max()) > 0.1
+
+
+def test_nan_points_give_nan_features_and_stay_in_the_table(cpp_ext: None) -> None:
+    g = make_grid(torch.float32)
+    x = sample_points(20, torch.float32)
+    x[3, 1] = float("nan")
+    x[7] = float("nan")
+    a, b = both(g, x)
+    ok = torch.ones(x.shape[0], dtype=torch.bool)
+    ok[[3, 7]] = False
+    assert torch.isnan(b[~ok]).all() and torch.isnan(a[~ok]).all()
+    assert torch.equal(a[ok], b[ok])
 
 
 def test_float32_table_with_float64_points(cpp_ext: None) -> None:
@@ -255,3 +271,20 @@ def test_unavailable_extension_errors_for_cpp_and_warns_once_for_auto(monkeypatc
     assert torch.equal(out, g(x))
     msgs = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
     assert len(msgs) == 1 and "native CPU hash-grid encoding is unavailable" in msgs[0], msgs
+
+
+def test_building_a_grid_compiles_nothing() -> None:
+    code = textwrap.dedent(
+        """
+        import torch
+        from sage_core.fields import HashGrid, SDFNetwork, _cpp_hashgrid
+        HashGrid([0, 0, 0], [1, 1, 1], n_levels=2, log2_table=8, base_res=2, max_res=4)
+        SDFNetwork([0, 0, 0], [1, 1, 1], n_levels=2, log2_table=8, base_res=2, max_res=4, hidden=8)
+        assert _cpp_hashgrid._state == {}, _cpp_hashgrid._state
+        assert not hasattr(torch.ops.sage_hashgrid_cpu, "forward")
+        print("lazy")
+        """
+    )
+    env = dict(os.environ, SAGE_CACHE_DIR="/nonexistent-sage-cache")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "lazy", proc.stderr[-2000:]

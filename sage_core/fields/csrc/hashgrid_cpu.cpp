@@ -17,8 +17,9 @@
 //
 // Threads: OpenMP over levels (dynamic schedule), at most at::get_num_threads(). Every table
 // gradient entry belongs to exactly one level, so each level's scatter runs on one thread in point
-// order: the table gradients are race-free and identical for any thread count. Per-point gradients
-// (d/dx01) are written per level into an (L, N, 3) buffer and summed over levels in level order.
+// order: the table gradients are race-free and identical for any thread count (each level also
+// zeroes its own gradient rows just before its scatter). Per-point gradients (d/dx01) are written
+// per level into an (L, N, 3) buffer and summed over levels in level order.
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -71,7 +72,9 @@ inline void corners(const S* x, S scale, const Level& lv, int64_t F, Corners<S>&
     const S fl = std::floor(pos);
     c.t[k] = pos - fl;
     c.omt[k] = S(1) - c.t[k];
-    cell[k] = static_cast<int64_t>(fl);
+    // x01 in [0, 1] gives 0 <= fl < res; anything else (NaN) indexes cell 0 so no read leaves the
+    // table, while its NaN weights still poison the result as in the reference
+    cell[k] = (fl >= S(0) && fl < static_cast<S>(lv.res)) ? static_cast<int64_t>(fl) : 0;
   }
   for (int q = 0; q < 8; ++q) {
     const int b0 = q & 1, b1 = (q >> 1) & 1, b2 = (q >> 2) & 1;
