@@ -10,7 +10,7 @@ from test_cmd_eval import invoke
 
 
 def test_split_sets_addresses_stages():
-    from sage_cli.commands.run_cmd import split_sets
+    from sage_core.stages import split_sets
     from sage_core.errors import ConfigError
 
     out = split_sets(["phase1.iterations=5", "init-mesh.pretrain.steps=3", "init_mesh.mc_resolution=32", "export.up_axis=z"])

@@ -13,7 +13,6 @@ summary goes to ``ROOT/batch_summary.json`` and ``ROOT/batch_summary.md``.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import signal
@@ -25,69 +24,6 @@ from typing import Annotated, Any, Optional
 import typer
 
 from .._common import ConfigOpt, ForceOpt, PresetOpt, SeedOpt, SetOpt, VerboseOpt, cli_errors, console, err_console, fmt_metric
-
-
-# --------------------------------------------------------------------------------------------
-# Subject specs
-# --------------------------------------------------------------------------------------------
-
-
-def subject_spec(subject: Any, root: Path, opts: dict[str, Any], subjects_file: Path) -> dict[str, Any]:
-    """The ``run_pipeline`` arguments of one subject (plain JSON data) with its ``run_key``."""
-    from sage_core.errors import InputError
-    from sage_core.stages import pipeline_stages
-
-    from .run_cmd import split_sets
-
-    flame_model = subject.flame_model or opts["flame_model"]
-    if flame_model is None:
-        raise InputError(subjects_file, f"subject {subject.id!r}: no FLAME model (give --flame-model or a flame_model field)")
-    flame_masks = subject.flame_masks or opts["flame_masks"]
-    ingest_flags = {
-        "regime": subject.regime or opts["regime"],
-        "timestep": subject.timestep,
-        "camera": subject.camera,
-        "downsample": opts["downsample"],
-        "height": opts["height"],
-        "background": opts["background"],
-    }
-    sets = split_sets([*(opts["sets"] or []), *subject.sets])
-    spec: dict[str, Any] = {
-        "id": subject.id,
-        "dataset": str(Path(subject.capture).resolve()),
-        "ws": str((root / subject.id).resolve()),
-        "flame_model": str(Path(flame_model).resolve()),
-        "flame_masks": None if flame_masks is None else str(Path(flame_masks).resolve()),
-        "ingest_flags": ingest_flags,
-        "skip_phase2": opts["skip_phase2"],
-        "lpips_weights": None if opts["lpips_weights"] is None else str(Path(opts["lpips_weights"]).resolve()),
-        "preset": opts["preset"],
-        "config": None if opts["config"] is None else str(Path(opts["config"]).resolve()),
-        "sets": sets,
-        "seed": opts["seed"],
-        "stages": pipeline_stages(opts["skip_phase2"]),
-    }
-    spec["fingerprints"] = _input_fingerprints(spec)
-    spec["run_key"] = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
-    spec["force"] = opts["force"]
-    return spec
-
-
-def _input_fingerprints(spec: dict[str, Any]) -> dict[str, str]:
-    """Fingerprints of the files a subject's run reads besides its workspace: the capture's
-    transforms*.json and the config file (content), the FLAME model and masks (size and time)."""
-    from sage_core.workspace import file_fingerprint
-
-    out: dict[str, str] = {}
-    dataset = Path(spec["dataset"])
-    for p in sorted(dataset.glob("transforms*.json")):
-        out[p.name] = file_fingerprint(p)
-    if spec["config"] is not None:
-        out["config"] = file_fingerprint(spec["config"])
-    for key in ("flame_model", "flame_masks"):
-        if spec[key] is not None:
-            out[key] = file_fingerprint(spec[key], content=False)
-    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -236,7 +172,8 @@ def batch(
         from sage_core.errors import ConfigError
         from sage_core.workspace import atomic_write_json
 
-        from .run_cmd import split_sets
+        from sage_core.batch import subject_spec
+        from sage_core.stages import split_sets
 
         if engine not in ("local", "ray"):
             raise ConfigError(f"--engine {engine}: choose local or ray")

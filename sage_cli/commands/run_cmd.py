@@ -30,34 +30,8 @@ from .._common import (
 )
 from .._stage import StageDisplay
 
-# stage name -> accepted --set prefixes
-STAGE_PREFIXES: dict[str, tuple[str, ...]] = {
-    "ingest": ("ingest",),
-    "init-mesh": ("init-mesh", "init_mesh"),
-    "phase1": ("phase1",),
-    "phase2": ("phase2",),
-    "eval": ("eval",),
-    "export": ("export",),
-}
-
-
-def split_sets(values: list[str] | None) -> dict[str, list[str]]:
-    """``["phase1.iterations=500", "init_mesh.pretrain.steps=100"]`` -> per-stage ``--set`` lists."""
-    from sage_core.errors import ConfigError
-
-    out: dict[str, list[str]] = {s: [] for s in STAGE_PREFIXES}
-    for v in values or []:
-        key = v.split("=", 1)[0].strip()
-        head, _, rest = key.partition(".")
-        stage = next((s for s, prefixes in STAGE_PREFIXES.items() if head in prefixes), None)
-        if stage is None or not rest or "=" not in v:
-            raise ConfigError(f"--set {v!r}: `sage run` needs stage.key=value with a stage among {', '.join(STAGE_PREFIXES)}")
-        out[stage].append(f"{rest}={v.split('=', 1)[1]}")
-    return out
-
-
 def stage_flags(sets: dict[str, list[str]] | None) -> dict[str, dict[str, Any]]:
-    """Per-stage ``--set`` lists (:func:`split_sets`) as per-stage config flags."""
+    """Per-stage ``--set`` lists (:func:`sage_core.stages.split_sets`) as per-stage config flags."""
     from .._common import parse_sets
 
     return {stage: parse_sets(values) for stage, values in (sets or {}).items()}
@@ -185,6 +159,8 @@ def run(
 ) -> None:
     """Run every stage: ingest, init-mesh, phase1, phase2, eval (test and val), export (PLY + bundle); finished stages are skipped, interrupted ones resume."""
     with cli_errors():
+        from sage_core.stages import split_sets
+
         sets = split_sets(set_)
         ingest_flags = {"regime": regime, "timestep": timestep, "camera": camera, "downsample": downsample, "height": height, "background": background}
         res = run_chain(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from .engines import Job, JobResult, run_job, run_local, run_ray, visible_gpus
 from .progress import StatusWriter
+from .specs import subject_spec
 from .subjects import FIELDS, REGIMES, Subject, load_subjects
 from .summary import (
     METRIC_KEYS,
@@ -43,6 +44,7 @@ __all__ = [
     "status_path",
     "subject_finished",
     "subject_metrics",
+    "subject_spec",
     "summary_markdown",
     "visible_gpus",
     "write_status",

@@ -28,13 +28,14 @@ from .init_mesh import init_mesh_stage
 from .phase1 import ingest_summary, phase1_stage, workspace_regime
 from .phase2 import phase2_stage
 from .reenact import ReenactResult, reenact_stage
-from .run import PIPELINE_STAGES, RENDER_STAGES, PipelineResult, pipeline_stages, run_pipeline
+from .run import PIPELINE_STAGES, RENDER_STAGES, STAGE_PREFIXES, PipelineResult, pipeline_stages, run_pipeline, split_sets
 
 __all__ = [
     "EVENT_KINDS",
     "EXPORT_FORMATS",
     "PIPELINE_STAGES",
     "RENDER_STAGES",
+    "STAGE_PREFIXES",
     "VIEWER_FORMATS",
     "DemoResult",
     "EvalResult",
@@ -58,6 +59,7 @@ __all__ = [
     "run_demo",
     "run_pipeline",
     "setup_logging",
+    "split_sets",
     "synth_demo_capture",
     "viewer_format",
     "workspace_regime",

@@ -23,6 +23,34 @@ RENDER_STAGES: tuple[str, ...] = ("phase1", "phase2", "eval", "export")
 """Stages of the chain whose config has ``render_backend``."""
 
 
+STAGE_PREFIXES: dict[str, tuple[str, ...]] = {
+    "ingest": ("ingest",),
+    "init-mesh": ("init-mesh", "init_mesh"),
+    "phase1": ("phase1",),
+    "phase2": ("phase2",),
+    "eval": ("eval",),
+    "export": ("export",),
+}
+"""Stage of the chain -> the prefixes that address it in ``stage.key=value`` overrides."""
+
+
+def split_sets(values: list[str] | None) -> dict[str, list[str]]:
+    """``["phase1.iterations=500", "init_mesh.pretrain.steps=100"]`` -> per-stage ``key=value`` lists
+    (every stage of :data:`STAGE_PREFIXES` present). ConfigError for an item without a known stage
+    prefix, a key or a value."""
+    from ..errors import ConfigError
+
+    out: dict[str, list[str]] = {s: [] for s in STAGE_PREFIXES}
+    for v in values or []:
+        key = v.split("=", 1)[0].strip()
+        head, _, rest = key.partition(".")
+        stage = next((s for s, prefixes in STAGE_PREFIXES.items() if head in prefixes), None)
+        if stage is None or not rest or "=" not in v:
+            raise ConfigError(f"--set {v!r}: `sage run` needs stage.key=value with a stage among {', '.join(STAGE_PREFIXES)}")
+        out[stage].append(f"{rest}={v.split('=', 1)[1]}")
+    return out
+
+
 def pipeline_stages(skip_phase2: bool) -> list[str]:
     """The stages :func:`run_pipeline` runs with these options."""
     return [s for s in PIPELINE_STAGES if not (skip_phase2 and s == "phase2")]
