@@ -16,7 +16,7 @@ data, settings and LPIPS weights are unchanged skips it.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
@@ -39,6 +39,9 @@ from .._common import (
     summary_panel,
 )
 from .._stage import StageDisplay
+
+if TYPE_CHECKING:
+    from sage_core.stages import EvalResult
 
 _LPIPS_HINT = "unavailable: no weights (give --lpips-weights, set $SAGE_LPIPS_WEIGHTS or place ~/.cache/sage/lpips_alex_v0.1.pth)"
 
@@ -109,7 +112,7 @@ def _means(m: dict[str, Any]) -> str:
     return f"{_fmt(m['psnr'], 2)} dB / {_fmt(m['ssim'], 4)} / {_fmt(m['lpips'], 4)}"
 
 
-def show(r: Any, ws: Path) -> None:
+def show(r: EvalResult, ws: Path) -> None:
     """The metrics tables of an eval result, then (unless it was skipped) the closing panel: avatar,
     the split means, LPIPS, the other results in the index, wall time (``sage eval``, ``sage run``)."""
     from sage_core.workspace import Workspace

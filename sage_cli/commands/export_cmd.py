@@ -25,7 +25,7 @@ earlier items whose avatar is unchanged, and an item whose key is unchanged is n
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
@@ -44,6 +44,9 @@ from .._common import (
     summary_panel,
 )
 from .._stage import StageDisplay
+
+if TYPE_CHECKING:
+    from sage_core.stages import ExportResult
 
 
 def export(
@@ -113,7 +116,7 @@ def export(
         show(r)
 
 
-def show(r: Any) -> None:
+def show(r: ExportResult) -> None:
     """The closing panel of an export result: each item's numbers and files (``sage export``, ``sage run``)."""
     from sage_core.stages import viewer_format
     from sage_core.workspace import Workspace

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
@@ -22,6 +22,9 @@ from .._common import (
     summary_panel,
 )
 from .._stage import StageDisplay
+
+if TYPE_CHECKING:
+    from sage_core.stages import IngestResult
 
 
 def ingest(
@@ -65,6 +68,6 @@ def ingest(
             show(r, ws)
 
 
-def show(r: Any, ws: Path) -> None:
+def show(r: IngestResult, ws: Path) -> None:
     """The closing panel of a finished (not skipped) ingest result (``sage ingest``, ``sage run``)."""
     summary_panel("sage ingest", list(r.summary.rows()) + [("wall time", f"{r.wall_time_s:.1f} s")], [("data", ws / "data")])

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
@@ -23,6 +23,9 @@ from .._common import (
     summary_panel,
 )
 from .._stage import StageDisplay
+
+if TYPE_CHECKING:
+    from sage_core.stages import StageResult
 
 
 def phase1(
@@ -57,7 +60,7 @@ def phase1(
             show(r, ws)
 
 
-def show(r: Any, ws: Path) -> None:
+def show(r: StageResult, ws: Path) -> None:
     """The closing panel of a finished (not skipped) phase1 result (``sage phase1``, ``sage run``)."""
     manifest = r.manifest
     m = manifest["metrics"]

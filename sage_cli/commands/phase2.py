@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 
@@ -26,6 +26,9 @@ from .._common import (
     summary_panel,
 )
 from .._stage import StageDisplay
+
+if TYPE_CHECKING:
+    from sage_core.stages import StageResult
 
 
 def _fmt_means(m: dict[str, Any] | None) -> str:
@@ -71,7 +74,7 @@ def phase2(
             show(r, ws)
 
 
-def show(r: Any, ws: Path) -> None:
+def show(r: StageResult, ws: Path) -> None:
     """The closing panel of a finished (not skipped) phase2 result (``sage phase2``, ``sage run``)."""
     manifest = r.manifest
     m = manifest["metrics"]

@@ -12,12 +12,15 @@ bundle without any workspace. Output: ``WS/reenact/<name>/frames/*.png|exr``, ``
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
 from .._common import DeviceOpt, VerboseOpt, cli_errors, require_workspace, summary_panel
 from .._stage import StageDisplay
+
+if TYPE_CHECKING:
+    from sage_core.stages import ReenactResult
 
 
 def reenact(
@@ -57,7 +60,7 @@ def reenact(
         show(r)
 
 
-def show(r: Any) -> None:
+def show(r: ReenactResult) -> None:
     """The closing panel of a reenactment: avatar, motion, cameras, speed and the files written."""
     report = r.report
     rows = [

@@ -20,7 +20,7 @@ from .summary import write_status
 class StatusWriter:
     """Writes the events of one subject's stages into its status file (never raises)."""
 
-    def __init__(self, ws: str | Path, min_interval: float = 0.5) -> None:
+    def __init__(self, ws: str | Path, min_interval: float = 2.0) -> None:
         self.ws = Path(ws)
         self.min_interval = min_interval
         self._last = 0.0
