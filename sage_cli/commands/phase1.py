@@ -51,9 +51,9 @@ def phase1(
         from sage_core.config import load_config_file, resolve_config
         from sage_core.stages import StageSettings, phase1_stage, workspace_regime
 
+        regime = workspace_regime(ws)
         file_data = load_config_file(config) if config is not None else None
-        cfg = resolve_config("phase1", preset, file_data, flags, file_label=str(config) if config else "config file",
-                             regime=workspace_regime(ws))
+        cfg = resolve_config("phase1", preset, file_data, flags, file_label=str(config) if config else "config file", regime=regime)
         with StageDisplay(verbose, preset) as display:
             r = phase1_stage(ws, cfg, StageSettings(seed, device, force, threads), display)
         if not r.skipped:

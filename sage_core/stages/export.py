@@ -194,21 +194,15 @@ def export_stage(
         comments = [f"sage avatar {av_stage}", f"pose {'canonical' if frame is None else f'timestep {frame}'}",
                     "colours: SH degree 0 baked " + ("along each surfel normal" if cfg.color_camera is None else f"for camera {cfg.color_camera}")]  # fmt: skip
         results = dict(keep)
-        stats: dict[str, Any] = {}
         steps = len(todo)
         motion_cache: dict[str, Any] = {}
 
         def get_motion() -> Any:
             if "m" not in motion_cache:
-                from ..export.motion import load_motion
-                from ..train.pipeline import check_motion_for_avatar
+                from ..train.pipeline import load_driving_motion
 
                 assert flame_seq is not None
-                motion = load_motion(flame_seq, n_expr=av.params.n_expr)
-                if max_frames is not None and max_frames < motion.n_frames:
-                    motion.params = motion.params.select(list(range(max_frames)))
-                check_motion_for_avatar(av, motion)
-                motion_cache["m"] = motion
+                motion_cache["m"] = load_driving_motion(av, flame_seq, max_frames)
             return motion_cache["m"]
 
         def own_params() -> Any:
@@ -275,7 +269,6 @@ def export_stage(
                              source={"workspace": str(run.ws.root), "stage": av_stage, "fingerprint": loaded.fingerprint})  # fmt: skip
             results[name] = {"key": wanted[name], "avatar_stage": av_stage, "avatar_fingerprint": loaded.fingerprint,
                              "files": files, "finished_at": now_iso(), **extra}  # fmt: skip
-            stats[name] = extra
         progress(steps, steps, "done")
         atomic_write_json(run.work_dir / "results.json", results)
         for name, entry in results.items():

@@ -127,9 +127,8 @@ def reenact_stage(
     """
     from ..data.capture import read_capture
     from ..errors import ConfigError, InputError
-    from ..export.motion import load_motion
     from ..export.reenact import reenact as run_engine
-    from ..train.pipeline import AvatarRenderer, check_motion_for_avatar, with_identity
+    from ..train.pipeline import AvatarRenderer, load_driving_motion, with_identity
     from ..workspace import atomic_write_json, now_iso, resolve_device
 
     t0 = time.time()
@@ -166,10 +165,7 @@ def reenact_stage(
         avatar_label = f"{av_stage} ({loaded.path})"
 
     # ---- the motion (validated before anything renders)
-    motion = load_motion(flame_seq, n_expr=avatar.params.n_expr)
-    if max_frames is not None and max_frames < motion.n_frames:
-        motion.params = motion.params.select(list(range(max_frames)))
-    check_motion_for_avatar(avatar, motion)
+    motion = load_driving_motion(avatar, flame_seq, max_frames)
     n = motion.n_frames
 
     # ---- the cameras

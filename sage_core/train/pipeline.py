@@ -7,6 +7,7 @@
   the background of the ingested data);
 * :class:`AvatarRenderer` renders it for a camera and a frame's (or a motion's) FLAME inputs, with
   the canonical state computed once;
+* :func:`load_driving_motion` reads a motion and checks it against the avatar;
 * :func:`with_identity` puts the avatar's own shape and static offset into a motion's FLAME inputs;
 * :func:`carry_results` keeps the results of earlier runs of an accumulating stage (eval, export)
   whose inputs are unchanged.
@@ -167,6 +168,19 @@ def check_motion_for_avatar(avatar: Avatar, motion: Any) -> None:
             )
         if not np.isfinite(d).all():
             raise InputError(motion.source, "'dynamic_offset' holds NaN or Inf")
+
+
+def load_driving_motion(avatar: Avatar, source: str | Path, max_frames: int | None = None) -> Any:
+    """The :class:`sage_core.export.Motion` at ``source`` (npz, flame_param folder or capture), cut
+    to its first ``max_frames`` frames and checked against the avatar
+    (:func:`check_motion_for_avatar`) before anything renders."""
+    from ..export.motion import load_motion
+
+    motion = load_motion(source, n_expr=avatar.params.n_expr)
+    if max_frames is not None and max_frames < motion.n_frames:
+        motion.params = motion.params.select(list(range(max_frames)))
+    check_motion_for_avatar(avatar, motion)
+    return motion
 
 
 class AvatarRenderer:
