@@ -125,6 +125,7 @@ def test_export_and_reenact_stages(avatar_ws, tiny_capture):
     assert rec.out_dir == avatar_ws / "reenact" / "clip" and rec.report.n_frames == 2
     assert len(list(rec.outputs["frames"].glob("*.png"))) == 2 and rec.outputs["record"].is_file() and "video" not in rec.outputs
     assert rec.record["motion"]["frames"] == 2 and rec.avatar_label.startswith("phase1")
+    assert rec.device == "cpu" and rec.render_backend in ("torch", "cpp") and events[-1].result is rec
 
 
 def test_stage_refuses_missing_inputs_before_running(tiny_ws, tmp_path):

@@ -30,6 +30,7 @@ from .._common import (
 )
 from .._stage import StageDisplay
 
+
 def stage_flags(sets: dict[str, list[str]] | None) -> dict[str, dict[str, Any]]:
     """Per-stage ``--set`` lists (:func:`sage_core.stages.split_sets`) as per-stage config flags."""
     from .._common import parse_sets
@@ -50,7 +51,7 @@ def show_result(result: Any, ws: Path) -> None:
         eval_cmd.show(result, ws)
     elif stage == "export":
         export_cmd.show(result)
-    elif hasattr(result, "report") and hasattr(result, "record"):
+    elif stage == "reenact":
         reenact_cmd.show(result)
 
 
@@ -125,7 +126,6 @@ def pipeline_rows(res: Any) -> tuple[list[tuple[str, Any]], list[tuple[str, Path
     for label, rel in (("viewer PLY", "export/ply/canonical.ply"), ("avatar bundle", "export/bundle")):
         if (ws / rel).exists():
             paths.append((label, ws / rel))
-    rows += [("note", n) for n in res.notes]
     rows.append(("wall time", f"{res.wall_time_s:.1f} s"))
     return rows, paths
 

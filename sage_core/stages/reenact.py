@@ -25,7 +25,8 @@ FRAME_FORMATS: tuple[str, ...] = ("png", "exr", "none")
 class ReenactResult:
     """What a reenactment wrote: ``out_dir``, ``record`` (the ``reenact.json`` document), the
     engine's ``report`` (:class:`sage_core.export.reenact.ReenactReport`), the labels of the avatar,
-    the motion and the cameras, and the wall time of the call."""
+    the motion and the cameras, the files written (``frames``, ``video``, ``record``), the device and
+    rasterizer backend, and the wall time of the call."""
 
     out_dir: Path
     label: str
@@ -36,6 +37,9 @@ class ReenactResult:
     cameras: str
     duration_s: float = 0.0
     outputs: dict[str, Path] = field(default_factory=dict)
+    device: str | None = None
+    render_backend: str | None = None
+    stage: str = "reenact"
 
 
 def seq_label(seq: Path) -> str:
@@ -236,6 +240,6 @@ def reenact_stage(
         outputs["video"] = Path(report.video_path)
     outputs["record"] = out_dir / "reenact.json"
     result = ReenactResult(out_dir, label, doc, report, avatar_label, f"{motion.source} ({motion.source_kind}, {n} frames)", cam_desc,
-                           time.time() - t0, outputs)  # fmt: skip
+                           time.time() - t0, outputs, dev, renderer.backend)  # fmt: skip
     emitter.emit("finished", result=result)
     return result

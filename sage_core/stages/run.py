@@ -67,7 +67,6 @@ class PipelineResult:
     results: dict[str, StageResult] = field(default_factory=dict)
     avatar_stage: str | None = None
     wall_time_s: float = 0.0
-    notes: list[str] = field(default_factory=list)
 
 
 def run_pipeline(
