@@ -79,8 +79,9 @@ def export(
     """Export the avatar: viewer files (canonical, a timestep, or a sequence), GaussianAvatars folder, web player, meshes, and an animatable bundle (default: --ply --bundle)."""
     with cli_errors():
         from sage_core.errors import ConfigError
+        from sage_core.stages import EXPORT_FORMATS
 
-        known = {"ply", "splat", "compressed-ply", "gaussian-avatars", "web", "mesh", "bundle"}
+        known = set(EXPORT_FORMATS)
         for f in formats or []:
             if f not in known:
                 raise ConfigError(f"--format {f!r}: use one of {', '.join(sorted(known))}")
