@@ -81,7 +81,7 @@ class NativeExtension:
     probe_op: str
     cflags: tuple[str, ...] = CFLAGS
     ldflags: tuple[str, ...] = LDFLAGS
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
     def build_key(self) -> str:
         """16 hex digits of sha256(source, flags, torch version)."""
