@@ -76,6 +76,11 @@ inline void corners(const S* x, S scale, const Level& lv, int64_t F, Corners<S>&
     // table, while its NaN weights still poison the result as in the reference
     cell[k] = (fl >= S(0) && fl < static_cast<S>(lv.res)) ? static_cast<int64_t>(fl) : 0;
   }
+  // pairwise products of the 1-D weights, indexed by the two bits of the pair's axes
+  const S* t = c.t;
+  const S* u = c.omt;
+  const S xy[4] = {u[0] * u[1], t[0] * u[1], u[0] * t[1], t[0] * t[1]};
+#pragma GCC unroll 8
   for (int q = 0; q < 8; ++q) {
     const int b0 = q & 1, b1 = (q >> 1) & 1, b2 = (q >> 2) & 1;
     const int64_t cx = cell[0] + b0, cy = cell[1] + b1, cz = cell[2] + b2;
@@ -89,15 +94,18 @@ inline void corners(const S* x, S scale, const Level& lv, int64_t F, Corners<S>&
     }
     if (idx >= lv.size) idx = lv.pow2 ? (idx & (lv.size - 1)) : idx % lv.size;
     c.row[q] = (idx + lv.offset) * F;
-    const S wx = b0 ? c.t[0] : c.omt[0];
-    const S wy = b1 ? c.t[1] : c.omt[1];
-    const S wz = b2 ? c.t[2] : c.omt[2];
-    c.w[q] = wx * wy * wz;
-    if (!kDerivs) continue;
-    const S sx = b0 ? S(1) : S(-1), sy = b1 ? S(1) : S(-1), sz = b2 ? S(1) : S(-1);
-    c.dw[q][0] = sx * wy * wz;
-    c.dw[q][1] = sy * wx * wz;
-    c.dw[q][2] = sz * wx * wy;
+    c.w[q] = xy[q & 3] * (b2 ? t[2] : u[2]);  // (w_x * w_y) * w_z, the reference's order
+  }
+  if (!kDerivs) return;
+  const S yz[4] = {u[1] * u[2], t[1] * u[2], u[1] * t[2], t[1] * t[2]};
+  const S xz[4] = {u[0] * u[2], t[0] * u[2], u[0] * t[2], t[0] * t[2]};
+#pragma GCC unroll 8
+  for (int q = 0; q < 8; ++q) {
+    const int b0 = q & 1, b1 = (q >> 1) & 1, b2 = (q >> 2) & 1;
+    const S dyz = yz[b1 | (b2 << 1)], dxz = xz[b0 | (b2 << 1)], dxy = xy[q & 3];
+    c.dw[q][0] = b0 ? dyz : -dyz;
+    c.dw[q][1] = b1 ? dxz : -dxz;
+    c.dw[q][2] = b2 ? dxy : -dxy;
   }
 }
 
@@ -276,27 +284,32 @@ void backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor&
         any = any || gm[f] != S(0);
       }
       if (!any) continue;  // the partial buffer starts at 0
-      corners(x + 3 * n, s, lev, F, c);
-      if (gT) {
+      if (!part) {  // table gradient only: no weight derivatives needed
+        if (!gT) continue;
+        corners<S, false>(x + 3 * n, s, lev, F, c);
         for (int q = 0; q < 8; ++q) {
           S* row = gT + c.row[q];
           for (int64_t f = 0; f < F; ++f) row[f] += c.w[q] * gm[f];
         }
+        continue;
       }
-      if (part) {
-        S a0 = 0, a1 = 0, a2 = 0;
-        for (int q = 0; q < 8; ++q) {
-          const S* row = T + c.row[q];
-          S gt = 0;
-          for (int64_t f = 0; f < F; ++f) gt += gm[f] * row[f];
-          a0 += c.dw[q][0] * gt;
-          a1 += c.dw[q][1] * gt;
-          a2 += c.dw[q][2] * gt;
+      corners(x + 3 * n, s, lev, F, c);
+      S a0 = 0, a1 = 0, a2 = 0;
+      for (int q = 0; q < 8; ++q) {
+        if (gT) {
+          S* grow = gT + c.row[q];
+          for (int64_t f = 0; f < F; ++f) grow[f] += c.w[q] * gm[f];
         }
-        part[3 * n + 0] = s * a0;
-        part[3 * n + 1] = s * a1;
-        part[3 * n + 2] = s * a2;
+        const S* row = T + c.row[q];
+        S gt = 0;
+        for (int64_t f = 0; f < F; ++f) gt += gm[f] * row[f];
+        a0 += c.dw[q][0] * gt;
+        a1 += c.dw[q][1] * gt;
+        a2 += c.dw[q][2] * gt;
       }
+      part[3 * n + 0] = s * a0;
+      part[3 * n + 1] = s * a1;
+      part[3 * n + 2] = s * a2;
     }
   });
 }
@@ -376,41 +389,32 @@ void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::
       if (!any_x && !ggT) continue;
       for (int64_t f = 0; f < F; ++f) gm[f] = gn[f] * ml;
       corners(x + 3 * n, s, lev, F, c);
-      S u[8];
-      for (int q = 0; q < 8; ++q) u[q] = c.dw[q][0] * a[0] + c.dw[q][1] * a[1] + c.dw[q][2] * a[2];
-      if (dG) {
-        for (int64_t f = 0; f < F; ++f) acc[f] = S(0);
-        for (int q = 0; q < 8; ++q) {
+      for (int64_t f = 0; f < F; ++f) acc[f] = S(0);
+      S d[3] = {0, 0, 0};
+      for (int q = 0; q < 8; ++q) {
+        // one pass per corner: its table row is read once for dG, dT and dx
+        if (any_x) {
           const S* row = T + c.row[q];
-          if (any_x)
-            for (int64_t f = 0; f < F; ++f) acc[f] += u[q] * row[f];
-          if (ggT) {
-            const S* grow = ggT + c.row[q];
-            for (int64_t f = 0; f < F; ++f) acc[f] += c.w[q] * grow[f];
+          const S u = c.dw[q][0] * a[0] + c.dw[q][1] * a[1] + c.dw[q][2] * a[2];
+          if (dG)
+            for (int64_t f = 0; f < F; ++f) acc[f] += u * row[f];
+          if (dT) {
+            S* drow = dT + c.row[q];
+            for (int64_t f = 0; f < F; ++f) drow[f] += u * gm[f];
           }
-        }
-        S* o = dG + (n * L + l) * F;
-        for (int64_t f = 0; f < F; ++f) o[f] = acc[f] * ml;
-      }
-      if (dT && any_x) {
-        for (int q = 0; q < 8; ++q) {
-          S* row = dT + c.row[q];
-          for (int64_t f = 0; f < F; ++f) row[f] += u[q] * gm[f];
-        }
-      }
-      if (part) {
-        S d[3] = {0, 0, 0};
-        for (int q = 0; q < 8; ++q) {
-          if (any_x) {
-            const S* row = T + c.row[q];
+          if (part) {
             S gt = 0;
             for (int64_t f = 0; f < F; ++f) gt += gm[f] * row[f];
             d[0] += (hess(c, q, 1, 0) * a[1] + hess(c, q, 2, 0) * a[2]) * gt;
             d[1] += (hess(c, q, 0, 1) * a[0] + hess(c, q, 2, 1) * a[2]) * gt;
             d[2] += (hess(c, q, 0, 2) * a[0] + hess(c, q, 1, 2) * a[1]) * gt;
           }
-          if (ggT) {
-            const S* grow = ggT + c.row[q];
+        }
+        if (ggT) {
+          const S* grow = ggT + c.row[q];
+          if (dG)
+            for (int64_t f = 0; f < F; ++f) acc[f] += c.w[q] * grow[f];
+          if (part) {
             S gg = 0;
             for (int64_t f = 0; f < F; ++f) gg += gm[f] * grow[f];
             d[0] += c.dw[q][0] * gg;
@@ -418,6 +422,12 @@ void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::
             d[2] += c.dw[q][2] * gg;
           }
         }
+      }
+      if (dG) {
+        S* o = dG + (n * L + l) * F;
+        for (int64_t f = 0; f < F; ++f) o[f] = acc[f] * ml;
+      }
+      if (part) {
         for (int k = 0; k < 3; ++k) part[3 * n + k] = s * d[k];
       }
     }
