@@ -233,6 +233,7 @@ void forward_impl(const at::Tensor& x01, const at::Tensor& table, const std::vec
     for (int64_t n = 0; n < N; ++n) {
       corners<S, false>(x + 3 * n, s, lev, F, c);
       for (int64_t f = 0; f < F; ++f) acc[f] = S(0);
+#pragma GCC unroll 8
       for (int q = 0; q < 8; ++q) {
         const S* row = T + c.row[q];
         for (int64_t f = 0; f < F; ++f) acc[f] = acc[f] + c.w[q] * row[f];
@@ -287,6 +288,7 @@ void backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor&
       if (!part) {  // table gradient only: no weight derivatives needed
         if (!gT) continue;
         corners<S, false>(x + 3 * n, s, lev, F, c);
+#pragma GCC unroll 8
         for (int q = 0; q < 8; ++q) {
           S* row = gT + c.row[q];
           for (int64_t f = 0; f < F; ++f) row[f] += c.w[q] * gm[f];
@@ -295,6 +297,7 @@ void backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor&
       }
       corners(x + 3 * n, s, lev, F, c);
       S a0 = 0, a1 = 0, a2 = 0;
+#pragma GCC unroll 8
       for (int q = 0; q < 8; ++q) {
         if (gT) {
           S* grow = gT + c.row[q];
@@ -391,6 +394,7 @@ void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::
       corners(x + 3 * n, s, lev, F, c);
       for (int64_t f = 0; f < F; ++f) acc[f] = S(0);
       S d[3] = {0, 0, 0};
+#pragma GCC unroll 8
       for (int q = 0; q < 8; ++q) {
         // one pass per corner: its table row is read once for dG, dT and dx
         if (any_x) {
