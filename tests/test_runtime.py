@@ -123,7 +123,7 @@ def test_resolve_render_backend():
 @pytest.fixture
 def recorded_backends(monkeypatch):
     """Every rasterize_surfels call's ``backend`` argument, for the callers that import it."""
-    import sage_core.avatar.model as model
+    import sage_core.avatar.rendering as rendering
     import sage_core.train.phase2 as phase2
     from sage_core.render import rasterize_surfels
 
@@ -133,7 +133,7 @@ def recorded_backends(monkeypatch):
         seen.append(kwargs.get("backend", "<default>"))
         return rasterize_surfels(*args, **kwargs)
 
-    monkeypatch.setattr(model, "rasterize_surfels", spy)
+    monkeypatch.setattr(rendering, "rasterize_surfels", spy)
     monkeypatch.setattr(phase2, "rasterize_surfels", spy)
     monkeypatch.setattr(sys.modules["sage_core.render"], "rasterize_surfels", spy)
     return seen
