@@ -81,7 +81,7 @@ def load_avatar(path: str | Path, *, stage: str = "auto", device: str | torch.de
         avatar, settings = b.avatar, b.render
     elif p.is_dir():
         from .data.dataset import IngestedData
-        from .train.pipeline import load_stage_avatar, resolve_avatar_stage
+        from .stages.avatars import load_stage_avatar, resolve_avatar_stage
         from .workspace import Workspace
 
         ws = Workspace(p)
@@ -128,7 +128,7 @@ def reference_camera(path: str | Path, camera: int | None = None) -> Camera:
             raise InputError(p, f"the bundle carries only camera {next(iter(cams))}")
         return next(iter(cams.values()))
     from .data.dataset import IngestedData
-    from .train.pipeline import reference_camera as pick
+    from .stages.avatars import reference_camera as pick
 
     return pick(IngestedData.open(p / "data"), camera)
 

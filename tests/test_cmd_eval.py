@@ -179,7 +179,7 @@ def test_eval_render_matches_the_avatar_render(ws):
     """The eval renderer is the avatar's own render (same pose, camera, background, planes)."""
     from sage_core.data.dataset import IngestedData
     from sage_core.render import RenderCamera
-    from sage_core.train.pipeline import AvatarRenderer, load_stage_avatar
+    from sage_core.stages.avatars import AvatarRenderer, load_stage_avatar
     from sage_core.workspace import Workspace
 
     w = Workspace(ws)

@@ -32,7 +32,7 @@ def ws(base_ws, tmp_path):
 
 def _loaded(ws):
     from sage_core.data.dataset import IngestedData
-    from sage_core.train.pipeline import AvatarRenderer, load_stage_avatar
+    from sage_core.stages.avatars import AvatarRenderer, load_stage_avatar
     from sage_core.workspace import Workspace
 
     data = IngestedData.open(ws / "data")
@@ -160,7 +160,7 @@ def test_bundle_loads_without_the_workspace_and_renders_the_same(ws, tmp_path):
         assert z["shape"].ndim == 1 and z["expr"].shape[0] == len(meta["timestep_map"])
     b = load_bundle(moved)
     assert b.reference_camera is not None and b.reference_camera.index == fr.camera_index
-    from sage_core.train.pipeline import AvatarRenderer
+    from sage_core.stages.avatars import AvatarRenderer
 
     img = AvatarRenderer(b.avatar, b.render).render(b.reference_camera, b.avatar.frame_inputs(fr.timestep))
     assert torch.equal(img, ref)

@@ -77,7 +77,8 @@ def test_cross_reenactment_keeps_the_avatars_identity(ws, tiny_capture, tmp_path
     from sage_core.data.dataset import IngestedData
     from sage_core.export.motion import load_motion
     from sage_core.flame.params import load_param_npz
-    from sage_core.train.pipeline import load_stage_avatar, with_identity
+    from sage_core.stages.avatars import load_stage_avatar
+    from sage_core.stages.motion import with_identity
     from sage_core.workspace import Workspace
 
     seq = _foreign_identity_folder(tiny_capture, tmp_path / "other" / "flame_param")

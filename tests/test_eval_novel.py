@@ -128,7 +128,7 @@ def test_a_capture_without_gt_novel_is_a_clear_error(ws, tmp_path):
 def test_visible_region_and_region_metrics(base_ws):
     from sage_core.data.dataset import IngestedData
     from sage_core.evaluate.novel import open_novel_set, region_metrics, training_face_visibility, visible_region
-    from sage_core.train.pipeline import load_stage_avatar
+    from sage_core.stages.avatars import load_stage_avatar
     from sage_core.workspace import Workspace
 
     w = Workspace(base_ws)

@@ -143,7 +143,7 @@ def test_render_backend_reaches_the_rasterizer_in_phase1(tiny_ws, tiny_init_dir,
     from sage_core.config import resolve_config
     from sage_core.data.dataset import IngestedData
     from sage_core.train.phase1 import Phase1Trainer, build_avatar
-    from sage_core.train.pipeline import AvatarRenderer, stage_render_settings
+    from sage_core.stages.avatars import AvatarRenderer, stage_render_settings
 
     data = IngestedData.open(tiny_ws / "data")
     flags = {"n_surfels": 600, "rays_per_step": 32, "neus_samples": 8, "neus_importance": 4, "neus_up_steps": 1, "app_hidden": 16,

@@ -34,7 +34,7 @@ def eval_metrics(ws: Path, stage: str, split: str) -> dict[str, Any]:
     "images"} (and "visible_region" where the split reports it). FileNotFoundError when the
     workspace's eval index has no current result for that avatar stage and split (missing, or
     evaluated on an avatar that was re-trained since)."""
-    from sage_core.train.pipeline import fresh_results
+    from sage_core.stages.results import fresh_results
 
     if f"{stage}/{split}" not in fresh_results(Workspace(ws), "eval"):
         raise FileNotFoundError(f"{ws}: no current eval result {stage}/{split}")

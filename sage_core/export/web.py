@@ -144,7 +144,7 @@ def write_web_player(
 ) -> WebPlayerExport:
     """Write ``index.html``, ``player.js`` and ``avatar.js`` into ``folder`` (module doc).
 
-    renderer: the :class:`~sage_core.train.pipeline.AvatarRenderer` whose settings give the
+    renderer: the :class:`~sage_core.stages.avatars.AvatarRenderer` whose settings give the
     background; params: the FLAME rows to play; camera: the reference camera of the page.
     """
     folder = Path(folder)

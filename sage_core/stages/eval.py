@@ -63,7 +63,7 @@ class _Target:
 
     def key(self, split: str, **extra: Any) -> str:
         """The result key of ``split`` (inputs, avatar, settings, LPIPS weights and ``extra``)."""
-        from ..train.pipeline import result_key
+        from .results import result_key
 
         return result_key(**self.key_parts, split=split, **extra)
 
@@ -77,7 +77,8 @@ def _target(w: Workspace, cfg: EvalConfig, lpips_weights: Path | None, select: C
     LPIPS weights are looked up."""
     from ..data.dataset import IngestedData
     from ..evaluate.lpips import find_lpips_weights
-    from ..train.pipeline import fresh_results, resolve_avatar_stage
+    from .avatars import resolve_avatar_stage
+    from .results import fresh_results
     from ..workspace import file_fingerprint
 
     ingest_fp = w.require("ingest", "eval")["fingerprint"]
@@ -108,7 +109,8 @@ def _run(t: _Target, settings: StageSettings, emitter: Emitter, todo: list[str],
 
     def body(run, progress) -> None:
         from ..evaluate.lpips import LPIPS
-        from ..train.pipeline import AvatarRenderer, carry_results, load_stage_avatar
+        from .avatars import AvatarRenderer, load_stage_avatar
+        from .results import carry_results
         from ..workspace import atomic_write_json, now_iso
 
         carry_results(run.ws, "eval", run.work_dir, keep)

@@ -97,7 +97,8 @@ def export_stage(
     """
     from ..data.dataset import IngestedData
     from ..errors import ConfigError, InputError
-    from ..train.pipeline import fresh_results, resolve_avatar_stage, result_key
+    from .avatars import resolve_avatar_stage
+    from .results import fresh_results, result_key
     from ..workspace import file_fingerprint
 
     t0 = time.time()
@@ -170,7 +171,8 @@ def export_stage(
         from ..export.bundle import write_bundle
         from ..export.meshes import posed_mesh, sdf_mesh, write_mesh
         from ..flame.canonical import canonical_inputs
-        from ..train.pipeline import AvatarRenderer, carry_results, head_center, load_stage_avatar, reference_camera
+        from .avatars import AvatarRenderer, head_center, load_stage_avatar, reference_camera
+        from .results import carry_results
         from ..workspace import atomic_write_json, now_iso
 
         carry_results(run.ws, "export", run.work_dir, keep)
@@ -199,7 +201,7 @@ def export_stage(
 
         def get_motion() -> Any:
             if "m" not in motion_cache:
-                from ..train.pipeline import load_driving_motion
+                from .motion import load_driving_motion
 
                 assert flame_seq is not None
                 motion_cache["m"] = load_driving_motion(av, flame_seq, max_frames)
@@ -218,7 +220,7 @@ def export_stage(
             fmt = viewer_format(name)
             deg = cfg.sh_degree if fmt != "splat" else 0
             if fmt is not None and name.endswith(":seq"):
-                from ..train.pipeline import with_identity
+                from .motion import with_identity
 
                 motion = get_motion()
                 dropped = 0

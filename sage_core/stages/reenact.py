@@ -132,7 +132,8 @@ def reenact_stage(
     from ..data.capture import read_capture
     from ..errors import ConfigError, InputError
     from ..export.reenact import reenact as run_engine
-    from ..train.pipeline import AvatarRenderer, load_driving_motion, with_identity
+    from .avatars import AvatarRenderer
+    from .motion import load_driving_motion, with_identity
     from ..workspace import atomic_write_json, now_iso, resolve_device
 
     t0 = time.time()
@@ -156,7 +157,7 @@ def reenact_stage(
     else:
         assert ws_path is not None
         from ..data.dataset import IngestedData
-        from ..train.pipeline import head_center, load_stage_avatar, reference_camera, resolve_avatar_stage
+        from .avatars import head_center, load_stage_avatar, reference_camera, resolve_avatar_stage
 
         w = Workspace(ws_path)
         w.require("ingest", "reenact")

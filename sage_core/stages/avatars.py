@@ -1,4 +1,4 @@
-"""The avatar stages of a workspace, seen from the stages that use them (eval, reenact, export, run).
+"""The avatar of a workspace stage, seen from the stages that use it (eval, reenact, export, run).
 
 * :func:`resolve_avatar_stage` picks the avatar to use: the latest finished of phase2 and phase1,
   refusing a stale one with the workspace's message;
@@ -7,20 +7,15 @@
   the background of the ingested data);
 * :class:`AvatarRenderer` renders it for a camera and a frame's (or a motion's) FLAME inputs, with
   the canonical state computed once;
-* :func:`load_driving_motion` reads a motion and checks it against the avatar;
-* :func:`with_identity` puts the avatar's own shape and static offset into a motion's FLAME inputs;
-* :func:`carry_results` keeps the results of earlier runs of an accumulating stage (eval, export)
-  whose inputs are unchanged.
+* :func:`reference_camera` and :func:`head_center` give the default camera and the head's centre.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -38,7 +33,6 @@ AVATAR_STAGES: tuple[str, ...] = ("phase2", "phase1")
 """Stages that write an avatar (``WS/<stage>/avatar.pt``), newest first."""
 
 AVATAR_FILE = "avatar.pt"
-RESULTS_INDEX = "results.json"
 
 
 def resolve_avatar_stage(ws: Workspace, requested: str, by: str) -> str:
@@ -119,70 +113,6 @@ def load_stage_avatar(ws: Workspace, stage: str, data: IngestedData | None, devi
     return StageAvatar(stage, path, str(manifest.get("fingerprint", "")), avatar, stage_render_settings(ws.stage_dir(stage), data))
 
 
-def with_identity(avatar: Avatar, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """A motion's FLAME inputs (batch 1, no identity) with the avatar's own ``shape`` and
-    ``static_offset``: the subject keeps its identity whatever drives it (cross-reenactment)."""
-    dev = avatar.device
-    own = avatar.params.to_torch(dev)
-    out = {k: v.to(dev) for k, v in inputs.items() if k not in ("shape", "static_offset")}
-    out["shape"] = own["shape"][None]
-    if "static_offset" in own:
-        out["static_offset"] = own["static_offset"]
-    return out
-
-
-def check_motion_for_avatar(avatar: Avatar, motion: Any) -> None:
-    """Validate a :class:`sage_core.export.Motion` against the avatar before rendering anything.
-
-    Checks T >= 1, finite values, that ``expr`` has no non-zero coefficient beyond the model's
-    expression components (:func:`sage_core.flame.params.expr_overflow`), and that ``dynamic_offset``
-    has between the model's base vertex count and its full vertex count rows (fewer rows are
-    zero-padded at the end, as for the teeth).
-    Raises InputError naming the motion source.
-    """
-    from ..flame.params import expr_overflow
-
-    p = motion.params
-    if p.n_timesteps < 1:
-        raise InputError(motion.source, "the motion holds no frames")
-    problem = expr_overflow(p, int(avatar.model_data.n_expr))
-    if problem is not None:
-        raise InputError(motion.source, problem)
-    for key in ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation"):
-        a = np.asarray(getattr(p, key))
-        if a.shape[0] != p.n_timesteps:
-            raise InputError(motion.source, f"'{key}' has {a.shape[0]} rows, the motion has T = {p.n_timesteps} frames")
-        if not np.isfinite(a).all():
-            raise InputError(motion.source, f"'{key}' holds NaN or Inf")
-    if p.dynamic_offset is not None:
-        d = np.asarray(p.dynamic_offset)
-        n_v = int(np.asarray(avatar.model_data.v_template).shape[0])
-        n_base = int(avatar.model_data.n_base_vertices)
-        if d.shape[0] != p.n_timesteps:
-            raise InputError(motion.source, f"'dynamic_offset' has {d.shape[0]} frames, the motion has T = {p.n_timesteps}")
-        if not n_base <= d.shape[1] <= n_v:
-            raise InputError(
-                motion.source,
-                f"'dynamic_offset' has {d.shape[1]} vertices; this avatar's FLAME model has {n_base} "
-                f"({n_v} with its appended teeth and mouth interior)",
-            )
-        if not np.isfinite(d).all():
-            raise InputError(motion.source, "'dynamic_offset' holds NaN or Inf")
-
-
-def load_driving_motion(avatar: Avatar, source: str | Path, max_frames: int | None = None) -> Any:
-    """The :class:`sage_core.export.Motion` at ``source`` (npz, flame_param folder or capture), cut
-    to its first ``max_frames`` frames and checked against the avatar
-    (:func:`check_motion_for_avatar`) before anything renders."""
-    from ..export.motion import load_motion
-
-    motion = load_motion(source, n_expr=avatar.params.n_expr)
-    if max_frames is not None and max_frames < motion.n_frames:
-        motion.params = motion.params.select(list(range(max_frames)))
-    check_motion_for_avatar(avatar, motion)
-    return motion
-
-
 class AvatarRenderer:
     """Poses and renders one avatar for many frames; the canonical state is computed once.
 
@@ -251,63 +181,3 @@ def head_center(data: IngestedData) -> np.ndarray:
     if not box:
         return np.zeros(3)
     return 0.5 * (np.asarray(box[0], np.float64) + np.asarray(box[1], np.float64))
-
-
-# --------------------------------------------------------------------------------------------
-# Accumulating stages (eval, export): several results live side by side in one stage folder
-# --------------------------------------------------------------------------------------------
-
-
-def result_key(**parts: Any) -> str:
-    """Stable hash (16 hex chars) of plain-data parts identifying one result and its inputs."""
-    blob = json.dumps(parts, sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
-
-
-def read_results(stage_dir: Path) -> dict[str, Any]:
-    """The results index ``<stage folder>/results.json`` ({} when absent or unreadable)."""
-    p = stage_dir / RESULTS_INDEX
-    if not p.is_file():
-        return {}
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError):
-        return {}
-    return doc if isinstance(doc, dict) else {}
-
-
-def fresh_results(ws: Workspace, stage: str) -> dict[str, Any]:
-    """Entries of a complete accumulating stage's index whose avatar stage is still complete with
-    the fingerprint recorded in the entry (``entry["avatar_stage"]``, ``entry["avatar_fingerprint"]``)
-    and whose files still exist; {} when the stage folder is not complete."""
-    m = ws.manifest(stage)
-    if m is None or m.get("status") != "complete":
-        return {}
-    root = ws.stage_dir(stage)
-    out: dict[str, Any] = {}
-    for name, entry in read_results(root).items():
-        try:
-            av_stage = entry["avatar_stage"]
-            st = ws.status(av_stage)
-            ok = st.status == "complete" and st.manifest is not None and st.manifest.get("fingerprint") == entry["avatar_fingerprint"]
-            ok = ok and all((root / rel).exists() for rel in entry.get("files", []))
-        except Exception:  # noqa: BLE001 - a malformed entry is simply not carried
-            ok = False
-        if ok:
-            out[name] = entry
-    return out
-
-
-def carry_results(ws: Workspace, stage: str, work_dir: Path, keep: dict[str, Any]) -> None:
-    """Copy the files of the kept entries of ``WS/<stage>/`` into the stage's work folder."""
-    root = ws.stage_dir(stage)
-    for entry in keep.values():
-        for rel in entry.get("files", []):
-            src, dst = root / rel, work_dir / rel
-            if dst.exists():
-                continue
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            if src.is_dir():
-                shutil.copytree(src, dst)
-            elif src.is_file():
-                shutil.copy2(src, dst)
