@@ -168,7 +168,7 @@ def to_bytes(obj: Any, kind: str, version: int) -> bytes:
 
 def save_file(path: str | Path, obj: Any, kind: str, version: int) -> Path:
     """Write ``obj`` as a ``kind`` file of format ``version`` atomically; returns the path."""
-    from .workspace import atomic_write_bytes
+    from .atomic import atomic_write_bytes
 
     p = Path(path)
     atomic_write_bytes(p, to_bytes(obj, kind, version))
@@ -373,7 +373,7 @@ def convert_trusted(path: str | Path, trust: bool, keep_backup: bool = True) -> 
         kind, version = classify_legacy(blob)
     except ValueError as e:
         raise InputError(p, str(e)) from None
-    from .workspace import atomic_write_bytes
+    from .atomic import atomic_write_bytes
 
     data = to_bytes(blob, kind, version)
     backup = None

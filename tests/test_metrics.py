@@ -9,8 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from sage_core.evaluate import mean_psnr, psnr, psnr_per_channel_mean, ssim, ssim_map, to_nchw
-from sage_core.evaluate.metrics import gaussian_window_1d
+from sage_core.image_metrics import gaussian_window_1d, mean_psnr, psnr, psnr_per_channel_mean, ssim, ssim_map, to_nchw
 
 
 def _rand(shape, seed=0, dtype=torch.float64):

@@ -1,5 +1,16 @@
-"""Image metrics (PSNR, SSIM, LPIPS AlexNet v0.1) and the evaluation protocol."""
+"""Image metrics (PSNR, SSIM, LPIPS AlexNet v0.1) and the evaluation protocol.
 
+PSNR and SSIM live in :mod:`sage_core.image_metrics` (training uses them too) and are re-exported here.
+"""
+
+from ..image_metrics import (
+    mean_psnr,
+    psnr,
+    psnr_per_channel_mean,
+    ssim,
+    ssim_map,
+    to_nchw,
+)
 from .lpips import (
     DEFAULT_CACHE_PATH,
     ENV_VAR,
@@ -12,14 +23,6 @@ from .lpips import (
 )
 from .novel import NovelReport, NovelSet, evaluate_novel, open_novel_set, region_metrics, training_face_visibility, visible_region
 from .protocol import EvalReport, ImageMetrics, MetricMeans, evaluate_frames
-from .metrics import (
-    mean_psnr,
-    psnr,
-    psnr_per_channel_mean,
-    ssim,
-    ssim_map,
-    to_nchw,
-)
 
 __all__ = [
     "NovelReport",

@@ -38,7 +38,7 @@ import torch
 
 from ..data.cameras import Camera
 from ..errors import InputError
-from .metrics import psnr, psnr_per_channel_mean, ssim, ssim_map
+from ..image_metrics import psnr, psnr_per_channel_mean, ssim, ssim_map
 from .protocol import EvalReport, ImageMetrics, MetricMeans, _fmt, _lpips_device, error_strip, sample_indices, sample_refs
 
 if TYPE_CHECKING:

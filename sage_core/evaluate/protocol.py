@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..image_metrics import psnr, psnr_per_channel_mean, ssim
 from .lpips import LPIPS
-from .metrics import psnr, psnr_per_channel_mean, ssim
 
 if TYPE_CHECKING:
     from ..data.dataset import IngestedData, IngestedFrame

@@ -59,7 +59,7 @@ from ..avatar.shading import shade_foreground
 from ..runtime import StepClock, resolve_render_backend
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
-from ..evaluate.metrics import psnr, ssim, ssim_map
+from ..image_metrics import psnr, ssim, ssim_map
 from ..render import RenderCamera
 from ..render.mesh_raster import ray_directions
 from ..render.volume import render_neus

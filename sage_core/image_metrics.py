@@ -1,5 +1,8 @@
 """Image metrics: PSNR (standard and the GaussianAvatars per-channel variant) and SSIM.
 
+One low-level module (torch and numpy only) shared by training (the SSIM loss, PSNR on the
+validation views) and evaluation (:mod:`sage_core.evaluate`, which adds LPIPS and the protocol).
+
 Canonical layout: batched channels-first tensors ``(B, C, H, W)``; a single ``(C, H, W)`` image
 is also accepted and gives a 0-d result. Images stored channels-last (``(H, W, C)`` or
 ``(B, H, W, C)``, as :func:`sage_core.data.imageio.read_image` returns) go through

@@ -1,0 +1,145 @@
+"""Imports in ``sage_core`` run down the layers of the design (design.md, "Layout"): the CLI over
+the stages over train / export / evaluate over the avatar over render, fields and flame over
+geometry, with a few small foundation modules (errors, atomic writes, image metrics, …) at the
+bottom. A package imports only from a lower layer or from itself: never from a higher layer, and
+never sideways from another package of its own layer. The check reads every module's imports with
+``ast`` (including the ones inside functions and under ``TYPE_CHECKING``); the engine never imports
+the CLI."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "sage_core"
+
+LAYERS: list[tuple[str, ...]] = [
+    # foundation: no sage_core imports besides each other's lower rows
+    ("errors", "atomic", "image_metrics", "__version__"),  # __version__: the string set first in sage_core/__init__.py
+    ("config", "native_build", "serialization"),
+    ("workspace",),
+    ("geometry",),
+    ("flame",),
+    ("data",),
+    ("render", "fields"),
+    ("avatar", "runtime"),
+    ("train", "export", "evaluate"),
+    ("stages",),
+    ("batch", "api"),
+    ("__init__",),  # the flat API names of ``import sage_core as sage``
+]
+"""Units of sage_core (subpackages and top-level modules), lowest layer first."""
+
+ALLOWED: dict[tuple[str, str], str] = {
+    # serialization.classify_legacy recognises an old pickle file by the kind and format numbers
+    # that the avatar, the SDF file and the checkpoint declare next to their own readers; it is
+    # imported inside that one function (used by `sage convert`) and never at module import.
+    ("sage_core.serialization", "sage_core.avatar.model"): "file kinds of old pickle files",
+    ("sage_core.serialization", "sage_core.fields.sdf_file"): "file kinds of old pickle files",
+    ("sage_core.serialization", "sage_core.workspace"): "file kinds of old pickle files",
+    # run_phase2 evaluates the avatar it trained (self-reenactment and novel views, formats.md §8)
+    # with the evaluation protocol and LPIPS, as part of the phase-2 stage.
+    ("sage_core.train.phase2", "sage_core.evaluate.protocol"): "phase 2's own evaluation",
+    ("sage_core.train.phase2", "sage_core.evaluate.lpips"): "phase 2's own evaluation",
+}
+"""(importing module, imported module) pairs that cross the layers, each with its reason."""
+
+
+def _level(unit: str) -> int:
+    for i, row in enumerate(LAYERS):
+        if unit in row:
+            return i
+    raise AssertionError(f"sage_core.{unit} is in no layer of tests/test_layers.py: add it to LAYERS")
+
+
+def _unit(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _module_name(path: Path, package: Path = PACKAGE) -> tuple[str, str]:
+    """(dotted module name, dotted package that relative imports resolve against)."""
+    rel = path.relative_to(package.parent).with_suffix("")
+    name = ".".join(rel.parts)
+    if name.endswith(".__init__"):
+        name = name[: -len(".__init__")]
+        return name, name
+    return name, name.rsplit(".", 1)[0]
+
+
+def _imports(path: Path, root: Path = PACKAGE) -> list[tuple[str, int]]:
+    """(imported sage_core / sage_cli module or name, line) of every import statement in ``path``."""
+    _, package = _module_name(path, root)
+    out: list[tuple[str, int]] = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(a.name, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            if node.module is None:  # from . import x: x is a submodule or a name of the package
+                out += [(f"{module}.{a.name}", node.lineno) for a in node.names]
+            else:
+                out.append((module, node.lineno))
+    return [(m, line) for m, line in out if m.split(".")[0] in ("sage_core", "sage_cli")]
+
+
+def _violations(root: Path = PACKAGE) -> list[str]:
+    """One line per import of a module under ``root`` (a ``sage_core`` folder) against the layers."""
+    bad: list[str] = []
+    for path in sorted(root.rglob("*.py")):
+        name, _ = _module_name(path, root)
+        unit = _unit(name)
+        for target, line in _imports(path, root):
+            where = f"{path.relative_to(root.parent)}:{line}: {name} imports {target}"
+            if target.startswith("sage_cli"):
+                bad.append(f"{where} (the engine never imports the CLI)")
+                continue
+            other = _unit(target)
+            if other == unit or (name, target) in ALLOWED:
+                continue
+            lo, hi = _level(other), _level(unit)
+            if lo > hi:
+                bad.append(f"{where} (a higher layer)")
+            elif lo == hi:
+                bad.append(f"{where} (sideways, within layer {LAYERS[hi]})")
+    return bad
+
+
+def test_sage_core_imports_only_go_down_the_layers() -> None:
+    bad = _violations()
+    assert not bad, "imports against the layers of design.md:\n" + "\n".join(bad)
+
+
+def test_allowed_crossings_still_exist() -> None:
+    """Every allow-list entry names an import that is really there (a stale entry is removed)."""
+    found = {(_module_name(p)[0], t) for p in PACKAGE.rglob("*.py") for t, _ in _imports(p)}
+    stale = sorted(set(ALLOWED) - found)
+    assert not stale, f"allow-list entries without such an import: {stale}"
+
+
+def test_checker_reports_backward_sideways_and_cli_imports(tmp_path: Path) -> None:
+    """On a small package of the same shape, each kind of bad import is reported and good ones are not."""
+    root = tmp_path / "sage_core"
+    (root / "train").mkdir(parents=True)
+    (root / "__init__.py").write_text("")
+    (root / "train" / "__init__.py").write_text("from .losses import x\n")
+    (root / "train" / "losses.py").write_text(
+        "from ..image_metrics import ssim\n"
+        "from ..geometry import rigid\n"
+        "def f():\n"
+        "    from ..stages.avatars import load_stage_avatar\n"
+        "    from ..evaluate import metrics\n"
+        "    import sage_cli.app\n"
+    )
+    (root / "geometry").mkdir()
+    (root / "geometry" / "rigid.py").write_text("from .. import avatar\n")
+    bad = _violations(root)
+    assert len(bad) == 4, bad
+    assert "sage_core.train.losses imports sage_core.stages.avatars (a higher layer)" in bad[1]
+    assert "sage_core.train.losses imports sage_core.evaluate (sideways" in bad[2]
+    assert "the engine never imports the CLI" in bad[3]
+    assert "sage_core.geometry.rigid imports sage_core.avatar (a higher layer)" in bad[0]
