@@ -67,11 +67,34 @@ def _module_name(path: Path, package: Path = PACKAGE) -> tuple[str, str]:
     return name, name.rsplit(".", 1)[0]
 
 
-def _imports(path: Path, root: Path = PACKAGE) -> list[tuple[str, int]]:
-    """(imported sage_core / sage_cli module or name, line) of every import statement in ``path``."""
+def _is_type_checking(node: ast.AST) -> bool:
+    """Whether ``node`` is an ``if TYPE_CHECKING:`` block (imports for annotations only)."""
+    if not isinstance(node, ast.If):
+        return False
+    t = node.test
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING")
+
+
+def _nodes(tree: ast.AST, runtime_only: bool) -> list[ast.AST]:
+    """Every node of ``tree``; with ``runtime_only`` not those inside ``if TYPE_CHECKING:``."""
+    out: list[ast.AST] = []
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        out.append(node)
+        if runtime_only and _is_type_checking(node):
+            todo.extend(node.orelse)  # type: ignore[attr-defined]
+            continue
+        todo.extend(ast.iter_child_nodes(node))
+    return out
+
+
+def _imports(path: Path, root: Path = PACKAGE, runtime_only: bool = False) -> list[tuple[str, int]]:
+    """(imported sage_core / sage_cli module or name, line) of every import statement in ``path``
+    (``runtime_only``: leaving out the imports under ``if TYPE_CHECKING:``)."""
     _, package = _module_name(path, root)
     out: list[tuple[str, int]] = []
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+    for node in _nodes(ast.parse(path.read_text(encoding="utf-8"), str(path)), runtime_only):
         if isinstance(node, ast.Import):
             out += [(a.name, node.lineno) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -84,7 +107,7 @@ def _imports(path: Path, root: Path = PACKAGE) -> list[tuple[str, int]]:
                 out += [(f"{module}.{a.name}", node.lineno) for a in node.names]
             else:
                 out.append((module, node.lineno))
-    return [(m, line) for m, line in out if m.split(".")[0] in ("sage_core", "sage_cli")]
+    return sorted(((m, line) for m, line in out if m.split(".")[0] in ("sage_core", "sage_cli")), key=lambda ml: ml[1])
 
 
 def _violations(root: Path = PACKAGE) -> list[str]:
@@ -114,6 +137,65 @@ def test_sage_core_imports_only_go_down_the_layers() -> None:
     assert not bad, "imports against the layers of design.md:\n" + "\n".join(bad)
 
 
+def _import_circles(root: Path = PACKAGE) -> list[list[str]]:
+    """Circles of runtime imports between the modules under ``root`` (also imports made inside
+    functions; not those under ``TYPE_CHECKING``, nor the version string, nor the allow-list)."""
+    mods = {_module_name(p, root)[0]: p for p in root.rglob("*.py")}
+    graph: dict[str, set[str]] = {name: set() for name in mods}
+    for name, path in mods.items():
+        for target, _ in _imports(path, root, runtime_only=True):
+            if not target.startswith("sage_core") or target == "sage_core.__version__" or (name, target) in ALLOWED:
+                continue
+            while target not in mods and "." in target:  # a name imported from a module
+                target = target.rsplit(".", 1)[0]
+            if target != name:
+                graph[name].add(target)
+    # Tarjan's strongly connected components, iteratively
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles: list[list[str]] = []
+    for start in sorted(graph):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            v, children = work[-1]
+            w = next(children, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    circles.append(sorted(comp))
+    return circles
+
+
+def test_no_import_circle() -> None:
+    circles = _import_circles()
+    assert not circles, f"modules that import each other (move the shared piece down): {circles}"
+
+
 def test_allowed_crossings_still_exist() -> None:
     """Every allow-list entry names an import that is really there (a stale entry is removed)."""
     found = {(_module_name(p)[0], t) for p in PACKAGE.rglob("*.py") for t, _ in _imports(p)}
@@ -139,7 +221,12 @@ def test_checker_reports_backward_sideways_and_cli_imports(tmp_path: Path) -> No
     (root / "geometry" / "rigid.py").write_text("from .. import avatar\n")
     bad = _violations(root)
     assert len(bad) == 4, bad
-    assert "sage_core.train.losses imports sage_core.stages.avatars (a higher layer)" in bad[1]
-    assert "sage_core.train.losses imports sage_core.evaluate (sideways" in bad[2]
-    assert "the engine never imports the CLI" in bad[3]
-    assert "sage_core.geometry.rigid imports sage_core.avatar (a higher layer)" in bad[0]
+    text = "\n".join(bad)
+    assert "losses.py:4: sage_core.train.losses imports sage_core.stages.avatars (a higher layer)" in text
+    assert "losses.py:5: sage_core.train.losses imports sage_core.evaluate (sideways" in text
+    assert "losses.py:6: sage_core.train.losses imports sage_cli.app (the engine never imports the CLI)" in text
+    assert "rigid.py:1: sage_core.geometry.rigid imports sage_core.avatar (a higher layer)" in text
+    assert _import_circles(root) == []
+    (root / "train" / "helpers.py").write_text("from .losses import f\n")
+    (root / "train" / "losses.py").write_text((root / "train" / "losses.py").read_text() + "    from .helpers import g\n")
+    assert _import_circles(root) == [["sage_core.train.helpers", "sage_core.train.losses"]]

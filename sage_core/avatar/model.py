@@ -84,7 +84,7 @@ from ..fields.shape import ShapeNetwork
 from ..flame.canonical import canonical_inputs
 from ..flame.frames import surfel_frames
 from ..flame.lbs import FlameModel
-from ..flame.model_io import FlameModelData
+from ..flame.model_data import FlameModelData
 from ..flame.params import FlameParams
 from ..geometry.rigid import canonical_to_world as canonical_to_world_rigid
 from ..geometry.rigid import rays_world_to_canonical as canonical_rays_rigid

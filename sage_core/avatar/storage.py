@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..flame.model_io import FlameModelData
+from ..flame.model_data import FlameModelData
 from ..flame.params import FlameParams
 from .rendering import exposure_gains_plain
 from .surfels import SurfelSet

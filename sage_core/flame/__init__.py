@@ -4,7 +4,8 @@ per-triangle frames, per-timestep parameter files."""
 from .frames import surfel_frames, triangle_frames
 from .lbs import FlameModel, FlameOutput
 from .mirror import MirrorMap, mirror_correspondence, model_mirror
-from .model_io import FlameModelData, load_flame_model, save_flame_npz, validate_model
+from .model_data import FlameModelData
+from .model_io import load_flame_model, save_flame_npz, validate_model
 from .mouth import add_mouth_interior, has_mouth_interior
 from .params import FlameParams, load_param_npz, save_param_npz
 from .regions import Regions, load_masks

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from ..geometry.rotations import axis_angle_to_matrix
-from .model_io import FlameModelData
+from .model_data import FlameModelData
 
 # Joint order of the named FLAME pose parameters: rotation, neck, jaw, eye, eye.
 _POSE_JOINTS = 5

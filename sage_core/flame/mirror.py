@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:
-    from .model_io import FlameModelData
+    from .model_data import FlameModelData
 
 DEFAULT_REL_TOL = 1e-3
 """Default partner tolerance: 0.1 % of the bounding-box diagonal (≈ 0.3 mm on a FLAME head)."""

@@ -12,7 +12,6 @@ Layout of the project's npz (all arrays, ``allow_pickle=False``):
 from __future__ import annotations
 
 import pickle
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,78 +19,12 @@ import numpy as np
 from ..atomic import atomic_writer
 from ..errors import InputError
 from ._unpickle import UnsupportedPickle, load_flame_pickle
+from .model_data import FlameModelData
+from .teeth import FLAME_N_VERTICES, add_teeth as _add_teeth, has_teeth
 
 NPZ_FORMAT = "sage-flame-v1"
 N_SHAPE_MAX = 300  # expression columns of the official shapedirs start here
 _GROUP_PREFIX = "group:"
-
-
-@dataclass
-class FlameModelData:
-    """A FLAME-style linear blend skinning model as plain numpy arrays.
-
-    Attributes:
-        v_template: (V, 3) float64 mean head (metres).
-        faces: (F, 3) int64 triangles.
-        shapedirs: (V, 3, S) float64 identity blendshapes.
-        exprdirs: (V, 3, E) float64 expression blendshapes (E may be 0).
-        posedirs: (V, 3, P) float64 pose correctives, P = 9·(J−1).
-        j_regressor: (J, V) float64 dense joint regressor.
-        lbs_weights: (V, J) float64 skinning weights.
-        parents: (J,) int64 kinematic tree, -1 for the root; parents[j] < j.
-        n_base_vertices: vertex count of the model before any extension (teeth, mouth interior).
-        face_table: id of the face table, e.g. "flame" or "flame+sage-teeth-v1".
-        version: free label, e.g. "flame2023".
-        vertex_groups: name -> int64 vertex ids of appended parts (e.g. "teeth_upper").
-    """
-
-    v_template: np.ndarray
-    faces: np.ndarray
-    shapedirs: np.ndarray
-    exprdirs: np.ndarray
-    posedirs: np.ndarray
-    j_regressor: np.ndarray
-    lbs_weights: np.ndarray
-    parents: np.ndarray
-    n_base_vertices: int
-    face_table: str = "flame"
-    version: str = "flame"
-    vertex_groups: dict[str, np.ndarray] = field(default_factory=dict)
-
-    @property
-    def n_vertices(self) -> int:
-        return int(self.v_template.shape[0])
-
-    @property
-    def n_faces(self) -> int:
-        return int(self.faces.shape[0])
-
-    @property
-    def n_joints(self) -> int:
-        return int(self.parents.shape[0])
-
-    @property
-    def n_shape(self) -> int:
-        return int(self.shapedirs.shape[2])
-
-    @property
-    def n_expr(self) -> int:
-        return int(self.exprdirs.shape[2])
-
-    def copy(self) -> FlameModelData:
-        """A deep copy (arrays copied)."""
-        return replace(
-            self,
-            v_template=self.v_template.copy(),
-            faces=self.faces.copy(),
-            shapedirs=self.shapedirs.copy(),
-            exprdirs=self.exprdirs.copy(),
-            posedirs=self.posedirs.copy(),
-            j_regressor=self.j_regressor.copy(),
-            lbs_weights=self.lbs_weights.copy(),
-            parents=self.parents.copy(),
-            vertex_groups={k: v.copy() for k, v in self.vertex_groups.items()},
-        )
 
 
 def _shape_str(shape: tuple[int, ...]) -> str:
@@ -277,8 +210,6 @@ def load_flame_model(path: str | Path, add_teeth: bool | None = None) -> FlameMo
                 TypeError, ValueError) as exc:
             raise InputError(path, f"not a readable FLAME pickle or npz ({type(exc).__name__}: {exc})") from None
         data = _from_pickle_dict(path, d)
-
-    from .teeth import FLAME_N_VERTICES, add_teeth as _add_teeth, has_teeth
 
     if add_teeth is None:
         add_teeth = data.n_vertices == FLAME_N_VERTICES and not has_teeth(data)

@@ -26,7 +26,7 @@ from collections.abc import Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .model_io import FlameModelData
+from .model_data import FlameModelData
 from .regions import Regions
 from .teeth import has_teeth
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model_io import FlameModelData
+from .model_data import FlameModelData
 
 FLAME_N_VERTICES = 5023
 N_TEETH_VERTICES = 120
