@@ -20,9 +20,10 @@ GA_PHASE1: tuple[str, ...] = (
     "--set", f"sdf_from={SDF_OFF_FROM}",
     "--set", "w_normal_consistency=0",
     "--set", "w_distortion=0",
+    "--set", "w_mask=0",
 )  # fmt: skip
 """Phase-1 options of the GaussianAvatars-style baseline: free per-surfel attributes, photometric
-loss only (no SDF terms, no 2DGS regularizers)."""
+loss only (no SDF terms, no 2DGS regularizers, no alpha mask term)."""
 
 
 @dataclass(frozen=True)

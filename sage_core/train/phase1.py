@@ -89,7 +89,8 @@ def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, de
 
 def appearance_args(cfg: Phase1Config) -> dict[str, Any]:
     """:class:`AppearanceNetwork` kwargs of a phase-1 config (plain data, saved with the avatar)."""
-    args: dict[str, Any] = {"hidden": cfg.app_hidden, "n_layers": cfg.app_layers, "sh_degree": cfg.app_sh_degree}
+    args: dict[str, Any] = {"hidden": cfg.app_hidden, "n_layers": cfg.app_layers, "sh_degree": cfg.app_sh_degree,
+                            "opacity_bias": math.log(cfg.app_init_opacity / (1.0 - cfg.app_init_opacity))}
     if cfg.app_grid:
         args["grid"] = {"n_levels": cfg.app_grid_levels, "n_features": 2, "log2_table": cfg.app_grid_log2_table,
                         "base_res": 16, "max_res": cfg.app_grid_max_res}
