@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "sage_core"
 LAYERS: list[tuple[str, ...]] = [
     # foundation: no sage_core imports besides each other's lower rows
     ("errors", "atomic", "image_metrics", "__version__"),  # __version__: the string set first in sage_core/__init__.py
-    ("config", "native_build", "serialization"),
+    ("config", "native_build", "npz", "serialization"),
     ("workspace",),
     ("geometry",),
     ("flame",),

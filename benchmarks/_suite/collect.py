@@ -100,9 +100,11 @@ def gt_canonical_mesh(capture: Path, avatar: Any) -> tuple[Any, Any, int]:
     x_c = R0ᵀ(x_w − t − J0) + J0. Returns (vertices (V, 3), faces (F, 3), T).
     """
     import numpy as np
+    import torch
     import trimesh
 
     from sage_core.errors import InputError
+    from sage_core.geometry.rigid import world_to_canonical
 
     t_can = int(avatar.canonical_timestep)
     path = capture / "gt" / "meshes" / f"{t_can:05d}.ply"
@@ -113,9 +115,9 @@ def gt_canonical_mesh(capture: Path, avatar: Any) -> tuple[Any, Any, int]:
     rig = avatar.rigid_transform(inputs, tol=1e-4)
     if rig is None:
         raise InputError(path, f"timestep {t_can} is not a rigid motion of the canonical mesh")
-    R0, t = (x.detach().double().cpu().numpy() for x in rig)
-    J0 = avatar.root_joint.detach().double().cpu().numpy()
-    v = (np.asarray(mesh.vertices, np.float64) - t - J0) @ R0 + J0
+    R0, t = (x.detach().double().cpu() for x in rig)
+    J0 = avatar.root_joint.detach().double().cpu()
+    v = world_to_canonical(torch.from_numpy(np.asarray(mesh.vertices, np.float64)), R0, t, J0).numpy()
     return v, np.asarray(mesh.faces, np.int64), t_can
 
 

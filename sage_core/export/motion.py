@@ -29,6 +29,7 @@ import numpy as np
 from ..data.cameras import Camera, look_at
 from ..errors import InputError
 from ..flame.params import DYNAMIC_KEYS, FlameParams, params_from_arrays, stack_params
+from ..npz import read_npz
 
 if TYPE_CHECKING:
     import torch
@@ -109,16 +110,6 @@ def _fit_expr(params: FlameParams, n_expr: int | None) -> FlameParams:
     return replace(params, expr=np.ascontiguousarray(expr, dtype=np.float32))
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise InputError(path, "motion file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except Exception as exc:  # OSError, ValueError, zipfile.BadZipFile from a corrupt archive
-        raise InputError(path, f"cannot read npz ({type(exc).__name__}: {exc})") from None
-
-
 def _read_fps(path: Path, arrays: dict[str, np.ndarray]) -> float:
     if "fps" not in arrays:
         return DEFAULT_FPS
@@ -166,7 +157,7 @@ def check_motion_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> int:
 
 
 def _load_npz_motion(path: Path) -> Motion:
-    arrays = _read_npz(path)
+    arrays = read_npz(path, "motion file")
     check_motion_arrays(path, arrays)
     fps = _read_fps(path, arrays)
     keep = {k: arrays[k] for k in (*DYNAMIC_KEYS, "dynamic_offset") if k in arrays}
@@ -190,7 +181,7 @@ def _load_folder_motion(folder: Path, source: Path) -> Motion:
     items: list[FlameParams] = []
     fps: float | None = None
     for p in files:
-        arrays = _read_npz(p)
+        arrays = read_npz(p, "motion file")
         T = check_motion_arrays(p, arrays)
         if T != 1:
             raise InputError(p, f"per-timestep FLAME file holds {T} rows, expected 1 (expr (1,E))")

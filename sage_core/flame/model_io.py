@@ -18,6 +18,7 @@ import numpy as np
 
 from ..atomic import atomic_writer
 from ..errors import InputError
+from ..npz import shape_str
 from ._unpickle import UnsupportedPickle, load_flame_pickle
 from .model_data import FlameModelData
 from .teeth import FLAME_N_VERTICES, add_teeth as _add_teeth, has_teeth
@@ -27,16 +28,12 @@ N_SHAPE_MAX = 300  # expression columns of the official shapedirs start here
 _GROUP_PREFIX = "group:"
 
 
-def _shape_str(shape: tuple[int, ...]) -> str:
-    return "(" + ",".join(str(s) for s in shape) + ")"
-
-
 def _check_shape(path: Path, key: str, arr: np.ndarray, expected: tuple[int | None, ...]) -> None:
     """Raise InputError unless arr.shape matches expected (None = any size)."""
     ok = arr.ndim == len(expected) and all(e is None or e == s for e, s in zip(expected, arr.shape))
     if not ok:
         exp = "(" + ",".join("?" if e is None else str(e) for e in expected) + ")"
-        raise InputError(path, f"key '{key}' has shape {_shape_str(arr.shape)}, expected {exp}")
+        raise InputError(path, f"key '{key}' has shape {shape_str(arr.shape)}, expected {exp}")
 
 
 def _check_finite(path: Path, key: str, arr: np.ndarray) -> None:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..atomic import atomic_writer
 from ..errors import InputError
+from ..npz import read_npz, shape_str
 
 if TYPE_CHECKING:
     import torch
@@ -192,10 +193,6 @@ def expr_overflow(params: FlameParams, n_expr: int) -> str | None:
     )
 
 
-def _shape_str(shape: tuple[int, ...]) -> str:
-    return "(" + ",".join(str(s) for s in shape) + ")"
-
-
 def _numeric(path: Path, key: str, value: np.ndarray) -> np.ndarray:
     if not (np.issubdtype(value.dtype, np.floating) or np.issubdtype(value.dtype, np.integer)):
         raise InputError(path, f"key '{key}' has dtype {value.dtype}, expected float32")
@@ -213,7 +210,7 @@ def _rows(path: Path, key: str, arr: np.ndarray, width: int | None, T: int | Non
     ok = arr.ndim == 2 and (width is None or arr.shape[1] == width) and arr.shape[1] > 0
     ok = ok and (T is None or arr.shape[0] == T) and arr.shape[0] > 0
     if not ok:
-        raise InputError(path, f"key '{key}' has shape {_shape_str(arr.shape)}, expected ({exp_t},{exp_w})")
+        raise InputError(path, f"key '{key}' has shape {shape_str(arr.shape)}, expected ({exp_t},{exp_w})")
     return arr
 
 
@@ -242,7 +239,7 @@ def params_from_arrays(path: str | Path, arrays: dict[str, np.ndarray], timestep
         if shape.ndim == 2 and shape.shape[0] == 1:
             shape = shape[0]
         if shape.ndim != 1 or shape.shape[0] == 0:
-            raise InputError(path, f"key 'shape' has shape {_shape_str(raw_shape)}, expected (S,) e.g. (300,)")
+            raise InputError(path, f"key 'shape' has shape {shape_str(raw_shape)}, expected (S,) e.g. (300,)")
     else:
         shape = np.zeros((0,), np.float32)
 
@@ -253,7 +250,7 @@ def params_from_arrays(path: str | Path, arrays: dict[str, np.ndarray], timestep
         if static.ndim == 3 and static.shape[0] == 1:
             static = static[0]
         if static.ndim != 2 or static.shape[1] != 3 or static.shape[0] == 0:
-            raise InputError(path, f"key 'static_offset' has shape {_shape_str(raw_shape)}, expected (1,V,3)")
+            raise InputError(path, f"key 'static_offset' has shape {shape_str(raw_shape)}, expected (1,V,3)")
     dynamic = None
     if "dynamic_offset" in arrays:
         dynamic = _numeric(path, "dynamic_offset", np.asarray(arrays["dynamic_offset"]))
@@ -261,7 +258,7 @@ def params_from_arrays(path: str | Path, arrays: dict[str, np.ndarray], timestep
         if dynamic.ndim == 2 and T == 1:
             dynamic = dynamic[None]
         if dynamic.ndim != 3 or dynamic.shape[0] != T or dynamic.shape[2] != 3 or dynamic.shape[1] == 0:
-            raise InputError(path, f"key 'dynamic_offset' has shape {_shape_str(raw_shape)}, expected ({T},V,3)")
+            raise InputError(path, f"key 'dynamic_offset' has shape {shape_str(raw_shape)}, expected ({T},V,3)")
     if static is not None and dynamic is not None and static.shape[0] != dynamic.shape[1]:
         raise InputError(path, f"key 'dynamic_offset' has {dynamic.shape[1]} vertices but 'static_offset' has "
                                f"{static.shape[0]}")
@@ -280,18 +277,6 @@ def params_from_arrays(path: str | Path, arrays: dict[str, np.ndarray], timestep
                        static_offset=static, dynamic_offset=dynamic, timesteps=ts)
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise InputError(path, "FLAME parameter file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise InputError(path, f"cannot read npz ({type(exc).__name__}: {exc})") from None
-    except Exception as exc:  # zipfile.BadZipFile and friends from a corrupt archive
-        raise InputError(path, f"cannot read npz ({type(exc).__name__}: {exc})") from None
-
-
 def load_param_npz(path: str | Path, timesteps: Sequence[int] | np.ndarray | None = None,
                    require_shape: bool = True) -> FlameParams:
     """Read one FLAME parameter npz: a VHAP per-timestep file (T = 1) or a T-leading file.
@@ -301,7 +286,7 @@ def load_param_npz(path: str | Path, timesteps: Sequence[int] | np.ndarray | Non
     Raises InputError(path, ...) naming the key and the expected vs actual shape, or NaN/Inf.
     """
     path = Path(path)
-    return params_from_arrays(path, _read_npz(path), None if timesteps is None else np.asarray(timesteps),
+    return params_from_arrays(path, read_npz(path, "FLAME parameter file"), None if timesteps is None else np.asarray(timesteps),
                               require_shape=require_shape)
 
 
@@ -395,7 +380,7 @@ def save_stacked_npz(path: str | Path, params: FlameParams) -> Path:
 def load_stacked_npz(path: str | Path) -> FlameParams:
     """Read a file written by :func:`save_stacked_npz` (requires ``timesteps`` and ``shape``)."""
     path = Path(path)
-    arrays = _read_npz(path)
+    arrays = read_npz(path, "FLAME parameter file")
     if "timesteps" not in arrays:
         raise InputError(path, "stacked FLAME parameter file lacks key 'timesteps'")
     return params_from_arrays(path, arrays)
