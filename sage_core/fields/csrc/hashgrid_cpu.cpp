@@ -201,8 +201,8 @@ struct Scratch {
   }
 };
 
-// Calls fn.template operator()<FC>() with FC = F for the common feature counts (unrolled inner loops),
-// FC = 0 (runtime F) otherwise.
+// Calls fn(std::integral_constant<int, FC>) with FC = F for the common feature counts (so the inner
+// loops unroll), FC = 0 (runtime F) otherwise.
 template <typename Fn>
 void dispatch_features(int64_t F, const Fn& fn) {
   switch (F) {
