@@ -211,7 +211,8 @@ def test_gradcheck_and_gradgradcheck(cpp_ext: None) -> None:
     assert torch.autograd.gradgradcheck(lambda xx: fn(xx, table), x_only, eps=1e-6, atol=1e-7)
 
 
-def test_table_gradient_is_independent_of_the_thread_count(cpp_ext: None) -> None:
+def test_results_are_independent_of_the_thread_count(cpp_ext: None) -> None:
+    """Values, first and second-order gradients are bit-identical with 1 and 2 threads."""
     g = make_grid(torch.float32)
     x = sample_points(3000, torch.float32)
     up = torch.randn(x.shape[0], 6, 2, generator=torch.Generator().manual_seed(4))
@@ -222,11 +223,15 @@ def test_table_gradient_is_independent_of_the_thread_count(cpp_ext: None) -> Non
             torch.set_num_threads(threads)
             xr = x.clone().requires_grad_(True)
             g.table.grad = None
-            (g.level_features(xr) * up).sum().backward()
-            out.append((xr.grad, g.table.grad.clone()))
+            feats = g.level_features(xr)
+            (gx,) = torch.autograd.grad((feats.square() * up).sum(), xr, create_graph=True)
+            (gx.square().sum() + (feats * up).sum()).backward()
+            out.append((feats.detach(), gx.detach(), xr.grad, g.table.grad.clone()))
     finally:
         torch.set_num_threads(before)
-    assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
+    for a, b in zip(*out):
+        assert torch.equal(a, b)
+    assert float(out[0][3].abs().max()) > 0 and float(out[0][2].abs().max()) > 0
 
 
 def test_third_derivative_is_refused(cpp_ext: None) -> None:

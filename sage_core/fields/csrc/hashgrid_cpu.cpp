@@ -27,6 +27,7 @@
 #include <ATen/ops/empty.h>
 #include <ATen/ops/zeros.h>
 #include <ATen/ops/empty_like.h>
+#include <ATen/ops/permute.h>
 #include <c10/util/Exception.h>
 #include <c10/util/Optional.h>
 #include <torch/library.h>
@@ -159,12 +160,18 @@ void check_like(const at::Tensor& t, const at::Tensor& ref, at::IntArrayRef shap
               ref.scalar_type());
 }
 
+// Threads for a pass over L levels of N points (1: run on the calling thread).
+int level_threads(int64_t L, int64_t N) {
+  const int nt = static_cast<int>(std::min<int64_t>(num_threads(), L));
+  return (nt > 1 && N * L >= kParallelWork) ? nt : 1;
+}
+
 // Runs body(level) for every unmasked level, in parallel over levels.
 template <typename Body>
 void for_levels(const std::vector<Level>& lv, const std::vector<double>& mask, int64_t N, const Body& body) {
   const int64_t L = static_cast<int64_t>(lv.size());
-  const int nt = static_cast<int>(std::min<int64_t>(num_threads(), L));
-#pragma omp parallel for schedule(dynamic, 1) num_threads(nt) if (nt > 1 && N * L >= kParallelWork)
+  const int nt = level_threads(L, N);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nt) if (nt > 1)
   for (int64_t l = 0; l < L; ++l) {
     if (mask[l] != 0.0) body(l);
   }
@@ -220,11 +227,10 @@ void dispatch_features(int64_t F, const Fn& fn) {
 template <typename S, int FC>
 void forward_impl(const at::Tensor& x01, const at::Tensor& table, const std::vector<Level>& lv,
                   const std::vector<S>& scale, const std::vector<S>& maskS, const std::vector<double>& mask,
-                  at::Tensor& feats) {
-  const int64_t N = x01.size(0), F = FC > 0 ? FC : table.size(1), L = static_cast<int64_t>(lv.size());
+                  S* out, int64_t sn, int64_t sl) {
+  const int64_t N = x01.size(0), F = FC > 0 ? FC : table.size(1);
   const S* x = x01.data_ptr<S>();
   const S* T = table.data_ptr<S>();
-  S* out = feats.data_ptr<S>();
   for_levels(lv, mask, N, [&](int64_t l) {
     Corners<S> c;
     Scratch<S, FC> acc(F);
@@ -238,7 +244,7 @@ void forward_impl(const at::Tensor& x01, const at::Tensor& table, const std::vec
         const S* row = T + c.row[q];
         for (int64_t f = 0; f < F; ++f) acc[f] = acc[f] + c.w[q] * row[f];
       }
-      S* o = out + (n * L + l) * F;
+      S* o = out + n * sn + l * sl;
       for (int64_t f = 0; f < F; ++f) o[f] = acc[f] * ml;
     }
   });
@@ -250,13 +256,20 @@ at::Tensor encode_forward(const at::Tensor& x01, const at::Tensor& table, const 
   check_inputs(x01, table, lv);
   const int64_t N = x01.size(0), F = table.size(1), L = static_cast<int64_t>(lv.size());
   const std::vector<double> m = mask_values(mask, L);
-  at::Tensor feats = at::zeros({N, L, F}, x01.options());
+  // threads own levels; they write a level-major buffer (transposed afterwards) so that no two
+  // threads write into the same cache line
+  const bool level_major = level_threads(L, N) > 1;
+  at::Tensor feats = level_major ? at::zeros({L, N, F}, x01.options()) : at::zeros({N, L, F}, x01.options());
   AT_DISPATCH_FLOATING_TYPES(x01.scalar_type(), "hashgrid_forward", [&] {
     const auto sc = read_scalars<scalar_t>(scales, L, "scales");
     const auto ms = read_scalars<scalar_t>(mask, L, "mask");
-    dispatch_features(F, [&](auto fc) { forward_impl<scalar_t, decltype(fc)::value>(x01, table, lv, sc, ms, m, feats); });
+    const int64_t sn = level_major ? F : L * F, sl = level_major ? N * F : F;
+    scalar_t* out = feats.data_ptr<scalar_t>();
+    dispatch_features(F, [&](auto fc) {
+      forward_impl<scalar_t, decltype(fc)::value>(x01, table, lv, sc, ms, m, out, sn, sl);
+    });
   });
-  return feats;
+  return level_major ? feats.permute({1, 0, 2}).contiguous() : feats;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -367,7 +380,8 @@ std::vector<at::Tensor> encode_backward(const at::Tensor& G, const at::Tensor& x
 template <typename S, int FC>
 void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor& table, const S* ggx,
                           const S* ggT, const std::vector<Level>& lv, const std::vector<S>& scale,
-                          const std::vector<S>& maskS, const std::vector<double>& mask, S* dG, S* dT, S* dx_part) {
+                          const std::vector<S>& maskS, const std::vector<double>& mask, S* dG, int64_t sn,
+                          int64_t sl, S* dT, S* dx_part) {
   const int64_t N = x01.size(0), F = FC > 0 ? FC : table.size(1), L = static_cast<int64_t>(lv.size());
   const S* x = x01.data_ptr<S>();
   const S* T = table.data_ptr<S>();
@@ -428,7 +442,7 @@ void double_backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::
         }
       }
       if (dG) {
-        S* o = dG + (n * L + l) * F;
+        S* o = dG + n * sn + l * sl;
         for (int64_t f = 0; f < F; ++f) o[f] = acc[f] * ml;
       }
       if (part) {
@@ -453,7 +467,8 @@ std::vector<at::Tensor> encode_double_backward(const at::Tensor& G, const at::Te
   if (has_T) check_like(*ggT, table, table.sizes(), "grad of grad_table");
   const std::vector<double> m = mask_values(mask, L);
   at::Tensor dG, dT, dx, part;
-  if (need_G) dG = at::zeros({N, L, F}, x01.options());
+  const bool level_major = level_threads(L, N) > 1;  // see encode_forward
+  if (need_G) dG = level_major ? at::zeros({L, N, F}, x01.options()) : at::zeros({N, L, F}, x01.options());
   if (need_table) dT = at::empty_like(table);
   if (need_x) {
     dx = at::empty({N, 3}, x01.options());
@@ -469,10 +484,12 @@ std::vector<at::Tensor> encode_double_backward(const at::Tensor& G, const at::Te
     scalar_t* px = need_x ? part.data_ptr<scalar_t>() : nullptr;
     if (pt) zero_unowned_rows<scalar_t>(pt, lv, m, table.size(0), F);
     dispatch_features(F, [&](auto fc) {
-      double_backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, gx_in, gt_in, lv, sc, ms, m, pg, pt, px);
+      double_backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, gx_in, gt_in, lv, sc, ms, m, pg,
+                                                          level_major ? F : L * F, level_major ? N * F : F, pt, px);
     });
     if (need_x) reduce_levels<scalar_t>(part.data_ptr<scalar_t>(), L, N, dx.data_ptr<scalar_t>());
   });
+  if (need_G && level_major) dG = dG.permute({1, 0, 2}).contiguous();
   return {dG, dT, dx};
 }
 
