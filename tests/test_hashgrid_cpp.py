@@ -152,7 +152,8 @@ def test_second_order_through_sdf_network(cpp_ext: None, dtype: torch.dtype, rto
     """Eikonal + alignment-style loss on the create_graph gradient: grads of table, MLP and x."""
     nets = sdf_pair(dtype)
     x0 = sample_points(300, dtype, seed=7)
-    target = torch.nn.functional.normalize(torch.randn(x0.shape[0], 3, generator=torch.Generator().manual_seed(2)), dim=-1).to(dtype)
+    target = torch.randn(x0.shape[0], 3, generator=torch.Generator().manual_seed(2))
+    target = torch.nn.functional.normalize(target, dim=-1).to(dtype)
     results = []
     for net in nets:
         net.encoding.set_active_levels(active)

@@ -362,7 +362,9 @@ std::vector<at::Tensor> encode_backward(const at::Tensor& G, const at::Tensor& x
     scalar_t* px = need_x ? part.data_ptr<scalar_t>() : nullptr;
     scalar_t* pt = need_table ? gT.data_ptr<scalar_t>() : nullptr;
     if (pt) zero_unowned_rows<scalar_t>(pt, lv, m, table.size(0), F);
-    dispatch_features(F, [&](auto fc) { backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, lv, sc, ms, m, px, pt); });
+    dispatch_features(F, [&](auto fc) {
+      backward_impl<scalar_t, decltype(fc)::value>(G, x01, table, lv, sc, ms, m, px, pt);
+    });
     if (need_x) reduce_levels<scalar_t>(part.data_ptr<scalar_t>(), L, N, gx.data_ptr<scalar_t>());
   });
   return {gx, gT};
