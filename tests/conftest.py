@@ -1,4 +1,5 @@
-"""Shared pytest configuration: the ``cuda`` marker skips without a CUDA device."""
+"""Shared pytest configuration: the ``cuda`` marker skips without a CUDA device; the workspaces the
+tests share, each built once per session (plain helpers are in tests/helpers.py)."""
 
 from __future__ import annotations
 
@@ -6,22 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from helpers import NOVEL_EXPRESSIONS, NOVEL_VIEWS
+
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _lpips_weights() -> Path | None:
-    """The LPIPS AlexNet weights where sage itself finds them ($SAGE_LPIPS_WEIGHTS, then
-    ~/.cache/sage/lpips_alex_v0.1.pth), else None: tests that need them skip."""
-    from sage_core.evaluate.lpips import find_lpips_weights
-
-    try:
-        return find_lpips_weights()
-    except Exception:  # a named but missing file: treat as absent here, the CLI tests cover the error
-        return None
-
-
-LPIPS_WEIGHTS = _lpips_weights()
-LPIPS_SKIP_REASON = "LPIPS weights not found: set SAGE_LPIPS_WEIGHTS or place lpips_alex_v0.1.pth in ~/.cache/sage/"
 
 
 def pytest_collection_modifyitems(config, items):
@@ -124,5 +112,91 @@ def tiny_avatar_ws(tiny_ws, tiny_init_dir, tmp_path_factory):
         with torch.no_grad():
             av.surfels.mu_loc.add_(0.05 * torch.randn(av.surfels.mu_loc.shape, generator=g))
         av.save(run.work_dir / "avatar.pt")
+        run.finish()
+    return ws
+
+
+CMD_AVATAR_SURFELS = 600
+CMD_TEST_CAMERAS = (8,)
+QUICK_INIT_MESH = {"pretrain.steps": 20, "pretrain.bank_size": 4000, "pretrain.batch_size": 1024, "mc_resolution": 32,
+                   "pretrain.eval_samples": 2000}  # fmt: skip
+"""init-mesh flags of the shared workspaces: a short SDF pretraining on a coarse grid."""
+
+
+@pytest.fixture(scope="session")
+def cmd_avatar_ws(tiny_ws, tmp_path_factory):
+    """The avatar workspace of the command tests (eval, export, reenact, viewers, profiling): the tiny
+    ingested capture with its test split cut to camera 8, a quick init-mesh and an untrained
+    600-surfel phase-1 avatar moved off its initial state, recorded as complete stages. Built once
+    per session; tests copy it before changing it."""
+    import json
+    import shutil
+
+    import torch
+
+    from sage_core.config import config_hash, resolve_config, to_dict
+    from sage_core.data.dataset import IngestedData
+    from sage_core.train.init_mesh import run_init_mesh
+    from sage_core.train.phase1 import build_avatar
+    from sage_core.workspace import Workspace, begin_stage
+
+    ws = tmp_path_factory.mktemp("cmd_avatar_ws") / "ws"
+    shutil.copytree(tiny_ws, ws)
+    # fewer test images keep the command tests fast: the frontal camera of every test timestep
+    frames_path = ws / "data" / "frames.json"
+    doc = json.loads(frames_path.read_text())
+    doc["frames"] = [f for f in doc["frames"] if f["role"] != "test" or int(f["camera_index"]) in CMD_TEST_CAMERAS]
+    frames_path.write_text(json.dumps(doc))
+    w = Workspace(ws)
+    data = IngestedData.open(w.stage_dir("ingest"))
+    icfg = resolve_config("init-mesh", "tiny", None, QUICK_INIT_MESH)
+    with w.lock:
+        run = begin_stage(w, "init-mesh", to_dict(icfg), config_hash(icfg), requires=["ingest"])
+        assert run is not None
+        run_init_mesh(data, run.work_dir, icfg, seed=0)
+        run.finish()
+        pcfg = resolve_config("phase1", "tiny", None, {"n_surfels": CMD_AVATAR_SURFELS, "app_hidden": 16, "shape_hidden": 16})
+        run = begin_stage(w, "phase1", to_dict(pcfg), config_hash(pcfg), requires=["init-mesh"])
+        assert run is not None
+        g = torch.Generator().manual_seed(0)
+        av = build_avatar(data, w.stage_dir("init-mesh"), pcfg, "cpu", g)
+        with torch.no_grad():  # move off the initial state so that the tests are not about it
+            av.surfels.mu_loc.add_(0.05 * torch.randn(av.surfels.mu_loc.shape, generator=g))
+        av.save(run.work_dir / "avatar.pt")
+        run.finish()
+    return ws
+
+
+@pytest.fixture(scope="session")
+def oneshot_ws(tmp_path_factory):
+    """A one-shot workspace: a tiny synthetic ``--regime oneshot`` capture (``helpers.NOVEL_VIEWS``
+    held-out cameras, ``helpers.NOVEL_EXPRESSIONS`` held-out expression; the capture is the folder
+    ``cap`` beside the workspace) ingested as ``one-shot``, with a quick init-mesh. Built once per
+    session, shared read-only."""
+    from sage_core.config import config_hash, resolve_config, to_dict
+    from sage_core.data.capture import read_capture
+    from sage_core.data.dataset import IngestedData
+    from sage_core.data.ingest import ingest
+    from sage_core.data.synthetic import make_capture
+    from sage_core.data.synthetic.config import preset
+    from sage_core.train.init_mesh import run_init_mesh
+    from sage_core.workspace import Workspace, begin_stage
+
+    root = tmp_path_factory.mktemp("oneshot")
+    ws = root / "ws"
+    cap = make_capture(root / "cap", preset("tiny", "oneshot", novel_views=NOVEL_VIEWS, novel_expressions=NOVEL_EXPRESSIONS,
+                                             supersample=1))
+    w = Workspace(ws)
+    ws.mkdir(parents=True)
+    with w.lock:
+        run = begin_stage(w, "ingest", {"regime": "one-shot"}, "h11b-oneshot")
+        assert run is not None
+        ingest(read_capture(cap), cap.model_path, run.work_dir, regime="one-shot")
+        run.finish()
+        data = IngestedData.open(w.stage_dir("ingest"))
+        icfg = resolve_config("init-mesh", "tiny", None, QUICK_INIT_MESH)
+        run = begin_stage(w, "init-mesh", to_dict(icfg), config_hash(icfg), requires=["ingest"])
+        assert run is not None
+        run_init_mesh(data, run.work_dir, icfg, seed=0)
         run.finish()
     return ws

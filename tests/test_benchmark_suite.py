@@ -17,7 +17,7 @@ from _suite import ROW_IDS, SIZES, Settings, merge_results, parse_overrides, pla
 from _suite.execute import step_command  # noqa: E402
 from _suite.report import DASH, render_document  # noqa: E402
 from _suite.workspaces import copy_stages  # noqa: E402
-from conftest import LPIPS_WEIGHTS  # noqa: E402
+from helpers import LPIPS_WEIGHTS  # noqa: E402
 
 
 def _settings(tmp_path: Path, **kw) -> Settings:

@@ -1,95 +1,25 @@
 """`sage eval`: metrics.json with and without LPIPS, accumulated results, skip, stale refusal.
 
-The avatar workspace used here (and by the other command tests, which import
-:func:`avatar_workspace`) is the tiny ingested capture with a reduced init-mesh and an untrained
-phase-1 avatar of a few hundred surfels, recorded as complete stages; it is built once per test
-session under pytest's base temp folder.
+The avatar workspace used here (and by the other command tests) is conftest's ``cmd_avatar_ws``:
+the tiny ingested capture with a reduced init-mesh and an untrained phase-1 avatar of a few hundred
+surfels, recorded as complete stages, built once per test session.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-import typer
-from typer.testing import CliRunner
 
-from conftest import LPIPS_SKIP_REASON, LPIPS_WEIGHTS
-
-N_SURFELS = 600
-TEST_CAMERAS = (8,)
-
-
-def avatar_workspace(tiny_ws: Path, tmp_path_factory) -> Path:
-    """The session's avatar workspace (built on first use): ingest (test split cut to
-camera 8) + init-mesh + phase1 manifests."""
-    root = tmp_path_factory.getbasetemp() / "h12_avatar_ws"
-    ws = root / "ws"
-    if (root / "DONE").is_file():
-        return ws
-    if root.exists():
-        shutil.rmtree(root)
-    shutil.copytree(tiny_ws, ws)
-    # fewer test images keep the command tests fast: the frontal camera of every test timestep
-    frames_path = ws / "data" / "frames.json"
-    doc = json.loads(frames_path.read_text())
-    doc["frames"] = [f for f in doc["frames"] if f["role"] != "test" or int(f["camera_index"]) in TEST_CAMERAS]
-    frames_path.write_text(json.dumps(doc))
-    from sage_core.config import config_hash, resolve_config, to_dict
-    from sage_core.data.dataset import IngestedData
-    from sage_core.train.init_mesh import run_init_mesh
-    from sage_core.train.phase1 import build_avatar
-    from sage_core.workspace import Workspace, begin_stage
-
-    w = Workspace(ws)
-    data = IngestedData.open(w.stage_dir("ingest"))
-    icfg = resolve_config(
-        "init-mesh", "tiny", None,
-        {"pretrain.steps": 20, "pretrain.bank_size": 4000, "pretrain.batch_size": 1024, "mc_resolution": 32, "pretrain.eval_samples": 2000},
-    )  # fmt: skip
-    with w.lock:
-        run = begin_stage(w, "init-mesh", to_dict(icfg), config_hash(icfg), requires=["ingest"])
-        assert run is not None
-        run_init_mesh(data, run.work_dir, icfg, seed=0)
-        run.finish()
-        pcfg = resolve_config("phase1", "tiny", None, {"n_surfels": N_SURFELS, "app_hidden": 16, "shape_hidden": 16})
-        run = begin_stage(w, "phase1", to_dict(pcfg), config_hash(pcfg), requires=["init-mesh"])
-        assert run is not None
-        g = torch.Generator().manual_seed(0)
-        av = build_avatar(data, w.stage_dir("init-mesh"), pcfg, "cpu", g)
-        with torch.no_grad():  # move off the initial state so that the tests are not about it
-            av.surfels.mu_loc.add_(0.05 * torch.randn(av.surfels.mu_loc.shape, generator=g))
-        av.save(run.work_dir / "avatar.pt")
-        run.finish()
-    (root / "DONE").write_text("ok")
-    return ws
-
-
-def commands_app() -> typer.Typer:
-    """A local app with the deliverable commands (the real app registers them the same way)."""
-    from sage_cli.commands import demo_cmd, eval_cmd, export_cmd, reenact_cmd, run_cmd
-
-    app = typer.Typer()
-    app.command("eval")(eval_cmd.eval_)
-    app.command("reenact")(reenact_cmd.reenact)
-    app.command("export")(export_cmd.export)
-    app.command("run")(run_cmd.run)
-    app.command("demo")(demo_cmd.demo)
-    return app
-
-
-def invoke(args: list[str], **env: str):
-    env = {"SAGE_LPIPS_WEIGHTS": "", "HOME": env.pop("HOME", "/nonexistent-home"), "COLUMNS": "200", **env}
-    return CliRunner().invoke(commands_app(), [str(a) for a in args], env=env)
+from helpers import LPIPS_SKIP_REASON, LPIPS_WEIGHTS, invoke
 
 
 @pytest.fixture(scope="module")
-def base_ws(tiny_ws, tmp_path_factory):
-    return avatar_workspace(tiny_ws, tmp_path_factory)
+def base_ws(cmd_avatar_ws):
+    return cmd_avatar_ws
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ import pytest
 import torch
 import trimesh
 
-from test_cmd_eval import avatar_workspace, invoke
+from helpers import invoke, load_phase1_renderer
 
 # A PLY stores float32 positions, log scales, logit opacities, normalised quaternions and SH DC;
 # decoding them and rasterizing again reproduces the avatar's own render up to float32 rounding
@@ -19,8 +19,8 @@ RENDER_TOL = 1e-4
 
 
 @pytest.fixture(scope="module")
-def base_ws(tiny_ws, tmp_path_factory):
-    return avatar_workspace(tiny_ws, tmp_path_factory)
+def base_ws(cmd_avatar_ws):
+    return cmd_avatar_ws
 
 
 @pytest.fixture
@@ -28,16 +28,6 @@ def ws(base_ws, tmp_path):
     dst = tmp_path / "ws"
     shutil.copytree(base_ws, dst)
     return dst
-
-
-def _loaded(ws):
-    from sage_core.data.dataset import IngestedData
-    from sage_core.stages.avatars import AvatarRenderer, load_stage_avatar
-    from sage_core.workspace import Workspace
-
-    data = IngestedData.open(ws / "data")
-    loaded = load_stage_avatar(Workspace(ws), "phase1", data)
-    return data, loaded, AvatarRenderer(loaded.avatar, loaded.render)
 
 
 def _header(path):
@@ -58,7 +48,7 @@ def test_canonical_ply_round_trip_and_header(ws):
     assert props == property_names(0)  # INRIA order, SH degree 0, no binding_0
     assert any("Vertical Axis: y" in c for c in comments)
     assert "rows dropped" in res.output
-    data, loaded, renderer = _loaded(ws)
+    data, loaded, renderer = load_phase1_renderer(ws)
     av = loaded.avatar
     posed = renderer.posed(canonical_inputs(av.params, av.canonical_timestep), None)
     keep = (posed.opacities >= MIN_OPACITY).numpy()
@@ -87,7 +77,7 @@ def test_ply_rendered_back_matches_the_avatar_render(ws):
     from sage_core.export.ply import read_ply
     from sage_core.render import RenderCamera, rasterize_surfels
 
-    data, loaded, renderer = _loaded(ws)
+    data, loaded, renderer = load_phase1_renderer(ws)
     fr = data.val[0]
     res = invoke(["export", ws, "--ply", "--frame", fr.timestep, "--color-camera", fr.camera_index, "--up", "y", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
@@ -114,7 +104,7 @@ def test_export_meshes(ws):
     res = invoke(["export", ws, "--mesh", "--mc-resolution", "32", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
     out = ws / "export" / "mesh"
-    data, loaded, _ = _loaded(ws)
+    data, loaded, _ = load_phase1_renderer(ws)
     av = loaded.avatar
     with torch.no_grad():
         verts = av.pose_mesh(canonical_inputs(av.params, av.canonical_timestep)).numpy()
@@ -143,7 +133,7 @@ def test_bundle_loads_without_the_workspace_and_renders_the_same(ws, tmp_path):
 
     res = invoke(["export", ws, "--bundle", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    data, loaded, renderer = _loaded(ws)
+    data, loaded, renderer = load_phase1_renderer(ws)
     fr = data.val[0]
     inputs = loaded.avatar.frame_inputs(fr.timestep)
     ref = renderer.render(fr.camera, inputs)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from test_cmd_eval import avatar_workspace, invoke
+from helpers import invoke
 
 
 @pytest.fixture(scope="module")
-def base_ws(tiny_ws, tmp_path_factory):
-    return avatar_workspace(tiny_ws, tmp_path_factory)
+def base_ws(cmd_avatar_ws):
+    return cmd_avatar_ws
 
 
 @pytest.fixture

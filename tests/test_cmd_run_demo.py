@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from test_cmd_eval import invoke
+from helpers import invoke
 
 
 def test_split_sets_addresses_stages():

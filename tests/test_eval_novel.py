@@ -10,23 +10,15 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import LPIPS_WEIGHTS
-from test_cmd_eval import invoke
-from test_pseudo_views import NOVEL_EXPRESSIONS, NOVEL_VIEWS, oneshot_workspace
+from helpers import LPIPS_WEIGHTS, NOVEL_EXPRESSIONS, NOVEL_VIEWS, invoke
 
 
-
-def trained_oneshot_workspace(tmp_path_factory) -> Path:
+@pytest.fixture(scope="module")
+def base_ws(oneshot_ws, tmp_path_factory) -> Path:
     """The one-shot workspace plus a very short phase 1 (a few steps on the input view and on
     pseudo-views, recorded as a complete stage)."""
-    root = tmp_path_factory.getbasetemp() / "h11b_oneshot_phase1"
-    ws = root / "ws"
-    if (root / "DONE").is_file():
-        return ws
-    if root.exists():
-        shutil.rmtree(root)
-    base = oneshot_workspace(tmp_path_factory)
-    shutil.copytree(base, ws)
+    ws = tmp_path_factory.mktemp("oneshot_phase1") / "ws"
+    shutil.copytree(oneshot_ws, ws)
     from types import SimpleNamespace
 
     from sage_core.config import config_hash, resolve_config, to_dict
@@ -52,13 +44,7 @@ def trained_oneshot_workspace(tmp_path_factory) -> Path:
             trainer.step()
         avatar.save(run.work_dir / "avatar.pt")
         run.finish()
-    (root / "DONE").write_text("ok")
     return ws
-
-
-@pytest.fixture(scope="module")
-def base_ws(tmp_path_factory):
-    return trained_oneshot_workspace(tmp_path_factory)
 
 
 @pytest.fixture

@@ -9,14 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from test_cmd_eval import avatar_workspace, invoke
+from helpers import invoke, load_phase1_renderer
 
 
 @pytest.fixture(scope="module")
-def ga_ws(tiny_ws, tmp_path_factory):
-    base = avatar_workspace(tiny_ws, tmp_path_factory)
+def ga_ws(cmd_avatar_ws, tmp_path_factory):
     ws = tmp_path_factory.mktemp("ga") / "ws"
-    shutil.copytree(base, ws)
+    shutil.copytree(cmd_avatar_ws, ws)
     res = invoke(["export", ws, "--format", "gaussian-avatars", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
     return ws
@@ -59,14 +58,12 @@ def _quat_matrix(q):
 
 
 def test_point_cloud_and_flame_param_layout(ga_ws):
-    from test_cmd_export import _loaded
-
     out = ga_ws / "export" / "gaussian_avatars"
     names, rows = _read_ply_rows(out / "point_cloud.ply")
     expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
                 + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3", "binding_0"])  # fmt: skip
     assert names == expected
-    _, loaded, _ = _loaded(ga_ws)
+    _, loaded, _ = load_phase1_renderer(ga_ws)
     av = loaded.avatar
     assert rows.shape[0] == av.surfels.n
     binding = rows[:, -1]
@@ -94,8 +91,6 @@ def test_point_cloud_and_flame_param_layout(ga_ws):
 
 
 def test_ga_posing_math_reproduces_sage_posed_surfels(ga_ws):
-    from test_cmd_export import _loaded
-
     out = ga_ws / "export" / "gaussian_avatars"
     names, rows = _read_ply_rows(out / "point_cloud.ply")
     col = {n: i for i, n in enumerate(names)}
@@ -103,7 +98,7 @@ def test_ga_posing_math_reproduces_sage_posed_surfels(ga_ws):
     log_s = rows[:, [col["scale_0"], col["scale_1"], col["scale_2"]]]
     q_loc = rows[:, [col["rot_0"], col["rot_1"], col["rot_2"], col["rot_3"]]]
     b = rows[:, col["binding_0"]].astype(np.int64)
-    _, loaded, _ = _loaded(ga_ws)
+    _, loaded, _ = load_phase1_renderer(ga_ws)
     av = loaded.avatar
     faces = av.faces.numpy()
     with np.load(out / "flame_param.npz") as z:

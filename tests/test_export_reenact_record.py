@@ -6,12 +6,12 @@ import json
 import shutil
 from pathlib import Path
 
-from test_cmd_eval import avatar_workspace, invoke
+from helpers import invoke
 
 
-def test_reenact_record_paths_are_absolute_and_info_lists_it(tiny_ws, tiny_capture, tmp_path_factory, tmp_path, monkeypatch):
+def test_reenact_record_paths_are_absolute_and_info_lists_it(cmd_avatar_ws, tiny_capture, tmp_path, monkeypatch):
     ws = tmp_path / "ws"
-    shutil.copytree(avatar_workspace(tiny_ws, tmp_path_factory), ws)
+    shutil.copytree(cmd_avatar_ws, ws)
     monkeypatch.chdir(tmp_path)  # relative --out and workspace paths, resolved against the launch folder
     res = invoke(["reenact", "ws", "--flame-seq", tiny_capture, "--max-frames", "2", "--no-video",
                   "--out", "ws/reenact/rel", "--device", "cpu", "--quiet"])  # fmt: skip

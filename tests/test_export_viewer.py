@@ -179,7 +179,7 @@ def test_compressed_ply_layout_and_read_back():
 
 
 def test_splat_transform_reads_the_compressed_ply_and_splat(tmp_path):
-    from test_export_chromium import splat_transform
+    from chromium import splat_transform
 
     g = _gaussians(n=600, k=15)
     data, _ = encode_compressed_ply(**g)
@@ -211,20 +211,16 @@ def test_splat_transform_reads_the_compressed_ply_and_splat(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def viewer_ws(tiny_ws, tmp_path_factory):
+def viewer_ws(cmd_avatar_ws, tmp_path_factory):
     import shutil
 
-    from test_cmd_eval import avatar_workspace
-
     ws = tmp_path_factory.mktemp("viewer") / "ws"
-    shutil.copytree(avatar_workspace(tiny_ws, tmp_path_factory), ws)
+    shutil.copytree(cmd_avatar_ws, ws)
     return ws
 
 
 def test_export_viewer_files_default_to_the_viewer_orientation(viewer_ws):
-    from test_cmd_eval import invoke
-    from test_cmd_export import _loaded
-
+    from helpers import invoke, load_phase1_renderer
     from sage_core.export.ply import MIN_OPACITY, read_ply
     from sage_core.flame.canonical import canonical_inputs
 
@@ -234,7 +230,7 @@ def test_export_viewer_files_default_to_the_viewer_orientation(viewer_ws):
     raw = (out / "canonical.ply").read_bytes()
     head = raw[: raw.index(b"end_header")].decode()
     assert "Vertical Axis: -y" in head and head.count("property float f_rest_") == 45 and "binding" not in head
-    _, loaded, renderer = _loaded(viewer_ws)
+    _, loaded, renderer = load_phase1_renderer(viewer_ws)
     av = loaded.avatar
     posed = renderer.posed(canonical_inputs(av.params, av.canonical_timestep), None)
     keep = (posed.opacities >= MIN_OPACITY).numpy()

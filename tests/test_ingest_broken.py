@@ -10,13 +10,9 @@ from typing import Callable
 import numpy as np
 import pytest
 
+from fake_capture import MODEL_V, FakeSpec, make_fake_capture, make_tiny_model, vhap_params
 from sage_core.data import ingest, read_capture, write_image
 from sage_core.errors import ConfigError, InputError, SageError
-
-try:
-    from test_capture_reader import MODEL_V, FakeSpec, make_fake_capture, make_tiny_model, vhap_params
-except ImportError:  # pragma: no cover - package-style test collection
-    from tests.test_capture_reader import MODEL_V, FakeSpec, make_fake_capture, make_tiny_model, vhap_params
 
 
 def _edit_json(path: Path, fn: Callable[[dict], None]) -> None:

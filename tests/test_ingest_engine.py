@@ -8,14 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fake_capture import BLOB, H, MODEL_V, W, FakeSpec, make_fake_capture, make_tiny_model
 from sage_core.data import IngestedData, ingest, read_capture, select_frames
 from sage_core.data.ingest import NEUTRAL_JAW_WEIGHT, choose_neutral_timestep, neutral_score, target_size
 from sage_core.errors import ConfigError, StageError
-
-try:
-    from test_capture_reader import BLOB, H, MODEL_V, W, FakeSpec, make_fake_capture, make_tiny_model
-except ImportError:  # pragma: no cover - package-style test collection
-    from tests.test_capture_reader import BLOB, H, MODEL_V, W, FakeSpec, make_fake_capture, make_tiny_model
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from sage_core.evaluate import (
 )
 from sage_core.evaluate.lpips import EXPECTED_SHAPES
 
-from conftest import LPIPS_SKIP_REASON, LPIPS_WEIGHTS as WEIGHTS  # noqa: E402
+from helpers import LPIPS_SKIP_REASON, LPIPS_WEIGHTS as WEIGHTS  # noqa: E402
 needs_weights = pytest.mark.skipif(WEIGHTS is None, reason=LPIPS_SKIP_REASON)
 
 

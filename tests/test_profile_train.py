@@ -13,7 +13,6 @@ from types import SimpleNamespace
 
 import pytest
 
-from test_cmd_eval import avatar_workspace
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
@@ -25,8 +24,8 @@ SMALL = ["n_surfels=600", "app_hidden=16", "shape_hidden=16", "rays_per_step=128
 
 
 @pytest.fixture(scope="module")
-def base_ws(tiny_ws, tmp_path_factory):
-    return avatar_workspace(tiny_ws, tmp_path_factory)
+def base_ws(cmd_avatar_ws):
+    return cmd_avatar_ws
 
 
 def _listing(root: Path) -> dict[str, int]:

@@ -1,17 +1,14 @@
 """One-shot pseudo-views: mirror view, per-face textures, textured ring, build_pseudo_views.
 
-The one-shot workspace used here (and by tests/test_eval_novel.py, which imports
-:func:`oneshot_workspace`) is a tiny synthetic ``--regime oneshot`` capture (3 held-out cameras, 1
-held-out expression) ingested as ``one-shot`` with a reduced init-mesh; it is built once per test
-session under pytest's base temp folder.
+The one-shot workspace used here (and by tests/test_eval_novel.py) is conftest's ``oneshot_ws``: a
+tiny synthetic ``--regime oneshot`` capture (3 held-out cameras, 1 held-out expression) ingested as
+``one-shot`` with a reduced init-mesh, built once per test session.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-import shutil
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -35,59 +32,14 @@ from sage_core.train.pseudo_views import (
     texture_lookup,
 )
 
-NOVEL_VIEWS = 3
-NOVEL_EXPRESSIONS = 1
-
-
-def oneshot_workspace(tmp_path_factory) -> Path:
-    """The session's one-shot workspace (built on first use): capture ``cap``, workspace ``ws``
-    with ingest and init-mesh complete."""
-    root = tmp_path_factory.getbasetemp() / "h11b_oneshot"
-    ws = root / "ws"
-    if (root / "DONE").is_file():
-        return ws
-    if root.exists():
-        shutil.rmtree(root)
-    from sage_core.config import config_hash, resolve_config, to_dict
-    from sage_core.data.capture import read_capture
-    from sage_core.data.dataset import IngestedData
-    from sage_core.data.ingest import ingest
-    from sage_core.data.synthetic import make_capture
-    from sage_core.data.synthetic.config import preset
-    from sage_core.train.init_mesh import run_init_mesh
-    from sage_core.workspace import Workspace, begin_stage
-
-    cap = make_capture(root / "cap", preset("tiny", "oneshot", novel_views=NOVEL_VIEWS, novel_expressions=NOVEL_EXPRESSIONS,
-                                             supersample=1))
-    w = Workspace(ws)
-    ws.mkdir(parents=True)
-    with w.lock:
-        run = begin_stage(w, "ingest", {"regime": "one-shot"}, "h11b-oneshot")
-        assert run is not None
-        ingest(read_capture(cap), cap.model_path, run.work_dir, regime="one-shot")
-        run.finish()
-        data = IngestedData.open(w.stage_dir("ingest"))
-        icfg = resolve_config(
-            "init-mesh", "tiny", None,
-            {"pretrain.steps": 20, "pretrain.bank_size": 4000, "pretrain.batch_size": 1024, "mc_resolution": 32, "pretrain.eval_samples": 2000},
-        )  # fmt: skip
-        run = begin_stage(w, "init-mesh", to_dict(icfg), config_hash(icfg), requires=["ingest"])
-        assert run is not None
-        run_init_mesh(data, run.work_dir, icfg, seed=0)
-        run.finish()
-    (root / "DONE").write_text("ok")
-    return ws
-
-
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup(oneshot_ws):
     from sage_core.config import resolve_config
     from sage_core.data.dataset import IngestedData
     from sage_core.train.phase1 import build_avatar
     from sage_core.workspace import Workspace
 
-    ws = oneshot_workspace(tmp_path_factory)
-    w = Workspace(ws)
+    w = Workspace(oneshot_ws)
     data = IngestedData.open(w.stage_dir("ingest"))
     cfg = resolve_config("phase1", "tiny", None, {"n_surfels": 300, "app_hidden": 16, "shape_hidden": 16})
     avatar = build_avatar(data, w.stage_dir("init-mesh"), cfg, "cpu", torch.Generator().manual_seed(0))

@@ -13,8 +13,8 @@ import shutil
 import numpy as np
 import pytest
 
-from test_cmd_eval import invoke
-from test_export_chromium import Chromium, require_chromium
+from chromium import Chromium, require_chromium
+from helpers import invoke
 
 # Measured on the tiny test avatar (128x186, camera 8, headless Chromium with SwiftShader): 38.65 dB
 # (frame 0) and 38.91 dB (frame 4). The page draws quads over ±3σ with a perspective-correct
@@ -28,11 +28,9 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def web_ws(tiny_ws, tiny_capture, tmp_path_factory):
-    from test_cmd_eval import avatar_workspace
-
+def web_ws(cmd_avatar_ws, tiny_capture, tmp_path_factory):
     ws = tmp_path_factory.mktemp("web") / "ws"
-    shutil.copytree(avatar_workspace(tiny_ws, tmp_path_factory), ws)
+    shutil.copytree(cmd_avatar_ws, ws)
     res = invoke(["export", ws, "--web", "--flame-seq", tiny_capture, "--color-camera", "8", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
     return ws
