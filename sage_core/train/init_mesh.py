@@ -30,8 +30,8 @@ from ..fields.sdf_file import save_sdf
 from ..flame import FlameModel, FlameModelData, Regions, add_mouth_interior, has_mouth_interior, save_flame_npz
 from ..flame.canonical import canonical_vertices
 from ..geometry.marching import extract_mesh
-from ..runtime import StepClock
-from ..workspace import atomic_write_bytes, atomic_write_json, latest_checkpoint, load_checkpoint, save_checkpoint
+from ..workspace import atomic_write_bytes, atomic_write_json
+from .loop import run_steps
 
 Progress = Callable[..., None]
 
@@ -166,23 +166,12 @@ def run_init_mesh(
     )
     gen = torch.Generator().manual_seed(seed)
     trainer = SDFPretrainer(net, verts, faces_head, pcfg, generator=gen)
-    if checkpoint_dir is not None:
-        ck = latest_checkpoint(checkpoint_dir)
-        if ck is not None:
-            trainer.load_state_dict(load_checkpoint(ck, map_location=device)["state"]["pretrainer"])
     total = pcfg.steps
-    losses: dict[str, float] = {}
-    clock = StepClock(total, trainer.step_count)
-    while trainer.step_count < total:
-        losses = trainer.step()
-        step = trainer.step_count
-        estimate = clock.tick(step)
-        if estimate is not None and progress is not None:
-            progress(step, total, "init-mesh", **estimate.as_stats())
-        if progress is not None:
-            progress(step, total, "pretrain SDF", **{k: float(v) for k, v in losses.items() if k in ("loss", "value", "normal", "eikonal")})
-        if checkpoint_dir is not None and (step % cfg.checkpoint_every == 0) and step < total:
-            save_checkpoint(checkpoint_dir, step, {"pretrainer": trainer.state_dict()})
+    loop = run_steps(trainer, total, label="init-mesh", progress=progress, checkpoint_dir=checkpoint_dir,
+                     checkpoint_every=cfg.checkpoint_every, state_key="pretrainer", map_location=device,
+                     stats=lambda out: {k: float(v) for k, v in out.items() if k in ("loss", "value", "normal", "eikonal")},
+                     stats_label="pretrain SDF")  # fmt: skip
+    losses = dict(loop.last)
 
     # --- evaluation and outputs --------------------------------------------------------
     if progress is not None:

@@ -45,7 +45,6 @@ the uninterrupted loss curve.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -56,7 +55,7 @@ from torch import nn
 from ..avatar.init import REGION_MOUTH
 from ..avatar.model import Avatar
 from ..avatar.shading import shade_foreground
-from ..runtime import StepClock, resolve_render_backend
+from ..runtime import resolve_render_backend
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
 from ..image_metrics import psnr, ssim, ssim_map
@@ -662,7 +661,8 @@ def run_phase1(
     from ..data.imageio import write_image
     from ..geometry.marching import extract_mesh
     from ..geometry.mesh_metrics import mesh_chamfer, normal_error
-    from ..workspace import atomic_write_bytes, atomic_write_json, latest_checkpoint, load_checkpoint, save_checkpoint
+    from ..workspace import atomic_write_bytes, atomic_write_json
+    from .loop import run_steps
 
     out_dir = Path(out_dir)
     init_dir = Path(init_dir)
@@ -671,31 +671,23 @@ def run_phase1(
     avatar = build_avatar(data, init_dir, cfg, device, gen)
     views, mirror_index = one_shot_pseudo_views(data, avatar, cfg)
     trainer = Phase1Trainer(avatar, data, cfg, device, gen, pseudo_views=views, mirror_index=mirror_index)
-    if checkpoint_dir is not None:
-        ck = latest_checkpoint(checkpoint_dir)
-        if ck is not None:
-            trainer.load_state_dict(load_checkpoint(ck, map_location=device)["state"]["trainer"])
     total = cfg.iterations
-    start_step = trainer.step_count
-    t0 = time.perf_counter()
-    last: dict[str, float] = {}
     val_psnr = float("nan")
-    clock = StepClock(total, start_step)
-    while trainer.step_count < total:
-        last = trainer.step()
-        step = trainer.step_count
-        estimate = clock.tick(step)
-        if estimate is not None and progress is not None:
-            progress(step, total, "phase 1", **estimate.as_stats())
+
+    def evaluate_now(step: int, _out: Any) -> None:
+        nonlocal val_psnr
         if cfg.eval_every > 0 and step % cfg.eval_every == 0 and step < total:
             val_psnr = trainer.evaluate("val", max_frames=4)["psnr"]
-        if progress is not None:
-            stats = {k: v for k, v in last.items() if k in ("loss", "rgb", "pt", "depth", "normal", "neus_rgb", "psnr")}
-            progress(step, total, "phase 1", val_psnr=val_psnr, **stats)
-        if checkpoint_dir is not None and cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0 and step < total:
-            save_checkpoint(checkpoint_dir, step, {"trainer": trainer.state_dict()})
-    train_time = time.perf_counter() - t0
-    steps_run = trainer.step_count - start_step
+
+    def step_stats(out: Any) -> dict[str, Any]:
+        return {"val_psnr": val_psnr, **{k: v for k, v in out.items() if k in ("loss", "rgb", "pt", "depth", "normal", "neus_rgb", "psnr")}}
+
+    loop = run_steps(trainer, total, label="phase 1", progress=progress, checkpoint_dir=checkpoint_dir,
+                     checkpoint_every=cfg.checkpoint_every, state_key="trainer", map_location=device,
+                     stats=step_stats, on_step=evaluate_now)  # fmt: skip
+    last = dict(loop.last)
+    train_time = loop.train_time_s
+    steps_run = loop.steps_run
 
     if progress is not None:
         progress(total, total, "evaluating")

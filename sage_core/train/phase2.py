@@ -56,7 +56,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -75,7 +74,7 @@ from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..render import RenderCamera, rasterize_surfels
 from ..render.mesh_raster import rasterize_mesh
 from ..render.volume import render_neus
-from ..runtime import StepClock, resolve_render_backend
+from ..runtime import resolve_render_backend
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
 from ._groups import surfel_param_groups
@@ -605,7 +604,8 @@ def run_phase2(
     """
     from ..evaluate.lpips import load_lpips_or_none
     from ..evaluate.protocol import evaluate_frames
-    from ..workspace import atomic_write_json, latest_checkpoint, load_checkpoint, save_checkpoint
+    from ..workspace import atomic_write_json, latest_checkpoint
+    from .loop import run_steps
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -642,27 +642,17 @@ def run_phase2(
                                   "lpips_available": d["lpips_available"]}  # fmt: skip
 
     trainer = Phase2Trainer(avatar, data, cfg, device, gen, init_dir)
-    if ck is not None:
-        trainer.load_state_dict(load_checkpoint(ck, map_location=device)["state"]["trainer"])
+
+    def step_stats(out: Any) -> dict[str, Any]:
+        return {k: v for k, v in out.items() if k in ("loss", "normal_consistency", "distortion", "appearance", "rgb")}
 
     total = cfg.iterations
-    start = trainer.step_count
-    t0 = time.perf_counter()
-    last: dict[str, float] = {}
-    clock = StepClock(total, start)
-    while trainer.step_count < total:
-        last = trainer.step()
-        step = trainer.step_count
-        estimate = clock.tick(step)
-        if estimate is not None and progress is not None:
-            progress(step, total, "phase 2", **estimate.as_stats())
-        if progress is not None:
-            stats = {k: v for k, v in last.items() if k in ("loss", "normal_consistency", "distortion", "appearance", "rgb")}
-            progress(step, total, "phase 2", **stats)
-        if checkpoint_dir is not None and cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0 and step < total:
-            save_checkpoint(checkpoint_dir, step, {"trainer": trainer.state_dict()})
-    train_time = time.perf_counter() - t0
-    steps_run = trainer.step_count - start
+    loop = run_steps(trainer, total, label="phase 2", progress=progress, checkpoint_dir=checkpoint_dir,
+                     checkpoint_every=cfg.checkpoint_every, state_key="trainer", resume_from=ck, map_location=device,
+                     stats=step_stats)  # fmt: skip
+    last = dict(loop.last)
+    train_time = loop.train_time_s
+    steps_run = loop.steps_run
     if trainer.wrinkle_stats is not None:
         metrics["wrinkles"] = trainer.finish_wrinkles()
 
