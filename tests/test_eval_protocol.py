@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,8 +22,8 @@ from sage_core.evaluate.protocol import (
     sample_indices,
 )
 from sage_core.errors import InputError
+from helpers import LPIPS_WEIGHTS
 
-LPIPS_WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared/weights/lpips_alex_v0.1.pth"
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +43,7 @@ def frames(data) -> list[IngestedFrame]:
 
 @pytest.fixture(scope="module")
 def lpips_model() -> LPIPS | None:
-    if not LPIPS_WEIGHTS.is_file():
+    if LPIPS_WEIGHTS is None:
         return None
     return LPIPS.from_path(LPIPS_WEIGHTS)
 
