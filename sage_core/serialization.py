@@ -40,6 +40,17 @@ from .errors import ConfigError, InputError, UnsafeFileError
 if TYPE_CHECKING:
     import torch
 
+AVATAR_KIND = "sage-avatar"
+AVATAR_FORMAT = 2
+"""Avatar files: format 1 was a torch.save pickle (refused now, ``sage convert FILE --trust``
+rewrites it); 2 is a safetensors file that may reference the workspace's FLAME model."""
+SDF_KIND = "sage-sdf"
+SDF_FILE_FORMAT = 2
+"""SDF files (init-mesh): format 1 was a torch.save pickle (refused now); 2 is a safetensors file."""
+CHECKPOINT_KIND = "sage-checkpoint"
+CHECKPOINT_FORMAT = 2
+"""Stage checkpoints: format 1 was a torch.save pickle (refused now); 2 is a safetensors file."""
+
 META_KIND = "sage.kind"
 META_FORMAT = "sage.format"
 META_TREE = "sage.tree"
@@ -331,10 +342,6 @@ class Conversion:
 def classify_legacy(blob: Any) -> tuple[str, int]:
     """(kind, format) of an object loaded from an old pickle file; ValueError when it is none of
     sage's file kinds."""
-    from .avatar.model import AVATAR_FORMAT, AVATAR_KIND
-    from .fields.sdf_file import SDF_FILE_FORMAT, SDF_KIND
-    from .workspace import CHECKPOINT_FORMAT, CHECKPOINT_KIND
-
     if not isinstance(blob, dict):
         raise ValueError(f"holds a {type(blob).__name__}, not a sage file")
     if blob.get("kind") == AVATAR_KIND:

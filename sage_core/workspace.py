@@ -39,6 +39,7 @@ from typing import Any, Iterator
 from . import __version__
 from .atomic import atomic_write_bytes, atomic_write_text
 from .errors import InputError, StageError, UnsafeFileError, WorkspaceError
+from .serialization import CHECKPOINT_FORMAT, CHECKPOINT_KIND
 
 # stage name -> folder name, in pipeline order
 STAGE_FOLDERS: dict[str, str] = {
@@ -50,9 +51,6 @@ STAGE_FOLDERS: dict[str, str] = {
     "export": "export",
 }
 
-CHECKPOINT_FORMAT = 2
-"""Format 1 was a torch.save pickle (refused now); 2 is a safetensors file (sage_core.serialization)."""
-CHECKPOINT_KIND = "sage-checkpoint"
 HASH_CACHE = ".cache/content-hashes.json"
 """Per-workspace cache of file content hashes keyed by path, size and mtime (see :func:`content_hashes`)."""
 # files of a work folder that are not outputs of the stage

@@ -31,12 +31,6 @@ LAYERS: list[tuple[str, ...]] = [
 """Units of sage_core (subpackages and top-level modules), lowest layer first."""
 
 ALLOWED: dict[tuple[str, str], str] = {
-    # serialization.classify_legacy recognises an old pickle file by the kind and format numbers
-    # that the avatar, the SDF file and the checkpoint declare next to their own readers; it is
-    # imported inside that one function (used by `sage convert`) and never at module import.
-    ("sage_core.serialization", "sage_core.avatar.model"): "file kinds of old pickle files",
-    ("sage_core.serialization", "sage_core.fields.sdf_file"): "file kinds of old pickle files",
-    ("sage_core.serialization", "sage_core.workspace"): "file kinds of old pickle files",
     # run_phase2 evaluates the avatar it trained (self-reenactment and novel views, formats.md §8)
     # with the evaluation protocol and LPIPS, as part of the phase-2 stage.
     ("sage_core.train.phase2", "sage_core.evaluate.protocol"): "phase 2's own evaluation",

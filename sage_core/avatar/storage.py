@@ -20,16 +20,13 @@ import torch
 from ..errors import InputError
 from ..flame.model_data import FlameModelData
 from ..flame.params import FlameParams
+from ..serialization import AVATAR_FORMAT, AVATAR_KIND
 from .rendering import exposure_gains_plain
 from .surfels import SurfelSet
 
 if TYPE_CHECKING:
     from .model import Avatar
 
-AVATAR_FORMAT = 2
-"""Format 1 was a torch.save pickle (refused now, ``sage convert FILE --trust`` rewrites it); 2 is a
-safetensors file (:mod:`sage_core.serialization`) that may reference the workspace's FLAME model."""
-AVATAR_KIND = "sage-avatar"
 FLAME_REF_SEARCH_DEPTH = 4
 """How many folders above an avatar file :meth:`Avatar.load` looks for the FLAME model it references."""
 

@@ -9,11 +9,9 @@ from typing import Any
 import torch
 
 from ..errors import InputError
+from ..serialization import SDF_FILE_FORMAT, SDF_KIND
 from .sdf import SDFNetwork
 
-SDF_FILE_FORMAT = 2
-"""Format 1 was a torch.save pickle (refused now); 2 is a safetensors file (sage_core.serialization)."""
-SDF_KIND = "sage-sdf"
 
 
 def save_sdf(path: str | Path, args: dict[str, Any], net: SDFNetwork) -> Path:
