@@ -30,13 +30,8 @@ LAYERS: list[tuple[str, ...]] = [
 ]
 """Units of sage_core (subpackages and top-level modules), lowest layer first."""
 
-ALLOWED: dict[tuple[str, str], str] = {
-    # run_phase2 evaluates the avatar it trained (self-reenactment and novel views, formats.md §8)
-    # with the evaluation protocol and LPIPS, as part of the phase-2 stage.
-    ("sage_core.train.phase2", "sage_core.evaluate.protocol"): "phase 2's own evaluation",
-    ("sage_core.train.phase2", "sage_core.evaluate.lpips"): "phase 2's own evaluation",
-}
-"""(importing module, imported module) pairs that cross the layers, each with its reason."""
+ALLOWED: dict[tuple[str, str], str] = {}
+"""(importing module, imported module) pairs that cross the layers, each with its reason (none today)."""
 
 
 def _level(unit: str) -> int:

@@ -212,3 +212,14 @@ class IngestedData:
             return {k: np.asarray(v, dtype=np.int64) for k, v in doc["masks"].items()}
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InputError(self.masks_path, f"malformed masks ({type(exc).__name__}: {exc})") from None
+
+
+def sample_indices(n_frames: int, n_samples: int) -> list[int]:
+    """``n_samples`` evenly spaced indices in ``range(n_frames)`` (first and last included)."""
+    if n_samples <= 0 or n_frames <= 0:
+        return []
+    if n_samples >= n_frames:
+        return list(range(n_frames))
+    if n_samples == 1:
+        return [0]
+    return sorted({int(round(x)) for x in np.linspace(0, n_frames - 1, n_samples)})

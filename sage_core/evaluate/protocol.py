@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, Callable, ClassVar
 import numpy as np
 import torch
 
+from ..data.dataset import sample_indices
 from ..errors import InputError
 from ..image_metrics import psnr, psnr_per_channel_mean, ssim
 from .lpips import LPIPS
@@ -232,17 +233,6 @@ def sample_refs(samples: list[Path], metrics_path: Path | None) -> list[str]:
         except ValueError:
             out.append(str(p))
     return out
-
-
-def sample_indices(n_frames: int, n_samples: int) -> list[int]:
-    """``n_samples`` evenly spaced indices in ``range(n_frames)`` (first and last included)."""
-    if n_samples <= 0 or n_frames <= 0:
-        return []
-    if n_samples >= n_frames:
-        return list(range(n_frames))
-    if n_samples == 1:
-        return [0]
-    return sorted({int(round(x)) for x in np.linspace(0, n_frames - 1, n_samples)})
 
 
 def error_strip(gt: torch.Tensor, render: torch.Tensor) -> np.ndarray:

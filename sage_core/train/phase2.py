@@ -67,7 +67,7 @@ from ..avatar.init import REGION_HAIR, face_region_labels
 from ..avatar.model import Avatar
 from ..avatar.wrinkles import FaceDistortionStats, face_compression, wrinkle_amplitude
 from ..config import Phase2Config
-from ..data.dataset import IngestedData, IngestedFrame
+from ..data.dataset import IngestedData, IngestedFrame, sample_indices
 from ..errors import InputError
 from ..flame.frames import surfel_frames
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -294,7 +294,7 @@ class Phase2Trainer:
     def _build_rest_teacher(self) -> RestTeacher:
         """Render the (phase-1) avatar at rest from at most ``teacher_max_views`` training views."""
         c, av = self.cfg, self.avatar
-        frames = _subset(self.frames, c.teacher_max_views)
+        frames = evenly_spaced_frames(self.frames, c.teacher_max_views)
         cams = [RenderCamera.from_camera(fr.camera, self.device) for fr in frames]
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
 
@@ -342,7 +342,7 @@ class Phase2Trainer:
         av, c = self.avatar, self.cfg
         total = torch.zeros(len(av.surfels), dtype=torch.float64, device=av.device)
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
-        for fr in _subset(self.frames, c.teacher_max_views):
+        for fr in evenly_spaced_frames(self.frames, c.teacher_max_views):
             cam = RenderCamera.from_camera(fr.camera, self.device)
             with torch.no_grad():
                 p = av.posed(self.inputs(fr.timestep), None, canonical=canon, shade=False)
@@ -362,7 +362,7 @@ class Phase2Trainer:
         ``teacher_max_views`` of them)."""
         av = self.avatar
         seen = torch.zeros(int(av.faces.shape[0]), dtype=torch.bool, device=av.device)
-        for fr in _subset(self.frames, self.cfg.teacher_max_views):
+        for fr in evenly_spaced_frames(self.frames, self.cfg.teacher_max_views):
             cam = RenderCamera.from_camera(fr.camera, self.device)
             ras = rasterize_mesh(av.pose_mesh(self.inputs(fr.timestep)), av.faces, cam.K, cam.w2c, cam.width, cam.height)
             fid = ras.face_id[0]
@@ -566,113 +566,8 @@ def _module_state(module: torch.nn.Module | None) -> dict[str, torch.Tensor] | N
     return None if module is None else {k: v.detach().clone() for k, v in module.state_dict().items()}
 
 
-def _subset(frames: list[IngestedFrame], n: int) -> list[IngestedFrame]:
+def evenly_spaced_frames(frames: list[IngestedFrame], n: int) -> list[IngestedFrame]:
     """At most n evenly spaced frames (all when n <= 0)."""
     if n <= 0 or n >= len(frames):
         return frames
-    from ..evaluate.protocol import sample_indices
-
     return [frames[i] for i in sample_indices(len(frames), n)]
-
-
-def _report_dict(report: Any) -> dict[str, Any]:
-    d = report.to_dict()
-    return {"overall": d["overall"], "frontal": d["frontal"], "counts": d["counts"], "lpips_available": d["lpips_available"]}
-
-
-def run_phase2(
-    data: IngestedData,
-    phase1_dir: str | Path,
-    init_dir: str | Path | None,
-    out_dir: str | Path,
-    cfg: Phase2Config,
-    *,
-    device: str = "cpu",
-    seed: int = 0,
-    checkpoint_dir: str | Path | None = None,
-    progress: Progress | None = None,
-    lpips_weights: str | Path | None = None,
-) -> dict[str, Any]:
-    """Run phase 2 from ``phase1_dir/avatar.pt``; write ``avatar.pt``, ``metrics.json``,
-    ``distortion_curve.json`` and evaluation folders (``eval_test/``, ``eval_val/``) into
-    ``out_dir``; resume from the newest checkpoint in ``checkpoint_dir``. Returns the metrics.
-
-    Evaluation (formats.md §8 via :func:`evaluate_frames`): self-reenactment on the test split (all
-    cameras and the frontal camera) and novel views on the val split, rendered with the correction
-    when it is enabled. With ``cfg.eval_phase1`` the phase-1 avatar is evaluated on the test split too.
-    LPIPS uses ``lpips_weights`` (or ``$SAGE_LPIPS_WEIGHTS`` / the cache), else it is unavailable.
-    """
-    from ..evaluate.lpips import load_lpips_or_none
-    from ..evaluate.protocol import evaluate_frames
-    from ..workspace import atomic_write_json, latest_checkpoint
-    from .loop import run_steps
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    avatar_path = Path(phase1_dir) / "avatar.pt"
-    if not avatar_path.is_file():
-        raise InputError(avatar_path, "missing (run `sage phase1` first)")
-    torch.manual_seed(seed)
-    gen = torch.Generator().manual_seed(seed)
-    avatar = Avatar.load(avatar_path, device)
-    lpips = load_lpips_or_none(lpips_weights, device=device)
-    test_frames, val_frames = _subset(list(data.test), cfg.eval_frames), _subset(list(data.val), cfg.eval_frames)
-
-    backend = resolve_render_backend(cfg.render_backend, str(device))
-    metrics: dict[str, Any] = {"correction": cfg.correction, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
-                               "iterations": cfg.iterations, "render_backend": backend}  # fmt: skip
-    ck = latest_checkpoint(checkpoint_dir) if checkpoint_dir is not None else None
-    resumed = ck is not None
-    # phase 1 is evaluated before the trainer adds the mouth prior to the avatar
-    if cfg.eval_phase1 and test_frames and not resumed:
-        if progress is not None:
-            progress(0, cfg.iterations, "evaluating phase 1")
-        with torch.no_grad():
-            def render_p1(fr: IngestedFrame) -> torch.Tensor:
-                cam = RenderCamera.from_camera(fr.camera, device)
-                img, _ = avatar.render(cam, avatar.frame_inputs(fr.timestep), cfg.background, near=cfg.near, far=cfg.far,
-                                       return_statistics=False, backend=backend)  # fmt: skip
-                return img.color.clamp(0, 1)
-
-            rep = evaluate_frames(render_p1, data, test_frames, lpips=lpips, out_dir=out_dir / "eval_phase1_test")
-        metrics["phase1_test"] = _report_dict(rep)
-    elif checkpoint_dir is not None and (Path(out_dir) / "eval_phase1_test" / "metrics.json").is_file():
-        d = json.loads((Path(out_dir) / "eval_phase1_test" / "metrics.json").read_text())
-        metrics["phase1_test"] = {"overall": d["overall"], "frontal": d["frontal"], "counts": d["counts"],
-                                  "lpips_available": d["lpips_available"]}  # fmt: skip
-
-    trainer = Phase2Trainer(avatar, data, cfg, device, gen, init_dir)
-
-    def step_stats(out: Any) -> dict[str, Any]:
-        return {k: v for k, v in out.items() if k in ("loss", "normal_consistency", "distortion", "appearance", "rgb")}
-
-    total = cfg.iterations
-    loop = run_steps(trainer, total, label="phase 2", progress=progress, checkpoint_dir=checkpoint_dir,
-                     checkpoint_every=cfg.checkpoint_every, state_key="trainer", resume_from=ck, map_location=device,
-                     stats=step_stats)  # fmt: skip
-    last = dict(loop.last)
-    train_time = loop.train_time_s
-    steps_run = loop.steps_run
-    if trainer.wrinkle_stats is not None:
-        metrics["wrinkles"] = trainer.finish_wrinkles()
-
-    if progress is not None:
-        progress(total, total, "evaluating")
-    if test_frames:
-        rep = evaluate_frames(trainer.render_frame, data, test_frames, lpips=lpips, out_dir=out_dir / "eval_test")
-        metrics["test"] = _report_dict(rep)
-    if val_frames:
-        rep = evaluate_frames(trainer.render_frame, data, val_frames, lpips=lpips, out_dir=out_dir / "eval_val")
-        metrics["val"] = _report_dict(rep)
-    avatar.save(out_dir / "avatar.pt")
-    curve = trainer.distortion_curve
-    atomic_write_json(out_dir / "distortion_curve.json", {"correction": cfg.correction, "steps": list(range(1, len(curve) + 1)),
-                                                           "distortion": curve})  # fmt: skip
-    metrics.update({
-        "distortion_first100_mean": float(np.mean(curve)) if curve else float("nan"),
-        "iterations_per_s": steps_run / train_time if train_time > 0 and steps_run > 0 else float("nan"),
-        "train_time_s": train_time,
-        "final_losses": last,
-    })  # fmt: skip
-    atomic_write_json(out_dir / "metrics.json", metrics)
-    return metrics
