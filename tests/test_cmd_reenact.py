@@ -43,6 +43,7 @@ def test_self_reenactment_reproduces_eval_renders(ws, tiny_capture):
     timesteps = rec["motion"]["timesteps"]
     frames = _frames(out / "frames")
     assert len(frames) == len(timesteps) == rec["report"]["n_frames"]
+    assert rec["render_backend"] in ("torch", "cpp")
     assert "rendered FPS" in res.output
     compared = 0
     for split in ("val", "test"):

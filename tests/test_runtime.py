@@ -95,6 +95,8 @@ def test_stage_manifest_records_threads_and_info_shows_them(tiny_capture, tmp_pa
 
     assert _ran_on(m) == "cpu · 1 thread"
     assert _ran_on({"device": "cpu", "metrics": {"threads": 2, "render_backend": "cpp"}}) == "cpu · 2 threads · cpp rasterizer"
+    assert _ran_on({"device": "cpu", "metrics": {"threads": 1, "render_backend": "cpp", "hashgrid_backend": "cpp"}}) == (
+        "cpu · 1 thread · cpp rasterizer · cpp hash grid")
     assert runner.invoke(app, ["info", str(ws)]).exit_code == 0
     res = runner.invoke(app, ["ingest", str(tiny_capture), str(tmp_path / "ws2"), "--flame-model", str(tiny_capture.model_path),
                               "--quiet", "--device", "cpu", "--threads", "0"])  # fmt: skip

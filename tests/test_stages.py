@@ -69,6 +69,9 @@ def test_init_mesh_stage_runs_then_skips(tiny_ws, tmp_path):
     assert not r.skipped and not r.resumed and r.device == "cpu" and r.threads == 1 and r.duration_s > 0
     assert r.workspace == ws.resolve() and r.manifest == Workspace(ws).manifest("init-mesh")
     assert r.metrics["n_faces"] > 0 and r.metrics["threads"] == 1
+    from sage_core.fields.hashgrid import resolve_backend
+
+    assert r.metrics["hashgrid_backend"] == resolve_backend("auto", "cpu")
     assert {"canonical_mesh.ply", "sdf_mesh.ply", "sdf.pt"} <= set(r.outputs) and all(p.exists() for p in r.outputs.values())
 
     events.clear()

@@ -14,6 +14,10 @@ from .events import Emitter
 
 
 
+HASHGRID_STAGES = frozenset({"init-mesh", "phase1", "phase2", "eval", "export"})
+"""Stages that evaluate the hash grids; their manifests record the hash-grid backend that ran
+(``cpp`` or ``torch``, :func:`sage_core.fields.hashgrid.resolve_backend`)."""
+
 @dataclass(frozen=True)
 class StageSettings:
     """What every stage run shares besides its config: seed (recorded in the manifest), device
@@ -146,6 +150,10 @@ def execute_stage(
             run.metrics["threads"] = threads
             if backend is not None:
                 run.metrics["render_backend"] = backend
+            if stage in HASHGRID_STAGES:
+                from ..fields.hashgrid import resolve_backend as resolve_hashgrid_backend
+
+                run.metrics["hashgrid_backend"] = resolve_hashgrid_backend("auto", device)
             log_path = setup_logging(ws.root, stage)
             log = logging.getLogger("sage")
             log.info("stage %s started: config %s, seed %s, device %s, resumed %s, threads %s, render backend %s",

@@ -231,6 +231,7 @@ def reenact_stage(
         "identity": "the avatar's own shape and static offset; expressions and poses from the motion",
         "cameras": cam_desc,
         "render": settings.to_dict(),
+        "render_backend": renderer.backend,
         "report": report.to_dict(),
     }
     atomic_write_json(out_dir / "reenact.json", doc)
