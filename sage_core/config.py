@@ -188,7 +188,7 @@ class Phase1Config:
     neus_background_rays: float = _f(0.25, "Extra NeuS rays per step from background pixels within neus_background_band pixels of the silhouette, as a fraction of rays_per_step (frames with masks only). Without them the SDF never sees where the head ends and its zero level set, which the surfel centres follow (L_pt), can sit outside the silhouette.", ge=0, le=4)
     neus_background_band: int = _f(6, "Width in pixels of the background band around the foreground mask from which the background NeuS rays are drawn.", ge=1)
     w_neus_mask: float = _f(0.1, "Binary cross-entropy of the NeuS ray opacity (sum of the weights) against the foreground mask, on the foreground and background rays (NeuS 'with mask').", ge=0)
-    w_mask: float = _f(1.0, "L1 between the surfel render's alpha and the foreground mask on real frames with masks: pulls the silhouette of the surfels onto the mask, where the photometric loss alone leaves a halo of about 0.2 alpha one pixel outside.", ge=0)
+    w_mask: float = _f(3.0, "L1 between the surfel render's alpha and the foreground mask on real frames with masks: pulls the silhouette of the surfels onto the mask, where the photometric loss alone leaves a halo of about 0.2 alpha one pixel outside (docs/results.md).", ge=0)
     neus_samples: int = _f(32, "Stratified NeuS samples per ray.", ge=1)
     neus_importance: int = _f(32, "NeuS importance samples per ray.", ge=0)
     neus_up_steps: int = _f(2, "NeuS up-sampling rounds.", ge=0)
