@@ -72,15 +72,24 @@ class NativeExtension:
         source: path of the ``.cpp`` file.
         namespace: its ``TORCH_LIBRARY`` namespace.
         probe_op: an operator of that namespace whose presence means the library is loaded.
+        what, fallback: what the extension provides and what replaces it without a build (for the
+            one warning, e.g. "rasterizer" and "pure-torch backend for rendering").
         cflags, ldflags: compiler and linker flags (part of the build hash).
+
+    ``state`` remembers the load result for the process ({"ok": bool, "reason": str} once a load was
+    attempted) and ``warned`` whether the fallback warning was given; tests may replace both.
     """
 
     name: str
     source: Path
     namespace: str
     probe_op: str
+    what: str = "extension"
+    fallback: str = "pure-torch code"
     cflags: tuple[str, ...] = CFLAGS
     ldflags: tuple[str, ...] = LDFLAGS
+    state: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    warned: bool = field(default=False, init=False, repr=False, compare=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
     def build_key(self) -> str:
@@ -141,23 +150,40 @@ class NativeExtension:
             return False, f"building the C++ extension in {build} failed: {detail}"
         return True, f"loaded {lib}"
 
-    def available(self, state: dict[str, Any]) -> tuple[bool, str]:
-        """``load()`` once per process, remembered in ``state`` ({"ok": bool, "reason": str}).
-
-        ``state`` is owned by the calling module so that tests can replace it.
-        """
+    def available(self) -> tuple[bool, str]:
+        """``load()`` once per process, remembered in ``state``: (True, where from) or (False, reason)."""
         with self._lock:
-            if "ok" not in state:
+            if "ok" not in self.state:
                 ok, reason = self.load()
-                state["ok"], state["reason"] = ok, reason
-            return bool(state["ok"]), str(state["reason"])
+                self.state["ok"], self.state["reason"] = ok, reason
+            return bool(self.state["ok"]), str(self.state["reason"])
 
-    def ops(self, state: dict[str, Any], what: str) -> Any:
-        """The ``torch.ops`` namespace; raises RuntimeError naming ``what`` when it is unavailable."""
-        ok, reason = self.available(state)
+    def ops(self, caller: str) -> Any:
+        """The ``torch.ops`` namespace; raises RuntimeError naming ``caller`` when it is unavailable."""
+        ok, reason = self.available()
         if not ok:
-            raise RuntimeError(f"{what}: {reason}")
+            raise RuntimeError(f"{caller}: {reason}")
         return getattr(torch.ops, self.namespace)
+
+    def warn_unavailable_once(self, reason: str) -> None:
+        """One ``warnings.warn`` per process that ``fallback`` runs because the extension does not."""
+        if not self.warned:
+            self.warned = True
+            warn_unavailable(self.what, self.fallback, reason, stacklevel=4)
+
+    def choose(self, requested: str, caller: str) -> str:
+        """``cpp`` or ``auto`` on CPU tensors -> the backend that runs.
+
+        ``auto`` gives ``cpp`` when the extension loads, else warns once and gives ``torch``; an
+        explicit ``cpp`` that cannot load raises ValueError naming ``caller`` and the reason.
+        """
+        ok, reason = self.available()
+        if ok:
+            return "cpp"
+        if requested == "cpp":
+            raise ValueError(f"{caller}: backend='cpp' is unavailable: {reason}")
+        self.warn_unavailable_once(reason)
+        return "torch"
 
 
 def warn_unavailable(what: str, fallback: str, reason: str, stacklevel: int = 3) -> None:

@@ -263,8 +263,8 @@ def test_backend_selection(cpp_ext: None) -> None:
 
 
 def test_unavailable_extension_errors_for_cpp_and_warns_once_for_auto(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(_cpp_hashgrid, "_state", {"ok": False, "reason": "no C++ compiler ('c++') on PATH"})
-    monkeypatch.setattr(_cpp_hashgrid, "_warned", False)
+    monkeypatch.setattr(_cpp_hashgrid.EXT, "state", {"ok": False, "reason": "no C++ compiler ('c++') on PATH"})
+    monkeypatch.setattr(_cpp_hashgrid.EXT, "warned", False)
     with pytest.raises(ValueError, match="backend='cpp' is unavailable: no C\\+\\+ compiler"):
         resolve_backend("cpp", "cpu")
     g = make_grid()
@@ -286,7 +286,7 @@ def test_building_a_grid_compiles_nothing() -> None:
         from sage_core.fields import HashGrid, SDFNetwork, _cpp_hashgrid
         HashGrid([0, 0, 0], [1, 1, 1], n_levels=2, log2_table=8, base_res=2, max_res=4)
         SDFNetwork([0, 0, 0], [1, 1, 1], n_levels=2, log2_table=8, base_res=2, max_res=4, hidden=8)
-        assert _cpp_hashgrid._state == {}, _cpp_hashgrid._state
+        assert _cpp_hashgrid.EXT.state == {}, _cpp_hashgrid.EXT.state
         assert not hasattr(torch.ops.sage_hashgrid_cpu, "forward")
         print("lazy")
         """

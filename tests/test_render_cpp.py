@@ -256,8 +256,8 @@ def test_auto_resolves_to_cpp_on_cpu(cpp_ext: float) -> None:
 
 
 def test_unavailable_extension_errors_for_cpp_and_warns_once_for_auto(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(_cpp_surfels, "_state", {"ok": False, "reason": "no C++ compiler ('c++') on PATH"})
-    monkeypatch.setattr(_cpp_surfels, "_warned", False)
+    monkeypatch.setattr(_cpp_surfels.EXT, "state", {"ok": False, "reason": "no C++ compiler ('c++') on PATH"})
+    monkeypatch.setattr(_cpp_surfels.EXT, "warned", False)
     with pytest.raises(ValueError, match="backend='cpp' is unavailable: no C\\+\\+ compiler"):
         resolve_backend("cpp", "cpu")
     scene = random_test_scene(2, num=20, width=16, height=16)
@@ -278,7 +278,7 @@ def test_importing_the_package_compiles_nothing() -> None:
         import torch
         import sage_core, sage_core.render
         from sage_core.render import _cpp_surfels
-        assert _cpp_surfels._state == {}, _cpp_surfels._state
+        assert _cpp_surfels.EXT.state == {}, _cpp_surfels.EXT.state
         assert not hasattr(torch.ops.sage_surfels_cpu, "forward")
         print("lazy")
         """

@@ -19,39 +19,27 @@ from typing import Any
 
 import torch
 
-from ..native_build import NativeExtension, warn_unavailable
+from ..native_build import NativeExtension
 
-__all__ = ["available", "encode", "warn_unavailable_once"]
+__all__ = ["EXT", "available", "encode", "warn_unavailable_once"]
 
-_EXT = NativeExtension(
+EXT = NativeExtension(
     name="sage_hashgrid_cpu",
     source=Path(__file__).parent / "csrc" / "hashgrid_cpu.cpp",
     namespace="sage_hashgrid_cpu",
     probe_op="double_backward",
+    what="hash-grid encoding",
+    fallback="pure-torch encoding",
 )
-_state: dict[str, Any] = {}  # "ok": bool, "reason": str once a load was attempted
-_warned = False
 
-
-def available() -> tuple[bool, str]:
-    """(True, where it was loaded from) once the extension is built and loaded, else (False, reason).
-
-    The first call compiles the extension (about 20 s on 2 cores) unless a cached build exists; the
-    result is remembered for the process.
-    """
-    return _EXT.available(_state)
-
-
-def warn_unavailable_once(reason: str) -> None:
-    """One ``warnings.warn`` per process that the torch encoding is used because the extension is not."""
-    global _warned
-    if not _warned:
-        _warned = True
-        warn_unavailable("hash-grid encoding", "pure-torch encoding", reason)
+available = EXT.available
+"""(True, where it was loaded from) once the extension is built and loaded, else (False, reason); the
+first call compiles it unless a cached build exists, and the result is remembered for the process."""
+warn_unavailable_once = EXT.warn_unavailable_once
 
 
 def _ops():  # noqa: ANN202 - a torch.ops namespace
-    return _EXT.ops(_state, "HashGrid(backend='cpp')")
+    return EXT.ops("HashGrid(backend='cpp')")
 
 
 def _needed(ctx: Any, i: int) -> bool:

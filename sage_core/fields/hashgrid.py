@@ -39,13 +39,7 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
         return "torch"
     from . import _cpp_hashgrid
 
-    ok, reason = _cpp_hashgrid.available()
-    if ok:
-        return "cpp"
-    if backend == "cpp":
-        raise ValueError(f"HashGrid: backend='cpp' is unavailable: {reason}")
-    _cpp_hashgrid.warn_unavailable_once(reason)
-    return "torch"
+    return _cpp_hashgrid.EXT.choose(backend, "HashGrid")
 
 
 def _level_scales(n_levels: int, base_res: int, max_res: int) -> list[float]:

@@ -14,44 +14,31 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import torch
 
-from ..native_build import NativeExtension, cache_dir, warn_unavailable
+from ..native_build import NativeExtension, cache_dir
 from ._packed import PackedImages
 
-__all__ = ["available", "bin_tiles", "cache_dir", "composite_cpp", "depth_to_normal_cpp", "warn_unavailable_once"]
+__all__ = ["EXT", "available", "bin_tiles", "cache_dir", "composite_cpp", "depth_to_normal_cpp", "warn_unavailable_once"]
 
-_EXT = NativeExtension(
+EXT = NativeExtension(
     name="sage_surfels_cpu",
     source=Path(__file__).parent / "csrc" / "surfels_cpu.cpp",
     namespace="sage_surfels_cpu",
     probe_op="forward",
+    what="rasterizer",
+    fallback="pure-torch backend for rendering",
 )
-_state: dict[str, Any] = {}  # "ok": bool, "reason": str once a load was attempted
-_warned = False
 
-
-def available() -> tuple[bool, str]:
-    """(True, where it was loaded from) once the extension is built and loaded, else (False, reason).
-
-    The first call compiles the extension (10–40 s on 2 cores) unless a cached build exists; the
-    result is remembered for the process.
-    """
-    return _EXT.available(_state)
-
-
-def warn_unavailable_once(reason: str) -> None:
-    """One ``warnings.warn`` per process that the torch backend is used because the extension is not."""
-    global _warned
-    if not _warned:
-        _warned = True
-        warn_unavailable("rasterizer", "pure-torch backend for rendering", reason)
+available = EXT.available
+"""(True, where it was loaded from) once the extension is built and loaded, else (False, reason); the
+first call compiles it unless a cached build exists, and the result is remembered for the process."""
+warn_unavailable_once = EXT.warn_unavailable_once
 
 
 def _ops():  # noqa: ANN202 - a torch.ops namespace
-    return _EXT.ops(_state, "rasterize_surfels(backend='cpp')")
+    return EXT.ops("rasterize_surfels(backend='cpp')")
 
 
 def bin_tiles(boxes: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -173,13 +173,7 @@ def resolve_backend(name: str, device: torch.device | str) -> str:
         return "torch"
     from . import _cpp_surfels
 
-    ok, reason = _cpp_surfels.available()
-    if ok:
-        return "cpp"
-    if name == "cpp":
-        raise ValueError(f"rasterize_surfels: backend='cpp' is unavailable: {reason}")
-    _cpp_surfels.warn_unavailable_once(reason)
-    return "torch"
+    return _cpp_surfels.EXT.choose(name, "rasterize_surfels")
 
 
 def rasterize_surfels(
