@@ -205,14 +205,6 @@ def test_presets_are_declared_in_one_table():
     assert resolve_config("phase2", "tiny").iterations == 300
 
 
-def test_pseudo_view_defaults_come_from_the_config_dataclass():
-    from sage_core.config import Phase1Config
-    from sage_core.train.pseudo_views import CONFIG_DEFAULTS
-
-    d = Phase1Config()
-    assert CONFIG_DEFAULTS and all(v == getattr(d, k) for k, v in CONFIG_DEFAULTS.items())
-
-
 @pytest.mark.parametrize(
     "stage,flags,match",
     [

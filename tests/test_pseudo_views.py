@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
+from sage_core.config import Phase1Config
 from sage_core.train.pseudo_views import (
-    CONFIG_DEFAULTS,
     FaceTexture,
     MirrorViewProvider,
     TexturedRingProvider,
@@ -31,6 +31,9 @@ from sage_core.train.pseudo_views import (
     sample_barycentrics,
     texture_lookup,
 )
+
+_D = Phase1Config()  # the defaults the providers read without a config
+
 
 @pytest.fixture(scope="module")
 def setup(oneshot_ws):
@@ -88,9 +91,9 @@ def test_mirror_view_is_the_flipped_input(setup):
     assert view.weight.shape == mask.shape and float(view.weight.min()) >= 0.0 and float(view.weight.max()) <= 1.0
     # frontal input: the mirrored surface is already seen, so the foreground keeps little weight
     fg = view.mask > 0.5
-    assert float(view.weight[fg].mean()) < 0.5 * (1.0 - CONFIG_DEFAULTS["pseudo_mirror_seen_weight"])
+    assert float(view.weight[fg].mean()) < 0.5 * (1.0 - _D.pseudo_mirror_seen_weight)
     assert abs(prov.last_info["yaw_deg"]) < 2.0
-    assert view.view_weight == pytest.approx(CONFIG_DEFAULTS["pseudo_mirror_weight"] * CONFIG_DEFAULTS["pseudo_mirror_yaw_floor"], rel=0.05)
+    assert view.view_weight == pytest.approx(_D.pseudo_mirror_weight * _D.pseudo_mirror_yaw_floor, rel=0.05)
     # no mirror view without a mirror index or with the mirror switched off
     assert prov.views(data, avatar, None) == []
     assert MirrorViewProvider(SimpleNamespace(pseudo_mirror=False), proj).views(data, avatar, setup.mirror_index) == []
@@ -119,7 +122,7 @@ def test_mirror_view_weighs_more_when_the_head_is_turned(setup):
     (vs,) = side.views(data, turned, setup.mirror_index)
     assert abs(side.last_info["yaw_deg"]) == pytest.approx(40.0, abs=2.0)
     assert side.last_info["unseen_fraction"] > front.last_info["unseen_fraction"] + 0.1
-    assert vs.view_weight == pytest.approx(CONFIG_DEFAULTS["pseudo_mirror_weight"])  # beyond the full-weight yaw
+    assert vs.view_weight == pytest.approx(_D.pseudo_mirror_weight)  # beyond the full-weight yaw
     assert vs.view_weight > vf.view_weight
     fg_f, fg_s = vf.mask > 0.5, vs.mask > 0.5
     assert float(vs.weight[fg_s].mean()) > float(vf.weight[fg_f].mean()) + 0.1
@@ -199,7 +202,7 @@ def test_build_pseudo_views_and_the_non_symmetric_fallback(setup):
     ring = views[1:]
     assert all(not v.mirror and v.view_weight == pytest.approx(0.3) for v in ring)
     yaws = [v.camera.extra["yaw_deg"] for v in ring]
-    assert yaws == pytest.approx([CONFIG_DEFAULTS["pseudo_ring_yaw_deg"], -CONFIG_DEFAULTS["pseudo_ring_yaw_deg"]])
+    assert yaws == pytest.approx([_D.pseudo_ring_yaw_deg, -_D.pseudo_ring_yaw_deg])
     # same distance to the head and the same intrinsics as the input
     c0 = data.train[0].camera
     for v in ring:

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..config import Phase1Config, describe
+from ..config import Phase1Config
 from ..data.cameras import Camera
 from ..render.mesh_raster import rasterize_mesh
 
@@ -60,11 +60,8 @@ if TYPE_CHECKING:
 
 _S = (-1.0, 1.0, 1.0)
 
-CONFIG_DEFAULTS: dict[str, Any] = {
-    name: value for name, _, value in describe(Phase1Config) if name.startswith(("pseudo_mirror", "pseudo_ring", "pseudo_texture"))
-}
-"""The phase-1 config fields the providers read, with their :class:`Phase1Config` defaults (used
-when no config is given); read from the config dataclass, the one table of defaults."""
+_DEFAULTS = Phase1Config()
+"""Read for the ``pseudo_*`` fields when the providers are given no config."""
 
 _COS_LO, _COS_HI = 0.1, 0.5
 _SILHOUETTE_RAMP = 0.02
@@ -75,7 +72,7 @@ _REGION_ORDER = ("mouth_interior", "teeth", "eyeballs", "hair", "lips")
 
 
 def _cfg(cfg: Any, name: str) -> Any:
-    return getattr(cfg, name, CONFIG_DEFAULTS[name]) if cfg is not None else CONFIG_DEFAULTS[name]
+    return getattr(cfg, name, getattr(_DEFAULTS, name)) if cfg is not None else getattr(_DEFAULTS, name)
 
 
 @dataclass
@@ -581,7 +578,7 @@ def head_yaw(avatar: Avatar, flame_inputs: dict[str, torch.Tensor], camera: Came
 class MirrorViewProvider:
     """The mirror view of the input (see the module doc); no view when the model is not symmetric.
 
-    cfg: a phase-1 config (fields ``pseudo_mirror*``, :data:`CONFIG_DEFAULTS`); projection: a
+    cfg: a phase-1 config (fields ``pseudo_mirror*``; Phase1Config defaults without one); projection: a
     precomputed :class:`InputProjection` of the input view (computed when None).
     """
 
@@ -654,7 +651,7 @@ def ring_cameras(camera: Camera, center: np.ndarray, n: int, yaw_deg: float, pit
 class TexturedRingProvider:
     """Textured-FLAME views on a yaw/pitch ring around the head (see the module doc).
 
-    cfg: a phase-1 config (fields ``pseudo_ring*`` and ``pseudo_texture*``, :data:`CONFIG_DEFAULTS`);
+    cfg: a phase-1 config (fields ``pseudo_ring*`` and ``pseudo_texture*``; Phase1Config defaults without one);
     projection: a precomputed :class:`InputProjection` (computed when None). After :meth:`views`,
     ``texture`` holds the completed texture.
     """
