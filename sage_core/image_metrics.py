@@ -1,6 +1,6 @@
 """Image metrics: PSNR (standard and the GaussianAvatars per-channel variant) and SSIM.
 
-One low-level module (torch and numpy only) shared by training (the SSIM loss, PSNR on the
+One low-level module (torch, numpy and the native SSIM blur) shared by training (the SSIM loss, PSNR on the
 validation views) and evaluation (:mod:`sage_core.evaluate`, which adds LPIPS and the protocol).
 
 Canonical layout: batched channels-first tensors ``(B, C, H, W)``; a single ``(C, H, W)`` image
@@ -16,11 +16,14 @@ evaluation caller clamps renders before calling it.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from .native_build import NativeExtension
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -120,11 +123,55 @@ def gaussian_window_1d(
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
+BLUR_EXT = NativeExtension(
+    name="sage_blur_cpu",
+    source=Path(__file__).parent / "csrc" / "blur_cpu.cpp",
+    namespace="sage_blur_cpu",
+    probe_op="gaussian_blur",
+    what="SSIM blur",
+    fallback="convolution for the SSIM windows",
+)
+"""The native separable blur of the SSIM windows on CPU tensors (compiled on first use)."""
+
+
+class _NativeBlur(torch.autograd.Function):
+    """The native separable blur of (P, H, W) planes; with symmetric taps the blur is self-adjoint,
+    so its backward is the same blur of the output gradient."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        ctx.save_for_backward(g)
+        return torch.ops.sage_blur_cpu.gaussian_blur(x.contiguous(), g.contiguous())
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, None]:  # type: ignore[override]
+        (g,) = ctx.saved_tensors
+        return _NativeBlur.apply(grad.contiguous(), g), None
+
+
+def _use_native_blur(x: torch.Tensor) -> bool:
+    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
+        return False
+    ok, reason = BLUR_EXT.available()
+    if not ok:
+        BLUR_EXT.warn_unavailable_once(reason)
+    return ok
+
+
 def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """Separable zero-padded 'same' Gaussian blur, per channel. x: (B, C, H, W) -> (B, C, H, W).
 
-    Equal to a 2D convolution with the outer-product window and zero padding.
+    Equal to a 2D convolution with the outer-product window and zero padding. CPU tensors use the
+    native blur (``csrc/blur_cpu.cpp``) when it builds; :func:`_blur_conv` is the reference.
     """
+    if _use_native_blur(x):
+        b, c, h, w = x.shape
+        return _NativeBlur.apply(x.reshape(b * c, h, w), g.to(x.dtype)).reshape(b, c, h, w)
+    return _blur_conv(x, g)
+
+
+def _blur_conv(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """:func:`_blur` by two grouped 1D convolutions (any device; the reference)."""
     c = x.shape[1]
     k = g.numel()
     pad = k // 2

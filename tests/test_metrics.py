@@ -142,6 +142,66 @@ def test_ssim_gradients_flow_as_loss():
     assert torch.autograd.gradcheck(lambda y: ssim(y, small_gt), (x,), eps=1e-6, atol=1e-6)
 
 
+def _native_blur_or_skip():
+    from sage_core import image_metrics as im
+
+    ok, reason = im.BLUR_EXT.available()
+    if not ok:
+        pytest.skip(f"native SSIM blur unavailable: {reason}")
+    return im
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-13), (torch.float32, 2e-6)])
+def test_native_blur_matches_the_convolution_values_and_gradients(dtype, tol):
+    im = _native_blur_or_skip()
+    g = gaussian_window_1d(dtype=dtype)
+    for shape in ((1, 15, 37, 29), (2, 3, 5, 4), (1, 1, 1, 13)):
+        x = _rand(shape, 9, dtype).requires_grad_(True)
+        w = _rand(shape, 10, dtype)
+        y = im._blur(x, g)
+        (gx,) = torch.autograd.grad((y * w).sum(), x)
+        xr = x.detach().clone().requires_grad_(True)
+        yr = im._blur_conv(xr, g)
+        (gr,) = torch.autograd.grad((yr * w).sum(), xr)
+        assert torch.allclose(y, yr, atol=tol, rtol=0), shape
+        assert torch.allclose(gx, gr, atol=tol * 10, rtol=0), shape
+    x = _rand((1, 2, 9, 7), 11).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: im._blur(t, gaussian_window_1d(dtype=torch.float64)), (x,))
+
+
+def test_native_blur_is_thread_count_independent_and_used_by_ssim():
+    im = _native_blur_or_skip()
+    a, b = _rand((1, 3, 40, 33), 12, torch.float32), _rand((1, 3, 40, 33), 13, torch.float32)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = ssim_map(a, b)
+        torch.set_num_threads(2)
+        two = ssim_map(a, b)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one, two)
+    calls = []
+    orig = im._NativeBlur.apply
+    try:
+        im._NativeBlur.apply = lambda *args: calls.append(1) or orig(*args)  # type: ignore[method-assign]
+        ssim(a, b)
+    finally:
+        im._NativeBlur.apply = orig  # type: ignore[method-assign]
+    assert calls
+
+
+def test_blur_falls_back_to_the_convolution_without_the_extension(monkeypatch):
+    from sage_core import image_metrics as im
+
+    monkeypatch.setattr(im.BLUR_EXT, "state", {"ok": False, "reason": "no compiler (test)"})
+    monkeypatch.setattr(im.BLUR_EXT, "warned", False)
+    a, b = _rand((1, 3, 16, 16), 14), _rand((1, 3, 16, 16), 15)
+    with pytest.warns(RuntimeWarning, match="no compiler"):
+        out = ssim_map(a, b)
+    assert torch.allclose(out, _ssim_reference_2d(a, b), atol=1e-12)
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_metrics_on_cuda_match_cpu():
