@@ -2,11 +2,13 @@
 trains and evaluates every row on the same data and seed, and writes the results.
 
 Usage:
-    python benchmarks/suite.py --size small|full --out DIR [--rows a,b,...] [--device auto]
+    python benchmarks/suite.py --size tiny|small|full --out DIR [--rows a,b,...] [--device auto]
                                [--seed 0] [--lpips-weights PATH]
 
-Rows (ids): sage, sage_exact, no_mlp, no_phase2, no_correction, wrinkles, ga_mvsf, ga_mvmf, sv_hr, one_shot.
-``small`` uses the tiny presets (128x186 captures, CPU); ``full`` the default ones (550x802, GPU).
+Rows (ids): sage, sage_exact, no_mlp, no_phase2, no_correction, wrinkles, ga_mvsf, ga_mvmf, free_mvsf, sv_hr, one_shot.
+Each size runs every stage with the preset of its name: ``tiny`` (128x186 captures, minutes per row
+on a CPU), ``small`` (256x372, 20k surfels; a CPU in hours) and ``full`` (the default presets,
+550x802, a GPU).
 The captures are tracked (``sage synth --tracking fitted``: FLAME parameters fitted to a ground
 truth the written model cannot fully express, plus pose noise); ``sage_exact`` trains SAGE MV-SF
 on the exact multiview capture (``--tracking exact``) so both are visible.
@@ -42,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     from _suite.rows import ROW_IDS, SIZES
 
     ap = argparse.ArgumentParser(prog="python benchmarks/suite.py", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--size", required=True, choices=sorted(SIZES), help="small (tiny presets, CPU) or full (default presets, 550x802, GPU).")
+    ap.add_argument("--size", required=True, choices=sorted(SIZES), help="tiny (tiny presets, 128x186, CPU), small (small presets, 256x372, CPU) or full (default presets, 550x802, GPU).")
     ap.add_argument("--out", required=True, type=Path, help="Folder for the captures, the row workspaces and the logs.")
     ap.add_argument("--rows", default=",".join(ROW_IDS), help=f"Comma-separated subset of: {', '.join(ROW_IDS)} (default: all).")
     ap.add_argument("--device", default="auto", help="Device of every stage: auto, cpu or cuda[:N].")

@@ -122,6 +122,7 @@ class InitMeshConfig:
     """``sage init-mesh``: canonical mesh, mouth interior, SDF pretrained on the mesh."""
 
     mouth_interior: bool = _f(True, "Add the mouth-interior mesh (cavity and teeth) rigged to the jaw.")
+    mouth_cavity: bool = _f(True, "With mouth_interior: include the cavity behind the lips (off: only the teeth, FLAME with teeth as GaussianAvatars rigs it; the benchmark's GaussianAvatars rows use this).")
     bbox_padding: float = _f(0.25, "The SDF box is a cube around the canonical mesh whose half size is the mesh's largest half size times (1 + bbox_padding).", ge=0)
     sphere_radius: float = _f(0.8, "Radius of the SDF's initial sphere relative to the box half size.", gt=0)
     grid: HashGridConfig = _sub(HashGridConfig, "Hash grid of the SDF.")
@@ -142,6 +143,19 @@ class Phase1Config:
     init_opacity: float = _f(0.5, "Initial opacity of free surfels.", gt=0, lt=1)
     app_init_opacity: float = _f(0.8808, "Initial opacity of every surfel in mlp mode (the appearance network's opacity-logit bias is logit(app_init_opacity)).", gt=0, lt=1)
     init_scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.", gt=0)
+    init_layout: str = _f("sampled", "Initial surfels: sampled (n_surfels spread over the triangles by area, region and camera weights; SAGE) or per_face (one surfel at the centroid of every triangle with the triangle's scale, GaussianAvatars' initialisation; n_surfels is unused).", choices=("sampled", "per_face"))
+    densify: bool = _f(False, "Adaptive density control of free surfels (3DGS clone/split/prune with GaussianAvatars' binding inheritance; sage_core.train.densify). SAGE never densifies; the benchmark's GaussianAvatars rows do.")
+    densify_from: int = _f(500, "First step of the density control.", ge=0)
+    densify_until: int = _f(15000, "Densification and opacity resets stop at this step.", ge=0)
+    densify_every: int = _f(100, "Steps between densifications.", ge=1)
+    densify_grad_threshold: float = _f(2e-4, "Clone or split surfels whose mean gradient norm w.r.t. their projected centre (NDC units) reaches this (3DGS: 0.0002).", gt=0)
+    densify_percent_dense: float = _f(0.01, "Surfels larger than this fraction of the scene extent are split, smaller ones cloned (3DGS: 0.01).", gt=0)
+    prune_opacity: float = _f(0.005, "Densification prunes surfels whose opacity is below this.", ge=0, lt=1)
+    opacity_reset_every: int = _f(3000, "Steps between opacity resets while densifying (0: never).", ge=0)
+    w_local_position: float = _f(0.0, "GaussianAvatars' position term: mean relu(|mu_loc| - local_position_threshold), local offsets in units of the triangle scale (GA: 0.01).", ge=0)
+    local_position_threshold: float = _f(1.0, "Local offset length (in triangle scales) below which the position term is zero (GA: 1).", ge=0)
+    w_local_scale: float = _f(0.0, "GaussianAvatars' scale term: mean |relu(exp(s_loc) - local_scale_threshold)| of the local scales (GA: 1).", ge=0)
+    local_scale_threshold: float = _f(0.6, "Local scale (relative to the triangle scale) below which the scale term is zero (GA: 0.6).", ge=0)
     face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.", ge=0)
     mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.", ge=0)
     hair_weight: float = _f(0.5, "Surfel density multiplier on the hair.", ge=0)
@@ -446,7 +460,12 @@ REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 CONFIG_RULES: dict[type, tuple[tuple[Callable[[Any], bool], tuple[str, ...], str], ...]] = {
     IngestConfig: ((lambda c: c.height is None or c.downsample is None, ("height", "downsample"), "give either height or downsample, not both"),),
     HashGridConfig: ((lambda c: c.base_res <= c.max_res, ("base_res", "max_res"), "base_res must not exceed max_res"),),
-    Phase1Config: ((lambda c: c.near < c.far, ("near", "far"), "near must be smaller than far"),),
+    Phase1Config: (
+        (lambda c: c.near < c.far, ("near", "far"), "near must be smaller than far"),
+        (lambda c: not c.densify or c.attributes == "free", ("densify", "attributes"), "adaptive density control needs free surfel attributes (attributes=free)"),
+        (lambda c: c.attributes == "free" or (c.w_local_position == 0 and c.w_local_scale == 0), ("w_local_position", "w_local_scale", "attributes"),
+         "the local position and scale terms act on free surfel attributes only (attributes=free)"),
+    ),
     Phase2Config: (
         (lambda c: c.near < c.far, ("near", "far"), "near must be smaller than far"),
         (lambda c: c.wrinkle_quantiles[0] < c.wrinkle_quantiles[1], ("wrinkle_quantiles",), "the first quantile must be below the second"),

@@ -21,7 +21,7 @@ from helpers import LPIPS_WEIGHTS  # noqa: E402
 
 
 def _settings(tmp_path: Path, **kw) -> Settings:
-    return Settings(SIZES["small"], tmp_path / "out", lpips_weights=Path("/w/lpips.pth"), **kw)
+    return Settings(SIZES["tiny"], tmp_path / "out", lpips_weights=Path("/w/lpips.pth"), **kw)
 
 
 def _steps(tmp_path: Path, rows=ROW_IDS, **kw):
@@ -50,12 +50,22 @@ def test_rows_map_to_the_expected_cli_arguments(tmp_path):
     assert _flag(by_key["no_mlp:phase1"].argv, "--attributes") == "free"
     assert _flag(by_key["no_correction:phase2"].argv, "--correction") == "off"
     assert "--correction" not in by_key["sage:phase2"].argv
-    for rid in ("ga_mvsf", "ga_mvmf"):
+    for rid in ("ga_mvsf", "ga_mvmf", "free_mvsf"):
         a = by_key[f"{rid}:phase1"].argv
         assert _flag(a, "--attributes") == "free"
-        assert {"sdf_from=1000000000", "w_normal_consistency=0", "w_distortion=0"} <= set(_sets(a))
+        assert {"sdf_from=1000000000", "w_normal_consistency=0", "w_distortion=0", "w_mask=0"} <= set(_sets(a))
         assert f"{rid}:phase2" not in by_key
         assert _flag(by_key[f"{rid}:eval:all"].argv, "--stage") == "phase1"
+    # GaussianAvatars: per-face init, density control on the size's schedule, no rebinding, its own
+    # init-mesh with teeth and no cavity; the free-surfel row keeps SAGE's layout and init-mesh
+    for rid in ("ga_mvsf", "ga_mvmf"):
+        sets = set(_sets(by_key[f"{rid}:phase1"].argv))
+        assert {"init_layout=per_face", "densify=true", "rebind_every=0", "w_local_position=0.01", "w_local_scale=1",
+                "densify_from=100", "densify_every=50", "densify_until=1000", "opacity_reset_every=500"} <= sets
+        assert "mouth_cavity=false" in _sets(by_key[f"{rid}:init-mesh"].argv)
+    assert by_key["ga_mvsf:copy"].stages == ("ingest",) and by_key["free_mvsf:copy"].stages == ("ingest", "init-mesh")
+    assert not any("densify" in kv or "init_layout" in kv for kv in _sets(by_key["free_mvsf:phase1"].argv))
+    assert "free_mvsf:init-mesh" not in by_key
     assert _flag(by_key["ga_mvmf:ingest"].argv, "--regime") == "mv-mf"
     assert _flag(by_key["sage:ingest"].argv, "--regime") == "mv-sf"
     assert _flag(by_key["sv_hr:ingest"].argv, "--regime") == "sv-hr"
@@ -109,13 +119,13 @@ def test_overrides_and_smoke_size_reach_the_commands(tmp_path):
     by_key, _, _ = _steps(tmp_path, rows=("sage",), overrides=ov)
     assert "iterations=7" in _sets(by_key["sage:phase1"].argv)
     assert "iterations=3" in _sets(by_key["sage:phase2"].argv)
-    smoke = smoke_size(SIZES["small"])
+    smoke = smoke_size(SIZES["tiny"])
     st = Settings(smoke, tmp_path)
     steps, _ = plan(st, ["sage"])
     k = {s.key: s for s in steps}
     assert smoke.smoke and _flag(k["synth:multiview"].argv, "--cameras") == "9"
     assert any(s.startswith("iterations=") for s in _sets(k["sage:phase1"].argv))
-    assert SIZES["full"].preset == "default" and SIZES["small"].preset == "tiny"
+    assert SIZES["full"].preset == "default" and SIZES["tiny"].preset == "tiny" and SIZES["small"].preset == "small"
 
 
 # --------------------------------------------------------------------------------------------
@@ -153,7 +163,7 @@ def _results() -> dict:
         "steps": ["ga_mvsf:phase1"], "metrics": {}, "stages": {},
     }  # fmt: skip
     return {
-        "schema": 1, "size": "small", "smoke": False, "suite_command": "python benchmarks/suite.py --size small --out X",
+        "schema": 1, "size": "tiny", "smoke": False, "suite_command": "python benchmarks/suite.py --size tiny --out X",
         "machine": {"cpu": "Test CPU", "cores": 2, "usable_cores": 2, "device": "cpu", "torch": "2.x"},
         "settings": {"preset": "tiny", "seed": 0}, "runs": [],
         "steps": {"synth:multiview": {"command": "sage synth X"}, "sage:phase1": {"command": "sage phase1 WS"},
@@ -212,10 +222,10 @@ def test_markdown_puts_numbers_in_their_columns_and_dashes_for_missing():
     assert comp["no_phase2"][7] == "yes"
     assert "- `ga_mvsf`: ga_mvsf:eval:all: exit 3: boom happened" in md
     assert "sage phase1 WS" in md and "mkdir -p A && cp -a B A/" in md
-    doc = render_document([{**_results(), "size": "full"}, _results()])
-    assert doc.index("## Size `small`") < doc.index("## Size `full`")
+    doc = render_document([{**_results(), "size": "full"}, {**_results(), "size": "small"}, _results()])
+    assert doc.index("## Size `tiny`") < doc.index("## Size `small`") < doc.index("## Size `full`")
     doc = render_document([_results()], "## Discussion\n\nOurs against the paper.\n")
-    assert doc.rstrip().endswith("Ours against the paper.") and doc.index("## Size `small`") < doc.index("## Discussion")
+    assert doc.rstrip().endswith("Ours against the paper.") and doc.index("## Size `tiny`") < doc.index("## Discussion")
 
 
 def test_smoke_results_are_labelled():
@@ -325,9 +335,9 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     import suite
 
     docs, out = tmp_path / "docs", tmp_path / "out"
-    args = ["--size", "small", "--smoke", "--out", str(out), "--rows", "no_phase2", "--device", "cpu", "--docs", str(docs)]
+    args = ["--size", "tiny", "--smoke", "--out", str(out), "--rows", "no_phase2", "--device", "cpu", "--docs", str(docs)]
     assert suite.main(args) == 0
-    doc = json.loads((docs / "benchmarks" / "suite_small.json").read_text())
+    doc = json.loads((docs / "benchmarks" / "suite_tiny.json").read_text())
     assert doc["smoke"] is True and set(doc["rows"]) == {"no_phase2"}
     r = doc["rows"]["no_phase2"]
     assert r["errors"] == [], r["errors"]
@@ -349,7 +359,7 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert "Smoke test" in md and "sage phase1 " in md and "### Comparison with the paper" in md
     # a rerun skips every finished stage, keeps the measured memory and merges into the same document
     assert suite.main(args) == 0
-    doc2 = json.loads((docs / "benchmarks" / "suite_small.json").read_text())
+    doc2 = json.loads((docs / "benchmarks" / "suite_tiny.json").read_text())
     assert len(doc2["runs"]) == 2
     assert doc2["steps"]["sage:phase1"]["ran"] is False
     assert doc2["steps"]["sage:phase1"]["peak_rss_mib"] == doc["steps"]["sage:phase1"]["peak_rss_mib"]

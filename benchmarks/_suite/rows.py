@@ -15,15 +15,33 @@ SDF_OFF_FROM = 1_000_000_000
 """``sdf_from`` of the GaussianAvatars-style rows: past any iteration count, so phase 1 never adds
 L_pt, L_align, NeuS depth/normal/RGB, eikonal or smoothness terms."""
 
-GA_PHASE1: tuple[str, ...] = (
+FREE_PHASE1: tuple[str, ...] = (
     "--attributes", "free",
     "--set", f"sdf_from={SDF_OFF_FROM}",
     "--set", "w_normal_consistency=0",
     "--set", "w_distortion=0",
     "--set", "w_mask=0",
 )  # fmt: skip
-"""Phase-1 options of the GaussianAvatars-style baseline: free per-surfel attributes, photometric
-loss only (no SDF terms, no 2DGS regularizers, no alpha mask term)."""
+"""Phase-1 options of free per-surfel attributes trained on the photometric loss only (no SDF
+terms, no 2DGS regularizers, no alpha mask term), on SAGE's surfel layout and rebinding: the
+``free_mvsf`` row."""
+
+GA_PHASE1: tuple[str, ...] = (
+    *FREE_PHASE1,
+    "--set", "init_layout=per_face",
+    "--set", "rebind_every=0",
+    "--set", "densify=true",
+    "--set", "w_local_position=0.01",
+    "--set", "w_local_scale=1",
+)  # fmt: skip
+"""Phase-1 options of the GaussianAvatars baseline (Qian et al., CVPR 2024) on 2D surfels: one
+surfel per FLAME triangle (teeth included, no mouth cavity: :data:`GA_INIT_MESH`), adaptive density
+control with binding inheritance and no rebinding, GA's local position (λ 0.01, threshold 1) and
+scale (λ 1, threshold 0.6) terms, photometric loss only. The density-control schedule is the size's
+(:attr:`Size.densify`)."""
+
+GA_INIT_MESH: tuple[str, ...] = ("--set", "mouth_cavity=false")
+"""init-mesh options of the GaussianAvatars rows: FLAME with teeth, no mouth cavity."""
 
 
 @dataclass(frozen=True)
@@ -36,7 +54,9 @@ class RowSpec:
     from (None: the row ingests itself). phase1 / phase2: extra options of the row's own phase-1 /
     phase-2 run (None: not run by this row). eval_stage: avatar evaluated. eval_splits: one
     ``sage eval --split`` run each. has_sdf: the row has a trained SDF (geometry metrics).
-    reenact: drive the avatar with the test-split motion (needs a test split).
+    reenact: drive the avatar with the test-split motion (needs a test split). init_mesh: extra
+    options of the row's own init-mesh run. densify: add the size's density-control schedule to
+    the row's phase 1.
     """
 
     id: str
@@ -52,6 +72,8 @@ class RowSpec:
     eval_splits: tuple[str, ...]
     has_sdf: bool
     reenact: bool
+    init_mesh: tuple[str, ...] = ()
+    densify: bool = False
 
 
 ROWS: dict[str, RowSpec] = {
@@ -68,10 +90,12 @@ ROWS: dict[str, RowSpec] = {
                 None, ("--correction", "off"), "phase2", ("all",), True, True),
         RowSpec("wrinkles", "SAGE + wrinkle shading (skin)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
                 None, ("--set", "wrinkle_shading=true", "--set", "wrinkle_region=skin"), "phase2", ("all",), True, False),
-        RowSpec("ga_mvsf", "GA-style (free surfels, photometric only)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
-                GA_PHASE1, None, "phase1", ("all",), False, True),
-        RowSpec("ga_mvmf", "GA-style (free surfels, photometric only)", "MV-MF", "multiview", "mv-mf", None, (),
-                GA_PHASE1, None, "phase1", ("all",), False, True),
+        RowSpec("ga_mvsf", "GaussianAvatars (per-face init, densification)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest",),
+                GA_PHASE1, None, "phase1", ("all",), False, True, GA_INIT_MESH, True),
+        RowSpec("ga_mvmf", "GaussianAvatars (per-face init, densification)", "MV-MF", "multiview", "mv-mf", None, (),
+                GA_PHASE1, None, "phase1", ("all",), False, True, GA_INIT_MESH, True),
+        RowSpec("free_mvsf", "Free surfels on SAGE's layout (photometric only)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
+                FREE_PHASE1, None, "phase1", ("all",), False, True),
         RowSpec("sv_hr", "SAGE", "SV-HR", "monocular", "sv-hr", None, (), ("--attributes", "mlp"), (), "phase2", ("novel", "test"), True, True),
         RowSpec("one_shot", "SAGE", "One-shot", "oneshot", "one-shot", None, (), ("--attributes", "mlp"), (), "phase2", ("novel",), True, False),
     )
@@ -93,9 +117,10 @@ ROW_IDS: tuple[str, ...] = tuple(ROWS)
 
 @dataclass(frozen=True)
 class Size:
-    """A benchmark size: the stage preset, the synthetic capture and per-stage ``--set`` overrides.
+    """A benchmark size (named after its stage preset): the stage preset, the synthetic capture and per-stage ``--set`` overrides.
 
-    synth_args: extra ``sage synth`` options per regime (shared by the tracked and exact captures). sets: stage -> ``key=value`` items
+    densify: the ``key=value`` density-control schedule of the rows that densify (GaussianAvatars),
+    scaled to the preset's phase-1 length. synth_args: extra ``sage synth`` options per regime (shared by the tracked and exact captures). sets: stage -> ``key=value`` items
     added to every run of that stage. motion_steps: frames from one test timestep to the next in
     the reenactment clip.
     """
@@ -107,15 +132,27 @@ class Size:
     sets: dict[str, tuple[str, ...]]
     motion_steps: int
     smoke: bool = False
+    densify: tuple[str, ...] = ()
+
+
+def _densify(start: int, every: int, stop: int, reset: int) -> tuple[str, ...]:
+    return (f"densify_from={start}", f"densify_every={every}", f"densify_until={stop}", f"opacity_reset_every={reset}")
 
 
 _PHASE2_EVAL = ("eval_phase1=false", "eval_frames=4")
 """Phase 2's own evaluation is cut to a few frames: the suite's numbers come from ``sage eval``."""
 
 SIZES: dict[str, Size] = {
-    "small": Size("small", "tiny", "tiny", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8),
-    "full": Size("full", "default", "default", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8),
+    "tiny": Size("tiny", "tiny", "tiny", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8,
+                 densify=_densify(100, 50, 1000, 500)),
+    "small": Size("small", "small", "small", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8,
+                  densify=_densify(250, 100, 2700, 1000)),
+    "full": Size("full", "default", "default", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8,
+                 densify=_densify(500, 100, 15000, 3000)),
 }
+"""Density-control schedules: 3DGS's (from 500, every 100, until 15,000, opacity reset every 3,000 of
+30,000 steps) at ``full``; at the shorter presets the same shape, with intervals long enough for every
+training camera to be seen several times between densifications."""
 
 SMOKE_SETS: dict[str, tuple[str, ...]] = {
     "init-mesh": ("pretrain.steps=20", "pretrain.bank_size=4000", "pretrain.batch_size=1024", "pretrain.eval_samples=2000", "mc_resolution=32"),
@@ -130,7 +167,7 @@ def smoke_size(size: Size) -> Size:
     """The smoke-test variant of a size: tiny preset, a 9-camera 64x94 capture, a few steps."""
     small = {"multiview": ("--cameras", "9", "--test-timesteps", "2", "--width", "64", "--height", "94"),
              "monocular": ("--width", "64", "--height", "94"), "oneshot": ("--width", "64", "--height", "94")}  # fmt: skip
-    return Size(size.name, "tiny", "tiny", small, dict(SMOKE_SETS), 2, smoke=True)
+    return Size(size.name, "tiny", "tiny", small, dict(SMOKE_SETS), 2, smoke=True, densify=_densify(1, 1, 4, 2))
 
 
 @dataclass
@@ -207,10 +244,11 @@ def stage_argv(st: Settings, row: RowSpec, stage: str) -> list[str]:
         cap = st.capture_dir(row.capture)
         return ["ingest", str(cap), ws, "--flame-model", str(cap / "model" / "synth_flame.pkl"), "--regime", row.regime, *_common(st, stage)]
     if stage == "init-mesh":
-        return ["init-mesh", ws, *_common(st, stage)]
+        return ["init-mesh", ws, *row.init_mesh, *_common(st, stage)]
     if stage == "phase1":
         assert row.phase1 is not None
-        return ["phase1", ws, *row.phase1, *_common(st, stage)]
+        schedule = [a for kv in st.size.densify for a in ("--set", kv)] if row.densify else []
+        return ["phase1", ws, *row.phase1, *schedule, *_common(st, stage)]
     if stage == "phase2":
         assert row.phase2 is not None
         return ["phase2", ws, *row.phase2, *_common(st, stage)]

@@ -20,6 +20,10 @@ uniformly random point of its triangle (zero offset along the normal), lies flat
 (q_loc = identity, or a random rotation about the normal), and has both in-plane scales
 s = scale_factor·sqrt(area_f / (π·n_f)) with n_f the triangle's surfel count: n_f disks of radius s
 have the triangle's area. Stored as s_loc = log(s/k_f), clamped to log(scale_range).
+
+``layout="per_face"`` is GaussianAvatars' initialisation instead: one surfel at the centroid of
+every triangle, flat on it, with s = k_f (s_loc = 0); the benchmark's GaussianAvatars rows then
+grow and thin the set by adaptive density control (:mod:`sage_core.train.densify`).
 """
 
 from __future__ import annotations
@@ -41,6 +45,9 @@ regions, forehead), ``eyes`` the eyeballs, ``mouth`` the mouth interior and teet
 derived hair region (scalp minus face and neck), ``neck`` the neck, ``other`` everything else."""
 
 REGION_OTHER, REGION_FACE, REGION_EYES, REGION_MOUTH, REGION_HAIR, REGION_NECK = range(6)
+
+INIT_LAYOUTS: tuple[str, ...] = ("sampled", "per_face")
+"""Surfel layouts of :func:`init_surfels`: weighted sampling (SAGE) or one per triangle (GaussianAvatars)."""
 
 # (label, region names whose union it covers), in priority order: a face matching several takes
 # the first.
@@ -136,11 +143,16 @@ def init_surfels(
     scale_factor: float = 1.0,
     scale_range: tuple[float, float] = (1e-3, 1.0),
     random_rotation: bool = False,
+    layout: str = "sampled",
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
 ) -> SurfelInit:
     """Distribute ``n_surfels`` surfels over the triangles of a canonical mesh (see module doc).
+
+    layout: "sampled" (the module doc) or "per_face": one surfel at the centroid of every triangle,
+    flat on it with both local scales 1 (s = k_f), GaussianAvatars' initialisation; ``n_surfels``,
+    the weights and ``scale_factor`` are then unused (the summary still reports the weights' regions).
 
     vertices: (V, 3) canonical mesh; faces: (F, 3); regions: labels for the region weights (None:
     every face weighs 1); cameras: training cameras for the view term (None or empty: no view
@@ -156,6 +168,8 @@ def init_surfels(
                     ("neck_weight", neck_weight), ("camera_weight", camera_weight)):
         if not (w >= 0 and math.isfinite(w)):
             raise ValueError(f"{name} must be finite and non-negative, got {w}")
+    if layout not in INIT_LAYOUTS:
+        raise ValueError(f"layout must be one of {', '.join(INIT_LAYOUTS)}, got {layout!r}")
     lo, hi = scale_range
     if not (0 < lo <= hi):
         raise ValueError(f"scale_range must satisfy 0 < lo <= hi, got {scale_range}")
@@ -177,6 +191,8 @@ def init_surfels(
     if cameras:
         view = _camera_view_term(T.numpy(), R[:, :, 2].numpy(), cameras, world_from_mesh)
         weight = weight * (1.0 + camera_weight * view)
+    if layout == "per_face":
+        return _per_face(area, labels, weight, device, dtype)
     eligible = weight > 0
     if not eligible.any():
         raise ValueError("every triangle has zero sampling weight")
@@ -230,6 +246,23 @@ def init_surfels(
         face_region=torch.as_tensor(labels).to(device),
         face_weight=weight,
         summary=summary,
+    )
+
+
+def _per_face(area: torch.Tensor, labels: np.ndarray, weight: np.ndarray, device: torch.device, dtype: torch.dtype) -> SurfelInit:
+    """One surfel per triangle at its frame origin (the centroid), q_loc = identity, s_loc = 0."""
+    F = int(area.shape[0])
+    q_loc = torch.zeros((F, 4), dtype=dtype)
+    q_loc[:, 0] = 1.0
+    return SurfelInit(
+        binding=torch.arange(F, dtype=torch.long, device=device),
+        mu_loc=torch.zeros((F, 3), dtype=dtype, device=device),
+        q_loc=q_loc.to(device),
+        s_loc=torch.zeros((F, 2), dtype=dtype, device=device),
+        region_id=torch.as_tensor(labels).to(device),
+        face_region=torch.as_tensor(labels).to(device),
+        face_weight=weight,
+        summary=_summary(labels, area.numpy(), np.ones(F, dtype=np.int64), F),
     )
 
 

@@ -298,6 +298,37 @@ class SurfelSet(nn.Module):
                 replace_optimizer_param(optimizer, x, new, rows)
             setattr(self, name, new)
 
+    @torch.no_grad()
+    def extend(self, rows: Mapping[str, torch.Tensor], optimizer: torch.optim.Optimizer | None = None) -> int:
+        """Append M new surfels, in place.
+
+        rows: the new rows of every per-surfel parameter and of the ``binding`` and ``region_id``
+        buffers (name -> (M, ...) tensor); the optional buffers (``wrinkle``, ``color_prior``) must be
+        absent from the set. Parameters are replaced by longer ones; with ``optimizer`` given, its
+        param groups follow and the per-row state (e.g. Adam's moments) of the new rows starts at
+        zero. Returns M."""
+        present = self._row_tensors()
+        for name in ("wrinkle", "color_prior"):
+            if name in present:
+                raise ValueError(f"cannot extend a surfel set that has the {name!r} buffer")
+        missing = [n for n in present if n not in rows]
+        extra = [n for n in rows if n not in present]
+        if missing or extra:
+            raise ValueError(f"extend needs exactly the rows of {sorted(present)} (missing {missing}, unknown {extra})")
+        m = int(rows["binding"].shape[0])
+        for name, x in present.items():
+            r = rows[name].to(device=x.device, dtype=x.dtype)
+            if tuple(r.shape) != (m, *x.shape[1:]):
+                raise ValueError(f"{name}: expected ({m}, {', '.join(map(str, x.shape[1:]))}) rows, got {tuple(r.shape)}")
+            if name in _BUFFERS:
+                setattr(self, name, torch.cat([x, r], 0))
+                continue
+            new = nn.Parameter(torch.cat([x.data, r], 0), requires_grad=x.requires_grad)
+            if optimizer is not None:
+                extend_optimizer_param(optimizer, x, new, m)
+            setattr(self, name, new)
+        return m
+
     def prune(self, remove: torch.Tensor, optimizer: torch.optim.Optimizer | None = None) -> int:
         """Remove the surfels where ``remove`` ((N,) bool) is True, in place (3DGS convention);
         see :meth:`index_select` for the optimizer. Returns how many were removed."""
@@ -328,6 +359,28 @@ def replace_optimizer_param(
                 for key, v in state.items():
                     if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == old.shape[0]:
                         moved[key] = v[rows.to(v.device)].clone()
+                    else:
+                        moved[key] = v
+                optimizer.state[new] = moved
+            return True
+    return False
+
+
+def extend_optimizer_param(optimizer: torch.optim.Optimizer, old: torch.Tensor, new: nn.Parameter, n_new: int) -> bool:
+    """Swap ``old`` for ``new`` (``old``'s rows followed by ``n_new`` more) in ``optimizer``'s param
+    groups; state tensors whose first dimension matches ``old``'s get ``n_new`` zero rows, other
+    state entries (e.g. Adam's ``step``) are copied. Returns False if ``old`` is not in the optimizer."""
+    for group in optimizer.param_groups:
+        for i, p in enumerate(group["params"]):
+            if p is not old:
+                continue
+            group["params"][i] = new
+            state = optimizer.state.pop(old, None)
+            if state:
+                moved = {}
+                for key, v in state.items():
+                    if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == old.shape[0]:
+                        moved[key] = torch.cat([v, v.new_zeros((n_new, *v.shape[1:]))], 0)
                     else:
                         moved[key] = v
                 optimizer.state[new] = moved

@@ -107,13 +107,15 @@ def _lips(regions_or_masks: Regions | Mapping[str, np.ndarray], n_base: int) -> 
 
 
 def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping[str, np.ndarray],
-                       teeth: bool | None = None) -> FlameModelData:
+                       teeth: bool | None = None, cavity: bool = True) -> FlameModelData:
     """Append the mouth cavity (and teeth arcs) rigged to the neck and jaw joints.
 
     data: a model with joints 1 (neck) and 2 (jaw). regions_or_masks: a :class:`Regions` or a
     mask dict holding ``lips`` (ids below ``n_base_vertices``). teeth: add the teeth arcs; None =
-    only when the model has no teeth groups yet. Returns a new model; ``data`` is unchanged.
-    Raises ValueError if the mouth cannot be located or the model already has a mouth interior.
+    only when the model has no teeth groups yet. cavity: add the cavity (False: the teeth arcs
+    alone, FLAME with teeth as GaussianAvatars rigs it). Returns a new model; ``data`` is
+    unchanged. Raises ValueError if the mouth cannot be located, the model already has a mouth
+    interior, or nothing would be added.
     """
     if has_mouth_interior(data):
         raise ValueError("model already has a mouth interior")
@@ -123,6 +125,8 @@ def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping
         teeth = not has_teeth(data)
     elif teeth and has_teeth(data):
         raise ValueError("model already has teeth groups")
+    if not cavity and not teeth:
+        raise ValueError("neither the cavity nor the teeth would be added")
     n_base = data.n_base_vertices
     lips = _lips(regions_or_masks, n_base)
     v = data.v_template
@@ -145,7 +149,7 @@ def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping
         return origin + np.stack([unit[:, 0] * rx, unit[:, 1] * ry, -unit[:, 2] * depth + dz], -1)
 
     parts: list[tuple[str, np.ndarray, np.ndarray, int]] = []
-    for name, sign, joint in (("mouth_upper", 1.0, NECK_JOINT), ("mouth_lower", -1.0, JAW_JOINT)):
+    for name, sign, joint in (("mouth_upper", 1.0, NECK_JOINT), ("mouth_lower", -1.0, JAW_JOINT)) if cavity else ():
         unit, f = _dome(sign)
         # the unit dome's z is the backward coordinate; mirrored z flips the winding, so re-flip
         parts.append((name, place(unit, 0.45 * width, 0.3 * width, 0.8 * width), f[:, [0, 2, 1]], joint))
@@ -168,7 +172,7 @@ def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping
     verts = np.concatenate(new_v, 0)
     n_new = verts.shape[0]
     _, nearest = cKDTree(v[:n_base]).query(verts)
-    tag = "sage-mouth-teeth-v1" if teeth else "sage-mouth-v1"
+    tag = ("sage-mouth-teeth-v1" if teeth else "sage-mouth-v1") if cavity else "sage-teeth-arcs-v1"
     return FlameModelData(
         v_template=np.concatenate([v, verts], 0),
         faces=np.concatenate([data.faces] + new_f, 0).astype(np.int64),

@@ -27,7 +27,7 @@ from ..fields.pretrain import PretrainConfig as _EnginePretrainConfig
 from ..fields.pretrain import SDFPretrainer
 from ..fields.sdf import SDFNetwork
 from ..fields.sdf_file import save_sdf
-from ..flame import FlameModel, FlameModelData, Regions, add_mouth_interior, has_mouth_interior, save_flame_npz
+from ..flame import FlameModel, FlameModelData, Regions, add_mouth_interior, has_mouth_interior, has_teeth, save_flame_npz
 from ..flame.canonical import canonical_vertices
 from ..geometry.marching import extract_mesh
 from ..workspace import atomic_write_bytes, atomic_write_json
@@ -35,20 +35,23 @@ from .loop import run_steps
 
 Progress = Callable[..., None]
 
-def build_model(data: IngestedData, mouth_interior: bool) -> tuple[FlameModelData, Regions | None]:
+def build_model(data: IngestedData, mouth_interior: bool, cavity: bool = True) -> tuple[FlameModelData, Regions | None]:
     """The ingested FLAME model, with the mouth interior appended when asked and possible.
 
-    Returns the model and its regions (None when the capture came without region masks; then the
-    mouth interior cannot be located and is not added).
+    cavity: with ``mouth_interior``, the cavity and (when the model has none) the teeth; False: only
+    the teeth, when the model has none (FLAME with teeth, as GaussianAvatars rigs it). Returns the
+    model and its regions (None when the capture came without region masks; then the mouth
+    interior cannot be located and is not added).
     """
     model = data.load_model()
     masks = data.load_masks_json()
     if not masks:
         return model, None
     regions = Regions(masks, model.faces, model.n_vertices, model.vertex_groups)
-    if mouth_interior and not has_mouth_interior(model):
+    wanted = cavity and not has_mouth_interior(model) or not cavity and not has_teeth(model)
+    if mouth_interior and wanted:
         try:
-            model = add_mouth_interior(model, regions)
+            model = add_mouth_interior(model, regions, cavity=cavity)
         except ValueError as e:
             raise InputError(data.masks_path or data.root, f"cannot place the mouth interior: {e}") from None
         regions = Regions(masks, model.faces, model.n_vertices, model.vertex_groups)
@@ -124,7 +127,7 @@ def run_init_mesh(
 ) -> dict[str, Any]:
     """Run the stage; returns its metrics. Resumes from the newest checkpoint in ``checkpoint_dir``."""
     out_dir = Path(out_dir)
-    model_data, regions = build_model(data, cfg.mouth_interior)
+    model_data, regions = build_model(data, cfg.mouth_interior, cfg.mouth_cavity)
     model = FlameModel(model_data).to(device)
     verts = canonical_vertices(model, data.params, data.canonical_timestep).detach().cpu().numpy().astype(np.float64)
     faces_all = np.asarray(model_data.faces, np.int64)
@@ -136,7 +139,7 @@ def run_init_mesh(
     atomic_write_bytes(out_dir / "canonical_mesh.ply", _mesh_bytes(verts, faces_all, _region_colours(regions, len(verts))))
     atomic_write_bytes(out_dir / "head_mesh.ply", _mesh_bytes(verts, faces_head))
     n_mouth_faces = 0
-    if has_mouth_interior(model_data):
+    if has_mouth_interior(model_data) or has_teeth(model_data):
         groups = [g for g in model_data.vertex_groups if g.startswith("mouth_") or g.startswith("teeth_")]
         ids = np.unique(np.concatenate([np.asarray(model_data.vertex_groups[g]) for g in groups])) if groups else np.zeros(0, np.int64)
         inside = np.isin(faces_all, ids).all(axis=1)

@@ -65,6 +65,7 @@ from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
 from ._groups import surfel_param_groups
+from .densify import DensityControl, DensifySchedule, scene_extent
 from .canonical_warp import CanonicalWarp, make_warp
 from .exposure import ExposureGain
 from .symmetry import MirrorPlane, color_symmetry_loss, plane_from_pairs, sdf_symmetry_loss
@@ -81,7 +82,8 @@ def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, de
         shape_args={"hidden": cfg.shape_hidden, "n_layers": cfg.shape_layers},
         sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity,
         init_args={"face_weight": cfg.face_weight, "mouth_weight": cfg.mouth_weight, "hair_weight": cfg.hair_weight,
-                   "neck_weight": cfg.neck_weight, "camera_weight": cfg.camera_weight, "scale_factor": cfg.init_scale_factor},
+                   "neck_weight": cfg.neck_weight, "camera_weight": cfg.camera_weight, "scale_factor": cfg.init_scale_factor,
+                   "layout": cfg.init_layout},
         neus_variance=cfg.neus_variance, shading=cfg.shading, device=device, generator=generator,
     )  # fmt: skip
 
@@ -243,6 +245,12 @@ class Phase1Trainer:
         self.set_pseudo_views(pseudo_views or [], mirror_index)
         self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
         self._not_mouth = avatar.surfels.region_id != REGION_MOUTH
+        self.density: DensityControl | None = None
+        if cfg.densify:
+            schedule = DensifySchedule(cfg.densify_from, cfg.densify_until, cfg.densify_every, cfg.densify_grad_threshold,
+                                       cfg.densify_percent_dense, cfg.prune_opacity, cfg.opacity_reset_every)  # fmt: skip
+            centres = torch.stack([torch.as_tensor(f.camera.center, dtype=torch.float64) for f in self.frames])
+            self.density = DensityControl(avatar, schedule, scene_extent(centres), self.generator)
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
@@ -385,8 +393,10 @@ class Phase1Trainer:
         use_sdf = step >= c.sdf_from
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
-        render, _ = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
-                              vertex_transform=transform, light_transform=light_transform, backend=self.render_backend)
+        render, posed = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
+                                  vertex_transform=transform, light_transform=light_transform, backend=self.render_backend)
+        if self.density is not None:
+            posed.means.retain_grad()
         color = render.color
         if self.exposure is not None and i is not None:
             color = self.exposure.apply(color, render.alpha, i, c.background)
@@ -426,11 +436,21 @@ class Phase1Trainer:
         if self.pose is not None and self._refining() and c.w_pose_prior > 0:
             terms["pose_prior"] = self.pose.prior(self.length_unit)
             total = total + c.w_pose_prior * terms["pose_prior"]
+        if c.w_local_position > 0:
+            terms["local_position"] = L.local_position_loss(av.surfels.mu_loc, c.local_position_threshold)
+            total = total + c.w_local_position * terms["local_position"]
+        if c.w_local_scale > 0:
+            terms["local_scale"] = L.local_scale_loss(av.surfels.s_loc, c.local_scale_threshold)
+            total = total + c.w_local_scale * terms["local_scale"]
 
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
+        if self.density is not None:
+            self.density.accumulate(posed.means, cam)
         self.optimizer.step()
         self.step_count += 1
+        if self.density is not None:
+            terms.update(self._density_step())
         if c.rebind_every > 0 and self.step_count % c.rebind_every == 0 and self.step_count < c.iterations:
             n = av.surfels.rebind(av.canonical_vertices, av.faces, frames=(av.R_c, av.T_c, av.k_c), optimizer=self.optimizer)
             terms["rebound"] = torch.tensor(float(n))
@@ -441,6 +461,20 @@ class Phase1Trainer:
             out["psnr"] = float(psnr(color.detach().permute(2, 0, 1), img.permute(2, 0, 1)))
         if pv_index is not None:
             out["pseudo_view"] = float(pv_index)
+        return out
+
+    def _density_step(self) -> dict[str, torch.Tensor]:
+        """Densify / prune and reset opacities when the schedule says so (after the step count
+        advanced); returns the counts as loss-dict entries."""
+        assert self.density is not None
+        out: dict[str, torch.Tensor] = {}
+        sched = self.density.schedule
+        if sched.densify_now(self.step_count):
+            counts = self.density.densify_and_prune(self.optimizer)
+            out = {f"densify_{k}": torch.tensor(float(v)) for k, v in counts.items()}
+            self._not_mouth = self.avatar.surfels.region_id != REGION_MOUTH
+        if sched.reset_now(self.step_count):
+            self.density.reset_opacity(self.optimizer)
         return out
 
     def _sdf_terms(self, terms, canon, render, rays) -> torch.Tensor:
@@ -598,11 +632,18 @@ class Phase1Trainer:
             st["exposure"] = {k: v.detach().clone() for k, v in self.exposure.state_dict().items()}
         if self.pose is not None:
             st["pose"] = {k: v.detach().clone() for k, v in self.pose.state_dict().items()}
+        if self.density is not None:
+            st["density"] = self.density.state_dict()
         return st
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict` (same surfel count and options)."""
-        self.avatar.load_state_dict(state["avatar"], strict=False)
+        """Restore :meth:`state_dict` (same options; the surfel count may differ when densifying)."""
+        saved = state["avatar"]
+        if saved["surfels.binding"].shape[0] != len(self.avatar.surfels):
+            self._resize_surfels(saved)
+        self.avatar.load_state_dict(saved, strict=False)
+        if self.density is not None and "density" in state:
+            self.density.load_state_dict(state["density"])
         if self.exposure is not None and "exposure" in state:
             self.exposure.load_state_dict(state["exposure"])
         if self.pose is not None and "pose" in state:
@@ -612,6 +653,22 @@ class Phase1Trainer:
         set_rng_state(state["rng"])
         self.step_count = int(state["step"])
         self._not_mouth = self.avatar.surfels.region_id != REGION_MOUTH
+
+    def _resize_surfels(self, saved: dict[str, torch.Tensor]) -> None:
+        """Reshape the surfel set (and the optimizer over it) to a saved avatar state with another
+        surfel count (a densified checkpoint)."""
+        from ..avatar.surfels import SurfelSet
+
+        av = self.avatar
+        av.surfels = SurfelSet.from_state_dict(_surfel_rows(saved)).to(av.surfels.mu_loc.device)
+        av.base_scale = saved["base_scale"].to(av.base_scale)
+        self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
+        if self.density is not None:
+            self.density.clear_statistics()
+
+
+def _surfel_rows(saved: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k[len("surfels."):]: v for k, v in saved.items() if k.startswith("surfels.")}
 
 
 def symmetry_plane(avatar: Avatar) -> MirrorPlane | None:
