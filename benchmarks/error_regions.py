@@ -1,0 +1,147 @@
+"""Where the error of an evaluated avatar falls: silhouette band, inside, face regions.
+
+Usage:
+    python benchmarks/error_regions.py WS:STAGE[:LABEL] [WS:STAGE[:LABEL] ...] [--split test|val]
+        [--cams 2,8,12] [--panels DIR] [--scale 3] [--out FILE.json]
+
+Every avatar renders every frame of the split as ``sage eval`` renders it (the stage's render
+settings, surfel correction included) and is compared with the ground-truth image. Per image, the
+sum of squared errors over the pixels and the three channels (SSE) is split by where it falls:
+
+* ``band``: pixels within 2 px of the ground-truth silhouette (the mask dilated minus the mask eroded,
+  3×3 steps); ``inside``: the eroded mask;
+* inside, by the region of the triangle the FIRST avatar's posed FLAME mesh shows at the pixel
+  (``init/regions.json`` of its workspace): ``mouth`` (lips, mouth interior, teeth), ``eyes``
+  (eyeballs, eye regions), ``hair``, ``neck`` and ``skin`` (everything else);
+* ``silhouette``: pixels where that posed mesh covers the image and the ground-truth mask does not,
+  or the reverse. With tracked FLAME parameters this is error no avatar drawn on the tracked mesh
+  can avoid; it overlaps ``band``.
+
+The workspaces must share the data (the same capture and split). Prints a Markdown table of the mean
+SSE per image; ``--out`` writes the per-image values as JSON; ``--panels`` writes, for the frames of
+``--cams``, the ground truth, each avatar's render and its error (upscaled by ``--scale``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+GROUPS: dict[str, tuple[str, ...]] = {
+    "mouth": ("lips", "mouth_interior", "teeth", "mouth_lower", "mouth_upper"),
+    "eyes": ("eyeballs", "eye_region"),
+    "hair": ("hair",),
+    "neck": ("neck",),
+}
+"""Region groups of the inside error (``skin`` is every other face)."""
+
+COLUMNS = ("total", "band", "inside", *GROUPS, "skin", "silhouette")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python benchmarks/error_regions.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("items", nargs="+", help="WS:STAGE[:LABEL] (stage phase1 or phase2)")
+    ap.add_argument("--split", default="test", choices=("test", "val"), help="split of the ingested data")
+    ap.add_argument("--cams", default="2,8,12", help="camera indices of the panels")
+    ap.add_argument("--panels", type=Path, default=None, help="folder for GT | renders | errors panels")
+    ap.add_argument("--scale", type=int, default=3, help="panel upscaling")
+    ap.add_argument("--out", type=Path, default=None, help="JSON file of the per-image values")
+    return ap
+
+
+def _band_and_inside(mask: np.ndarray, radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    import torch
+
+    m = torch.as_tensor(mask > 0.5, dtype=torch.float32)[None, None]
+    k = 2 * radius + 1
+    dil = torch.nn.functional.max_pool2d(m, k, 1, radius)[0, 0] > 0
+    ero = -torch.nn.functional.max_pool2d(-m, k, 1, radius)[0, 0] > 0
+    return (dil & ~ero).numpy(), ero.numpy()
+
+
+def _face_labels(regions_path: Path) -> np.ndarray:
+    """(F + 1,) group index of every face (len(GROUPS) = skin); the last entry serves the background."""
+    reg = json.loads(regions_path.read_text())
+    labels = np.full(int(reg["n_faces"]) + 1, len(GROUPS))
+    for gi, names in enumerate(GROUPS.values()):
+        for name in names:
+            labels[np.asarray(reg["face_sets"].get(name, []), dtype=np.int64)] = gi
+    return labels
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    import torch
+
+    from sage_core.data.dataset import IngestedData
+    from sage_core.data.imageio import write_image
+    from sage_core.render import RenderCamera
+    from sage_core.render.mesh_raster import rasterize_mesh
+    from sage_core.stages.avatars import AvatarRenderer, load_stage_avatar
+    from sage_core.workspace import Workspace
+
+    torch.set_num_threads(1)
+    avatars: list[tuple[str, AvatarRenderer]] = []
+    data = None
+    first_ws = None
+    for item in args.items:
+        parts = item.split(":")
+        if len(parts) < 2:
+            print(f"error: {item!r} is not WS:STAGE[:LABEL]", file=sys.stderr)
+            return 2
+        ws = Workspace(parts[0])
+        d = IngestedData.open(ws.stage_dir("ingest"))
+        data = data or d
+        first_ws = first_ws or ws
+        sa = load_stage_avatar(ws, parts[1], d)
+        avatars.append((parts[2] if len(parts) > 2 else f"{Path(parts[0]).name}/{parts[1]}", AvatarRenderer(sa.avatar, sa.render)))
+    assert data is not None and first_ws is not None
+    labels = _face_labels(first_ws.stage_dir("init-mesh") / "regions.json")
+    cams = {int(c) for c in args.cams.split(",") if c.strip()}
+    per_image: dict[str, list[dict[str, Any]]] = {lab: [] for lab, _ in avatars}
+    ref = avatars[0][1].avatar
+    with torch.no_grad():
+        for fr in data.role(args.split):
+            gt = data.load_image(fr)
+            mask = data.load_mask(fr) if fr.mask is not None else np.ones(gt.shape[:2], np.float32)
+            band, inside = _band_and_inside(mask)
+            cam = RenderCamera.from_camera(fr.camera, ref.device)
+            verts = ref.pose_mesh(ref.frame_inputs(fr.timestep))
+            fid = rasterize_mesh(verts, ref.faces, cam.K, cam.w2c, cam.width, cam.height).face_id[0].cpu().numpy()
+            group = np.where(fid >= 0, labels[np.clip(fid, 0, labels.size - 1)], -1)
+            sil = (fid >= 0) != (mask > 0.5)
+            row, errs = [gt], []
+            for lab, rd in avatars:
+                img = rd.render(fr.camera, rd.avatar.frame_inputs(fr.timestep)).clamp(0, 1).cpu().numpy()
+                e = ((img - gt) ** 2).sum(-1)
+                rec = {"timestep": fr.timestep, "camera": fr.camera_index, "total": float(e.sum()), "band": float(e[band].sum()),
+                       "inside": float(e[inside].sum()), "silhouette": float(e[sil].sum())}  # fmt: skip
+                for gi, name in enumerate((*GROUPS, "skin")):
+                    rec[name] = float(e[inside & (group == gi)].sum())
+                per_image[lab].append(rec)
+                row.append(img)
+                errs.append(np.repeat(np.clip(np.sqrt(e / 3.0) * 3.0, 0, 1)[..., None], 3, -1))
+            if args.panels is not None and fr.camera_index in cams:
+                panel = np.concatenate([np.concatenate(row, 1), np.concatenate([np.zeros_like(gt), *errs], 1)], 0)
+                write_image(args.panels / f"{args.split}_t{fr.timestep:05d}_c{fr.camera_index:02d}.png",
+                            panel.repeat(args.scale, 0).repeat(args.scale, 1))
+    means = {lab: {c: float(np.mean([r[c] for r in recs])) for c in COLUMNS} for lab, recs in per_image.items()}
+    n = len(next(iter(per_image.values())))
+    print(f"Mean SSE per image ({args.split} split, {n} images; band/inside split by the GT mask, inside by region):\n")
+    print("| avatar | " + " | ".join(COLUMNS) + " |")
+    print("|---|" + "---:|" * len(COLUMNS))
+    for lab, m in means.items():
+        print(f"| {lab} | " + " | ".join(f"{m[c]:.1f}" for c in COLUMNS) + " |")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"split": args.split, "items": args.items, "mean": means, "images": per_image}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
