@@ -97,6 +97,8 @@ def test_stage_manifest_records_threads_and_info_shows_them(tiny_capture, tmp_pa
     assert _ran_on({"device": "cpu", "metrics": {"threads": 2, "render_backend": "cpp"}}) == "cpu · 2 threads · cpp rasterizer"
     assert _ran_on({"device": "cpu", "metrics": {"threads": 1, "render_backend": "cpp", "hashgrid_backend": "cpp"}}) == (
         "cpu · 1 thread · cpp rasterizer · cpp hash grid")
+    assert _ran_on({"device": "cpu", "metrics": {"threads": 1, "hashgrid_backend": "cpp", "sdf_backend": "cpp"}}) == (
+        "cpu · 1 thread · cpp hash grid · cpp SDF")
     assert runner.invoke(app, ["info", str(ws)]).exit_code == 0
     res = runner.invoke(app, ["ingest", str(tiny_capture), str(tmp_path / "ws2"), "--flame-model", str(tiny_capture.model_path),
                               "--quiet", "--device", "cpu", "--threads", "0"])  # fmt: skip

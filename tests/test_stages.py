@@ -70,8 +70,10 @@ def test_init_mesh_stage_runs_then_skips(tiny_ws, tmp_path):
     assert r.workspace == ws.resolve() and r.manifest == Workspace(ws).manifest("init-mesh")
     assert r.metrics["n_faces"] > 0 and r.metrics["threads"] == 1
     from sage_core.fields.hashgrid import resolve_backend
+    from sage_core.fields.sdf import resolve_fused_backend
 
     assert r.metrics["hashgrid_backend"] == resolve_backend("auto", "cpu")
+    assert r.metrics["sdf_backend"] == resolve_fused_backend("auto", "cpu")
     assert {"canonical_mesh.ply", "sdf_mesh.ply", "sdf.pt"} <= set(r.outputs) and all(p.exists() for p in r.outputs.values())
 
     events.clear()

@@ -35,7 +35,7 @@ KEY_METRICS: dict[str, tuple[str, ...]] = {
 }
 
 
-RUNTIME_KEYS = ("threads", "render_backend", "hashgrid_backend")
+RUNTIME_KEYS = ("threads", "render_backend", "hashgrid_backend", "sdf_backend")
 """Manifest ``metrics`` entries that describe how the stage ran (the "ran on" column), not results."""
 
 
@@ -51,6 +51,8 @@ def _ran_on(m: dict | None) -> str:
         parts.append(f"{metrics['render_backend']} rasterizer")
     if metrics.get("hashgrid_backend"):
         parts.append(f"{metrics['hashgrid_backend']} hash grid")
+    if metrics.get("sdf_backend"):
+        parts.append(f"{metrics['sdf_backend']} SDF")
     return " · ".join(parts)
 
 

@@ -156,22 +156,9 @@ def sdf_with_encoding(
     avatar: Avatar, x: torch.Tensor, create_graph: bool
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The avatar's SDFNetwork.forward and its gradient at x (M, 3), also returning the hash encoding
-    of x: sdf (M,), grad (M, 3), feature (M, F_z), encoding (M, L·F)."""
-    net = avatar.sdf
-    with torch.enable_grad():
-        xg = x if (x.requires_grad and create_graph) else x.detach().requires_grad_(True)
-        enc = net.encoding(xg)
-        h = torch.cat([(xg - net.center.to(xg.dtype)) / net.half_extent, enc], -1)
-        for layer in net.layers[:-1]:
-            h = net.activation(layer(h))
-        out = net.layers[-1](h)
-        sdf = out[:, 0] * net.half_extent
-        (grad,) = torch.autograd.grad(sdf.sum(), xg, create_graph=create_graph)
-    feature = out[:, 1:]
-    if not create_graph:
-        sdf, feature = sdf.detach(), feature.detach()
-        enc = net.encoding(x) if torch.is_grad_enabled() else enc.detach()
-    return sdf, grad, feature, enc
+    of x: sdf (M,), grad (M, 3), feature (M, F_z), encoding (M, L·F) (the fused native path on CPU,
+    :meth:`SDFNetwork.gradient_with_encoding`)."""
+    return avatar.sdf.gradient_with_encoding(x, create_graph)
 
 
 def shape_forward(avatar: Avatar, x: torch.Tensor, prior_normal: torch.Tensor, enc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

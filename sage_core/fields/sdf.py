@@ -4,19 +4,43 @@ The SDF is returned in world units (metres): the MLP works on normalized coordin
 ``x_n = (x - centre) / half_extent`` (``half_extent`` = half the largest side of the box) and its raw output
 is multiplied by ``half_extent``, so ``|grad f| = 1`` means the same in both spaces and a sphere init of
 normalized radius ``r`` is a world sphere of radius ``r * half_extent`` around the box centre.
+
+Backends (``SDFNetwork.backend``): ``torch`` is the autograd reference (the encoding then runs its own
+``HashGrid.backend``); ``cpp`` is the fused native kernel of ``_cpp_sdf`` for one hidden layer on CPU
+(encoding, MLP, the analytic gradient and the exact backward of all three in one autograd node);
+``auto`` (the default) uses ``cpp`` when the network and the tensors allow it and the extension builds,
+and ``torch`` otherwise (a missing build warns once).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
-from .hashgrid import HashGrid
+from .hashgrid import BACKENDS, HashGrid
+
+if TYPE_CHECKING:
+    from . import _cpp_sdf
 
 GradientFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+def resolve_fused_backend(backend: str, device: torch.device | str) -> str:
+    """``auto|torch|cpp`` for a one-hidden-layer :class:`SDFNetwork` on ``device`` -> the path that runs:
+    ``cpp`` (the fused native kernel) or ``torch``. Like :func:`sage_core.fields.hashgrid.resolve_backend`:
+    CUDA always gives ``torch``; ``auto`` on CPU gives ``cpp`` when the extension is available (building it
+    on first use) and otherwise warns once; an explicit ``cpp`` that cannot be built raises ValueError."""
+    if backend not in BACKENDS:
+        raise ValueError(f"SDFNetwork: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+    if backend == "torch" or torch.device(device).type != "cpu":
+        return "torch"
+    from . import _cpp_sdf
+
+    return _cpp_sdf.EXT.choose(backend, "SDFNetwork")
 
 
 def hessian_fd(grad_fn: GradientFn, x: torch.Tensor, eps: float) -> torch.Tensor:
@@ -99,6 +123,13 @@ class SDFNetwork(nn.Module):
         feature_dim: F_z, size of the geometry feature passed to the attribute networks.
         sphere_radius: init sphere radius relative to the half extent of the box.
         softplus_beta: Softplus sharpness (100 keeps analytic second derivatives meaningful).
+        backend: ``auto`` | ``torch`` | ``cpp`` (see the module docstring and ``fused_reason``); an attribute
+            that may be changed later, not part of the state dict.
+
+    The fused ``cpp`` path serves ``gradient`` and ``gradient_with_encoding`` (all of their outputs are
+    differentiable once; a loss on a gradient of their gradients raises) and ``forward``/``sdf`` unless x
+    requires a gradient in grad mode (then the torch path runs, so that ``autograd.grad(sdf, x,
+    create_graph=True)`` stays available to the caller).
 
     Presets: ``tiny`` L=8..12, F=2, log2 T=14..16, N_min=16, N_max=256, hidden 32..64, 1 hidden layer,
     feature_dim 13; ``default`` L=16, F=2, log2 T=19, N_min=16, N_max=2048, hidden 64, 1-2 hidden layers,
@@ -119,10 +150,14 @@ class SDFNetwork(nn.Module):
         feature_dim: int = 13,
         sphere_radius: float = 0.5,
         softplus_beta: float = 100.0,
+        backend: str = "auto",
     ) -> None:
         super().__init__()
         if n_hidden_layers < 1:
             raise ValueError("n_hidden_layers must be >= 1")
+        if backend not in BACKENDS:
+            raise ValueError(f"SDFNetwork: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+        self.backend = backend
         self.encoding = HashGrid(bbox_min, bbox_max, n_levels, n_features, log2_table, base_res, max_res)
         lo, hi = self.encoding.bbox_min, self.encoding.bbox_max
         self.register_buffer("center", 0.5 * (lo + hi))
@@ -168,14 +203,101 @@ class SDFNetwork(nn.Module):
         """The hash table parameter."""
         return [self.encoding.table]
 
+    # ------------------------------------------------------------------ backend choice
+    def fused_reason(self, x: torch.Tensor) -> str | None:
+        """Why the fused kernel cannot evaluate this network at x (N, 3), or None when it can.
+
+        The kernel needs CPU float32/float64 tensors of one dtype, one hidden layer and a Softplus.
+        """
+        if x.device.type != "cpu":
+            return f"x is on {x.device}"
+        if x.dtype not in (torch.float32, torch.float64):
+            return f"dtype {x.dtype}"
+        if len(self.layers) != 2:
+            return f"{len(self.layers) - 1} hidden layers (the fused kernel has one)"
+        if not isinstance(self.activation, nn.Softplus):
+            return f"activation {type(self.activation).__name__}"
+        for t in (self.encoding.table, *self.layers.parameters()):
+            if t.device.type != "cpu" or t.dtype != x.dtype:
+                return f"a parameter is {t.dtype} on {t.device}, x is {x.dtype}"
+        return None
+
+    def resolve_backend(self, x: torch.Tensor) -> str:
+        """The backend that evaluates the network at x (N, 3): ``cpp`` or ``torch``.
+
+        ``auto`` gives ``cpp`` when ``fused_reason(x)`` is None and the extension is available (building it
+        on first use; a failed build warns once), ``torch`` otherwise. An explicit ``cpp`` raises
+        ValueError when the network has more than one hidden layer or the extension cannot be built, and
+        falls back to ``torch`` for other tensors (CUDA, float16, mixed dtypes) as ``HashGrid`` does.
+        """
+        if self.backend not in BACKENDS:
+            raise ValueError(f"SDFNetwork: unknown backend {self.backend!r} (choose from {', '.join(BACKENDS)})")
+        if self.backend == "torch":
+            return "torch"
+        why = self.fused_reason(x)
+        if why is not None:
+            if self.backend == "cpp" and len(self.layers) != 2:
+                raise ValueError(f"SDFNetwork: backend='cpp' is unavailable: {why}")
+            return "torch"
+        from . import _cpp_sdf
+
+        return _cpp_sdf.EXT.choose(self.backend, "SDFNetwork")
+
+    def fused_layout(self, dtype: torch.dtype) -> _cpp_sdf.Layout:
+        """The non-trainable part of the network for the fused kernel, for points of ``dtype``."""
+        from . import _cpp_sdf
+
+        enc, act = self.encoding, self.activation
+        assert isinstance(act, nn.Softplus)
+        lo, hi = enc.bbox_min.to(dtype), enc.bbox_max.to(dtype)
+        return _cpp_sdf.Layout(
+            levels=enc._layout,
+            scales=enc._scales.to(torch.float64),
+            mask=enc.level_mask.to(torch.float64),
+            box=torch.stack([lo, hi - lo, self.center.to(dtype)]),
+            half_extent=self.half_extent,
+            beta=float(act.beta),
+            threshold=float(act.threshold),
+        )
+
+    def _fused(
+        self, x: torch.Tensor, with_grad: bool, with_encoding: bool = False, keep: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The native kernel (``_cpp_sdf.evaluate``): x (N, 3) -> sdf (N,), grad (N, 3) (empty unless
+        ``with_grad``), feature (N, F_z), encoding (N, L*F) (empty unless ``with_encoding``)."""
+        from . import _cpp_sdf
+
+        first, last = self.layers[0], self.layers[1]
+        return _cpp_sdf.evaluate(
+            x, self.encoding.table, first.weight, first.bias, last.weight, last.bias, self.fused_layout(x.dtype),
+            with_grad, with_encoding, keep,
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ evaluation
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """x: (N, 3) world -> sdf (N,) world units, feature (N, feature_dim)."""
+        """x: (N, 3) world -> sdf (N,) world units, feature (N, feature_dim).
+
+        Fused unless x requires a gradient in grad mode (see the class docstring).
+        """
+        if not (x.requires_grad and torch.is_grad_enabled()) and self.resolve_backend(x) == "cpp":
+            sdf, _, feature, _ = self._fused(x, with_grad=False)
+            return sdf, feature
+        return self._forward_torch(x)
+
+    def _forward_torch(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The autograd reference of ``forward``."""
+        sdf, feature, _ = self._forward_torch_with_encoding(x)
+        return sdf, feature
+
+    def _forward_torch_with_encoding(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """x (N, 3) -> sdf (N,), feature (N, F_z), encoding (N, L*F), in autograd."""
         xn = (x - self.center.to(x.dtype)) / self.half_extent
-        h = torch.cat([xn, self.encoding(x)], -1)
+        enc = self.encoding(x)
+        h = torch.cat([xn, enc], -1)
         for layer in self.layers[:-1]:
             h = self.activation(layer(h))
         out = self.layers[-1](h)
-        return out[:, 0] * self.half_extent, out[:, 1:]
+        return out[:, 0] * self.half_extent, out[:, 1:], enc
 
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
         """x: (N, 3) -> sdf (N,)."""
@@ -184,18 +306,48 @@ class SDFNetwork(nn.Module):
     def gradient(
         self, x: torch.Tensor, create_graph: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Analytic gradient by autograd.
+        """Analytic gradient by autograd (``torch``) or by the fused kernel (``cpp``).
 
         x: (N, 3) -> sdf (N,), grad (N, 3), feature (N, F_z). With ``create_graph`` the gradient is
         differentiable (eikonal loss); otherwise it is detached from the parameters' graph, while
         ``sdf`` and ``feature`` keep theirs (the graph is retained so they can still be
-        back-propagated).
+        back-propagated). The graph is built even under ``no_grad``, as by ``autograd.grad``.
         """
+        if self.resolve_backend(x) == "cpp":
+            with torch.enable_grad():
+                sdf, grad, feature, _ = self._fused(x if create_graph else x.detach(), with_grad=True)
+            return sdf, (grad if create_graph else grad.detach()), feature
         with torch.enable_grad():
             xg = x if (x.requires_grad and create_graph) else x.detach().requires_grad_(True)
-            sdf, feature = self.forward(xg)
+            sdf, feature = self._forward_torch(xg)
             (grad,) = torch.autograd.grad(sdf.sum(), xg, create_graph=create_graph, retain_graph=True)
         return sdf, grad, feature
+
+    def gradient_with_encoding(
+        self, x: torch.Tensor, create_graph: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``gradient`` that also returns the hash encoding of x, for networks that share it.
+
+        x: (N, 3) -> sdf (N,), grad (N, 3), feature (N, F_z), encoding (N, L*F). With ``create_graph``
+        all four are differentiable (in x and the parameters; the gradient as in ``gradient``). Without
+        it sdf, grad and feature are detached, and the encoding keeps its graph to x and the table when
+        grad mode is on (and is detached otherwise).
+        """
+        if self.resolve_backend(x) == "cpp":
+            if create_graph:
+                with torch.enable_grad():
+                    return self._fused(x, with_grad=True, with_encoding=True)
+            # only the encoding keeps a graph: its backward recomputes the hash features it needs
+            sdf, grad, feature, enc = self._fused(x, with_grad=True, with_encoding=True, keep=False)
+            return sdf.detach(), grad.detach(), feature.detach(), enc
+        with torch.enable_grad():
+            xg = x if (x.requires_grad and create_graph) else x.detach().requires_grad_(True)
+            sdf, feature, enc = self._forward_torch_with_encoding(xg)
+            (grad,) = torch.autograd.grad(sdf.sum(), xg, create_graph=create_graph)
+        if not create_graph:
+            sdf, feature = sdf.detach(), feature.detach()
+            enc = self.encoding(x) if torch.is_grad_enabled() else enc.detach()
+        return sdf, grad, feature, enc
 
     def sdf_and_normal(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """x: (N, 3) -> sdf (N,), unit normal (N, 3) (detached gradient direction)."""

@@ -152,8 +152,10 @@ def execute_stage(
                 run.metrics["render_backend"] = backend
             if stage in HASHGRID_STAGES:
                 from ..fields.hashgrid import resolve_backend as resolve_hashgrid_backend
+                from ..fields.sdf import resolve_fused_backend
 
                 run.metrics["hashgrid_backend"] = resolve_hashgrid_backend("auto", device)
+                run.metrics["sdf_backend"] = resolve_fused_backend("auto", device)
             log_path = setup_logging(ws.root, stage)
             log = logging.getLogger("sage")
             log.info("stage %s started: config %s, seed %s, device %s, resumed %s, threads %s, render backend %s",
