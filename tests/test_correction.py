@@ -331,3 +331,109 @@ def test_anisotropy_gate_keeps_orientation_at_rest_and_turns_under_anisotropic_s
         posed = verts * torch.tensor([sx, 1.0, 1.0], dtype=DT)
         out = corr(posed, binding, rot, n, kappa, dirs)
         torch.testing.assert_close(out.angle, frac * full.angle, atol=1e-9, rtol=1e-6)
+
+
+# ---------------------------------------------------------------- fast paths against their references
+
+
+def _dense_relative_deformation(corr: SurfelCorrection, posed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The neighbourhood sum as a dense gather over the (F, K+1) table, every triangle (the reference)."""
+    posed = posed.to(corr.A_inv.dtype)
+    A_d, _ = affine_frames(posed, corr.faces)
+    Fj = A_d @ corr.A_inv
+    w = corr.weights / corr.weights.sum(1, keepdim=True).clamp_min(1e-30)
+    F_bar = (Fj[..., corr.idx, :, :] * w[..., None, None]).sum(-3)
+    R_d, _, k_d = triangle_frames(posed, corr.faces)
+    Q = R_d @ corr.R_c.transpose(-1, -2)
+    r = k_d / corr.k_c.clamp_min(1e-30)
+    return Q.transpose(-1, -2) @ F_bar / r[..., None, None].clamp_min(1e-30), r
+
+
+def _bent(verts: torch.Tensor, seed: int, batch: tuple[int, ...] = ()) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    noise = 0.002 * torch.randn(*batch, *verts.shape, generator=g, dtype=DT).to(verts.dtype)
+    posed = verts * torch.tensor([1.3, 0.8, 1.0], dtype=verts.dtype) + noise
+    return posed + torch.stack([0 * posed[..., 0], 0 * posed[..., 0], 3.0 * posed[..., 0] ** 2], -1)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_sparse_neighbour_sum_matches_the_dense_gather(dtype):
+    """relative_deformation (a sparse CSR product over the neighbourhoods, optionally on a subset of
+    triangles) against the dense gather: values within 1e-12 (float64) / 1e-5 (float32) of the
+    largest entry, float64 gradients within 1e-10."""
+    verts, faces = _grid(8)
+    corr = SurfelCorrection.from_mesh(verts.to(dtype), faces, radius=0.025, max_neighbours=24)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for batch in ((), (3,)):
+        posed = _bent(verts, 1, batch).to(dtype)
+        L_ref, r_ref = _dense_relative_deformation(corr, posed)
+        L, r = corr.relative_deformation(posed)
+        scale = float(L_ref.abs().max())
+        torch.testing.assert_close(L, L_ref, atol=tol * scale, rtol=0)
+        torch.testing.assert_close(r, r_ref, atol=tol, rtol=0)
+        sub = torch.tensor([5, 0, 17, 17, 60])
+        L_sub, r_sub = corr.relative_deformation(posed, sub)
+        torch.testing.assert_close(L_sub, L_ref[..., sub, :, :], atol=tol * scale, rtol=0)
+        torch.testing.assert_close(r_sub, r_ref[..., sub], atol=tol, rtol=0)
+    if dtype == torch.float64:
+        posed = _bent(verts, 2).requires_grad_(True)
+        w = torch.randn(faces.shape[0], 3, 3, generator=torch.Generator().manual_seed(3), dtype=DT)
+        (g_new,) = torch.autograd.grad((corr.relative_deformation(posed)[0] * w).sum(), posed)
+        (g_ref,) = torch.autograd.grad((_dense_relative_deformation(corr, posed)[0] * w).sum(), posed)
+        torch.testing.assert_close(g_new, g_ref, atol=1e-10 * float(g_ref.abs().max()), rtol=0)
+
+
+def test_neighbour_matrix_rows_are_the_normalised_weights():
+    verts, faces = _grid(6)
+    corr = SurfelCorrection.from_mesh(verts, faces, radius=0.025, max_neighbours=24)
+    dense = corr.neighbour_matrix().to_dense()
+    ref = torch.zeros_like(dense)
+    w = corr.weights / corr.weights.sum(1, keepdim=True).clamp_min(1e-30)
+    ref.scatter_add_(1, corr.idx, w)
+    torch.testing.assert_close(dense, ref, atol=0, rtol=0)
+    ok = corr.tri_ok
+    torch.testing.assert_close(dense[ok].sum(1), torch.ones(int(ok.sum()), dtype=DT), atol=1e-14, rtol=0)
+    sub = torch.tensor([3, 1, 3])
+    torch.testing.assert_close(corr.neighbour_matrix(sub).to_dense(), ref[sub], atol=0, rtol=0)
+
+
+def test_forward_on_bound_triangles_equals_every_triangle_then_gather(monkeypatch):
+    """The forward computes the relative deformation of the bound triangles only (remembered per
+    binding tensor); the result equals computing every triangle and gathering by the binding, and a
+    binding changed in place is seen."""
+    verts, faces = _grid(9)
+    corr, binding = _setup(verts, faces, anisotropy_tol=0.1)
+    binding = binding.repeat_interleave(2)[:-3].clone()  # repeated triangles, not every interior one
+    N = binding.numel()
+    g = torch.Generator().manual_seed(4)
+    rot = _surfels(verts, faces, binding, torch.rand(N, generator=g, dtype=DT))
+    R = quat_to_matrix(rot)
+    beta = torch.rand(N, generator=g, dtype=DT) * 3
+    d1 = torch.stack([torch.cos(beta), torch.sin(beta), 0 * beta], -1)
+    dirs = torch.stack([d1, torch.linalg.cross(R[..., 2], d1, dim=-1)], -2)
+    kappa = torch.stack([60.0 + 0 * beta, 10.0 * beta], -1)
+    posed = _bent(verts, 5)
+
+    def every_triangle(b: torch.Tensor):
+        return torch.arange(corr.faces.shape[0]), b, corr.neighbour_matrix()
+
+    def run(b: torch.Tensor):
+        return corr(posed, b, rot, R[..., 2], kappa, dirs)
+
+    fast = run(binding)
+    assert corr._bound_triangles(binding)[0].numel() < corr.faces.shape[0]
+    with monkeypatch.context() as m:
+        m.setattr(corr, "_bound_triangles", every_triangle)
+        ref = run(binding)
+    for name in ("quat", "scale_factor", "stretch", "principal_stretch", "angle"):
+        torch.testing.assert_close(getattr(fast, name), getattr(ref, name), atol=1e-13, rtol=0)
+    assert torch.equal(fast.valid, ref.valid)
+    tri, row, _ = corr._bound_triangles(binding)
+    assert corr._bound_triangles(binding)[0] is tri  # remembered
+    binding[:5] = binding[-1]  # in place: the remembered triangles no longer apply
+    moved = run(binding)
+    with monkeypatch.context() as m:
+        m.setattr(corr, "_bound_triangles", every_triangle)
+        ref2 = run(binding)
+    torch.testing.assert_close(moved.scale_factor, ref2.scale_factor, atol=1e-13, rtol=0)
+    assert not torch.allclose(moved.scale_factor[:5], fast.scale_factor[:5])

@@ -457,3 +457,196 @@ def test_every_rate_zero_poses_and_prices_without_training(phase1_avatar_path, p
     tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, seed=4, lr_networks=0.0, lr_shape=0.0, lr_position=0.0)
     tr2.load_state_dict(state)
     assert tr2.step_count == 1
+
+
+# ---------------------------------------------------------------- fast paths against their references
+
+
+def _canonical_loss(cs) -> torch.Tensor:
+    return cs.scales.sum() + (cs.rotation * torch.arange(9.0).reshape(3, 3)).sum() + cs.quats[:, 1:].abs().sum()
+
+
+def _assert_same_canonical(a, b) -> None:
+    for name in ("means", "quats", "scales", "rotation", "sdf", "sdf_grad", "feature"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), atol=0, rtol=0, msg=name)
+
+
+def test_frozen_canonical_inputs_equal_the_uncached_path(phase1_avatar_path):
+    """CorrectedPosing.canonical_state with frozen centres and SDF (cached centres, SDF values and hash
+    encoding) against the uncached path: the same values bit for bit and the same shape-network
+    gradients; the cache follows in-place changes of the centres and of the SDF table."""
+    av = _avatar(phase1_avatar_path)
+    av.sdf.requires_grad_(False)
+    posing = CorrectedPosing(av, enabled=True)
+    shape_params = list(av.shape.parameters())
+
+    def reference():
+        av.surfels.mu_loc.requires_grad_(True)
+        assert not posing.frozen_inputs_apply()
+        cs = posing.canonical_state()
+        grads = torch.autograd.grad(_canonical_loss(cs), shape_params)
+        av.surfels.mu_loc.requires_grad_(False)
+        return cs, grads
+
+    ref, g_ref = reference()
+    assert posing._frozen is None  # the uncached path keeps nothing
+    assert posing.frozen_inputs_apply()
+    fast = posing.canonical_state()
+    _assert_same_canonical(fast, ref)
+    assert not fast.means.requires_grad
+    for a, b in zip(torch.autograd.grad(_canonical_loss(fast), shape_params), g_ref):
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    fz = posing.frozen_inputs()
+    assert posing.frozen_inputs() is fz  # nothing changed: reused
+    with torch.no_grad():
+        av.surfels.mu_loc[:10] += 0.002
+    moved = posing.canonical_state()
+    assert posing.frozen_inputs() is not fz
+    ref2, _ = reference()
+    _assert_same_canonical(moved, ref2)
+    assert not torch.equal(moved.means[:10], fast.means[:10])
+    with torch.no_grad():
+        av.sdf.encoding.table.mul_(1.5)
+    regrid = posing.canonical_state()
+    ref3, _ = reference()
+    _assert_same_canonical(regrid, ref3)
+    assert not torch.equal(regrid.sdf, moved.sdf)
+    av.surfels.mu_loc.requires_grad_(True)
+    with torch.no_grad():
+        assert posing.frozen_inputs_apply()  # without grad mode the centres' gradient is moot
+    av.sdf.encoding.table.requires_grad_(True)
+    av.surfels.mu_loc.requires_grad_(False)
+    assert not posing.frozen_inputs_apply()  # a trained SDF table must get its gradient
+
+
+def test_frozen_canonical_inputs_with_free_attributes(p2_data, p2_init_dir):
+    cfg1 = resolve_config("phase1", "tiny", None, {**P1_FLAGS, "attributes": "free"})
+    av = build_avatar(p2_data, p2_init_dir, cfg1, "cpu", torch.Generator().manual_seed(0))
+    av.sdf.requires_grad_(False)
+    posing = CorrectedPosing(av, enabled=True)
+    ref = posing.canonical_state()  # mu_loc requires a gradient: uncached
+    av.surfels.mu_loc.requires_grad_(False)
+    fast = posing.canonical_state()
+    assert posing._frozen is not None and posing._frozen.encoding is None
+    _assert_same_canonical(fast, ref)
+    assert fast.quats.requires_grad  # q_loc still trains
+
+
+def test_phase2_trains_exactly_the_optimizer_parameters(phase1_avatar_path, p2_data, p2_init_dir):
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir)
+    av = tr.avatar
+    trained = {id(p) for p in tr.trainable_parameters()}
+    assert trained and all(p.requires_grad == (id(p) in trained) for p in av.parameters())
+    assert not av.surfels.mu_loc.requires_grad and tr.posing.frozen_inputs_apply()
+    tr.step()
+    assert av.surfels.mu_loc.grad is None and tr.posing._frozen is not None
+    tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, lr_position=1e-3)
+    mu = tr2.avatar.surfels.mu_loc
+    assert mu.requires_grad and not tr2.posing.frozen_inputs_apply()
+    before = mu.detach().clone()
+    tr2.step()
+    assert mu.grad is not None and not torch.equal(mu.detach(), before)
+
+
+def _sequential_lookup(views, depth_tol, faces, face_id, bary, ray_dirs, frames):
+    """The rest teacher's lookup visiting the views one by one (the reference of the batched one)."""
+    import torch.nn.functional as F
+
+    def sample(img, u, v, width, height):
+        grid = torch.stack([u / width * 2.0 - 1.0, v / height * 2.0 - 1.0], -1).to(img.dtype)[None, None]
+        return F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0].T
+
+    R = face_id.shape[0]
+    d_loc = (frames[0][face_id].transpose(-1, -2) @ ray_dirs[..., None]).squeeze(-1)
+    best = torch.full((R,), -2.0, dtype=ray_dirs.dtype)
+    color = torch.zeros(R, 3, dtype=ray_dirs.dtype)
+    view = torch.full((R,), -1, dtype=torch.long)
+    tri = faces[face_id]
+    for vi, v in enumerate(views):
+        x = (bary[..., None] * v.vertices[tri]).sum(1)
+        xc = x @ v.w2c[:3, :3].T + v.w2c[:3, 3]
+        z = xc[:, 2]
+        front = z > 1e-6
+        zs = torch.where(front, z, torch.ones_like(z))
+        uvw = xc @ v.K.T
+        u, w_ = uvw[:, 0] / zs, uvw[:, 1] / zs
+        inside = front & (u >= 0) & (u < v.width) & (w_ >= 0) & (w_ < v.height)
+        surf = v.depth[w_.clamp(0, v.height - 1).long(), u.clamp(0, v.width - 1).long()]
+        visible = inside & (z <= surf * (1.0 + depth_tol)) & (sample(v.interior, u, w_, v.width, v.height)[:, 0] > 0.999)
+        dv = x + v.w2c[:3, :3].T @ v.w2c[:3, 3]
+        dv = dv / dv.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        score = ((v.frames[0][face_id].transpose(-1, -2) @ dv[..., None]).squeeze(-1) * d_loc).sum(-1)
+        take = visible & (score > best)
+        color = torch.where(take[:, None], sample(v.color, u, w_, v.width, v.height).to(color), color)
+        best = torch.where(take, score, best)
+        view = torch.where(take, torch.full_like(view, vi), view)
+    return color, view >= 0, view
+
+
+def test_batched_rest_lookup_equals_the_view_by_view_lookup(phase1_avatar_path, p2_data, p2_init_dir):
+    """The batched lookup (views stacked per image size) against visiting the views in order, with a
+    cropped view (another image size) and an exact duplicate (ties go to the earlier view)."""
+    import dataclasses
+
+    from sage_core.flame.frames import surfel_frames
+    from sage_core.render.mesh_raster import rasterize_mesh
+    from sage_core.train.rest_teacher import RestTeacher
+
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir)
+    av = tr.avatar
+    base = tr.rest_teacher.views
+    crop = dataclasses.replace(base[1], width=90, height=100, color=base[1].color[..., :100, :90].clone(),
+                               interior=base[1].interior[..., :100, :90].clone(), depth=base[1].depth[:100, :90].clone())  # fmt: skip
+    # view 1 is replaced by its crop, at the end, so that it wins where view 1 would; view 3 is duplicated
+    views = [dataclasses.replace(v, color=v.color.clone()) for i, v in enumerate(base) if i != 1]
+    views += [crop, dataclasses.replace(base[3], color=base[3].color.clone())]
+    ref_views = [dataclasses.replace(v) for v in views]  # the same tensors, kept out of the stacking
+    teacher = RestTeacher(views, tr.cfg.teacher_depth_tol)
+    assert len(teacher._stacked()) == 2
+    fr = p2_data.train[2]
+    cam = RenderCamera.from_camera(fr.camera, "cpu")
+    with torch.no_grad():
+        verts = av.pose_mesh(_deformed_inputs(av, p2_data))
+    ras = rasterize_mesh(verts, av.faces, cam.K, cam.w2c, cam.width, cam.height)
+    pix = (ras.face_id.reshape(-1) >= 0).nonzero().squeeze(-1)
+    fid = ras.face_id.reshape(-1)[pix]
+    bary = ras.bary.reshape(-1, 3)[pix]
+    _, dirs = pixel_rays(cam.K, cam.w2c, cam.width, cam.height, pix)
+    frames = surfel_frames(verts, av.faces)
+    look = teacher.lookup(av.faces, fid, bary, dirs, frames)
+    color, valid, view = _sequential_lookup(ref_views, teacher.depth_tol, av.faces, fid, bary, dirs, frames)
+    assert int(valid.sum()) > 100 and bool((view == len(base) - 1).any())  # the cropped view wins somewhere
+    assert bool((view == 2).any()) and not bool((view == len(base)).any())  # view 3's duplicate never beats it
+    assert torch.equal(look.valid, valid) and torch.equal(look.view, view)
+    torch.testing.assert_close(look.color, color, atol=1e-6, rtol=0)
+    rot = surfel_frames(verts, av.faces[fid])[0]
+    again = teacher.lookup(av.faces, fid, bary, dirs, deformed_rotations=rot)
+    assert torch.equal(again.view, look.view) and torch.equal(again.color, look.color)
+    for v, r in zip(views, ref_views):  # the views now hold slices of the stacks, with the same values
+        assert torch.equal(v.color, r.color) and torch.equal(v.depth, r.depth) and torch.equal(v.frames[0], r.frames[0])
+    with pytest.raises(ValueError):
+        teacher.lookup(av.faces, fid, bary, dirs)
+    views[0].color.zero_()  # a view changed in place is seen (its pixels come from it, now black)
+    dark = teacher.lookup(av.faces, fid, bary, dirs, frames)
+    first = look.view == 0
+    assert bool(first.any()) and bool((dark.color[first] == 0).all()) and torch.equal(dark.color[~first], look.color[~first])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pixel_rays_equal_the_full_image_rays(dtype):
+    """pixel_rays computes the selected pixels only: the same rays as ray_directions over the image."""
+    from sage_core.data.cameras import look_at
+    from sage_core.render.mesh_raster import ray_directions
+
+    W, H = 37, 23
+    K = torch.tensor([[50.0, 0.3, 18.2], [0.0, 52.0, 11.7], [0.0, 0.0, 1.0]], dtype=dtype)
+    w2c = torch.as_tensor(look_at(torch.tensor([0.3, -0.2, 1.5]).numpy(), torch.zeros(3).numpy()), dtype=dtype)
+    pix = torch.tensor([0, 1, W - 1, W, W * H - 1, 5 * W + 17, 5 * W + 17, 300])
+    o, d = pixel_rays(K, w2c, W, H, pix)
+    o_ref, d_ref = ray_directions(K, w2c, W, H)
+    tol = 1e-6 if dtype == torch.float32 else 1e-14
+    assert o.dtype == d.dtype == dtype and o.shape == d.shape == (pix.numel(), 3)
+    torch.testing.assert_close(d, d_ref.reshape(-1, 3)[pix], atol=tol, rtol=0)
+    torch.testing.assert_close(o, o_ref.reshape(-1, 3)[pix], atol=tol, rtol=0)
+    empty_o, empty_d = pixel_rays(K, w2c, W, H, pix[:0])
+    assert empty_o.shape == empty_d.shape == (0, 3)

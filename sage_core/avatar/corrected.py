@@ -15,6 +15,16 @@ neighbours are left untouched. The correction is geometric: it is applied withou
 correction terms themselves (the correction quaternion and scale factors are constants of the step),
 while the gradients of the uncorrected surfel parameters flow through ``q ⊗ dq`` and ``s · factor``.
 
+The canonical inputs of the surfels' attribute networks are frozen too while the surfel centres
+(``mu_loc``) and the SDF's hash grid take no gradient, as in phase 2 by default: the centres, the
+SDF value, gradient and feature there, the hash encoding the shape network reads and the bound
+triangles' normals (:class:`FrozenCanonical`). :meth:`CorrectedPosing.canonical_state` then computes
+them once and reuses them until one of the tensors they come from is replaced or modified in place
+(the centres, the binding, the canonical triangle frames, any SDF parameter or buffer), and only
+the trained shape network runs per call. The values are those of the uncached path; the difference
+is that no gradient reaches ``mu_loc`` or the SDF table through them, which is why the cache is
+only used when neither takes one (or grad mode is off).
+
 With ``enabled=False`` (``--correction off``) :meth:`CorrectedPosing.posed` returns exactly
 ``Avatar.posed(...)``. With an avatar whose ``shading`` is on, the colours are shaded with the
 corrected surfel normals (:meth:`Avatar.shade_colors` after the correction); ``shade=False`` returns
@@ -27,8 +37,10 @@ from dataclasses import dataclass
 
 import torch
 
+from ..geometry.rotations import matrix_to_quat
 from .correction import CorrectionResult, SurfelCorrection
 from .model import Avatar, CanonicalSurfels, PosedSurfels
+from .posing import shape_forward
 
 
 def median_edge_length(vertices: torch.Tensor, faces: torch.Tensor) -> float:
@@ -50,6 +62,27 @@ class CurvatureCache:
     kappa: torch.Tensor
     dirs: torch.Tensor
     normal: torch.Tensor
+
+
+@dataclass
+class FrozenCanonical:
+    """Canonical inputs of the attribute networks that do not change while the surfel centres and the
+    SDF are frozen (all detached).
+
+    key: the identity and version of every tensor they depend on; sources: those tensors (held so
+    that their identities stay unique); means: (N, 3) canonical centres; prior_normal: (N, 3) normals
+    of the bound canonical triangles; encoding: (N, L·F) SDF hash features at the centres (mlp
+    attributes, else None); sdf: (N,); sdf_grad: (N, 3); feature: (N, F_z) at the centres.
+    """
+
+    key: tuple
+    sources: tuple[torch.Tensor, ...]
+    means: torch.Tensor
+    prior_normal: torch.Tensor
+    encoding: torch.Tensor | None
+    sdf: torch.Tensor
+    sdf_grad: torch.Tensor
+    feature: torch.Tensor
 
 
 class CorrectedPosing:
@@ -105,6 +138,7 @@ class CorrectedPosing:
         self.refresh_tolerance = float(refresh_tolerance)
         self._cache: CurvatureCache | None = None
         self.recomputed = 0
+        self._frozen: FrozenCanonical | None = None
 
     # ------------------------------------------------------------------ SDF geometry
     @torch.no_grad()
@@ -151,12 +185,55 @@ class CorrectedPosing:
     # ------------------------------------------------------------------ posing
     def canonical_state(self) -> CanonicalSurfels:
         """The avatar's canonical surfels with the SDF value, gradient and feature at the centres
-        detached (the SDF is frozen; gradients still reach the surfels and the attribute heads)."""
+        detached (the SDF is frozen; gradients still reach the surfels and the attribute heads).
+
+        While :meth:`frozen_inputs_apply` holds, the centres and the SDF quantities come from
+        :meth:`frozen_inputs` (same values, no gradient to ``mu_loc``, which takes none)."""
         av = self.avatar
-        cs = av.canonical_state(with_sdf=False)
-        sdf, grad, feat = av.sdf.gradient(cs.means.detach())
-        cs.sdf, cs.sdf_grad, cs.feature = sdf.detach(), grad.detach(), feat.detach()
+        if not self.frozen_inputs_apply():
+            cs = av.canonical_state(with_sdf=False)
+            sdf, grad, feat = av.sdf.gradient(cs.means.detach())
+            cs.sdf, cs.sdf_grad, cs.feature = sdf.detach(), grad.detach(), feat.detach()
+            return cs
+        fz = self.frozen_inputs()
+        if fz.encoding is not None:
+            rot, scales = shape_forward(av, fz.means, fz.prior_normal, fz.encoding)
+            cs = CanonicalSurfels(fz.means, matrix_to_quat(rot), scales, rot)
+        else:
+            cs = av.canonical_state(with_sdf=False)
+        cs.sdf, cs.sdf_grad, cs.feature = fz.sdf, fz.sdf_grad, fz.feature
         return cs
+
+    def frozen_inputs_apply(self) -> bool:
+        """Whether :meth:`canonical_state` may use :meth:`frozen_inputs`: grad mode is off, or neither the
+        surfel offsets ``mu_loc`` nor the SDF's hash table require a gradient."""
+        av = self.avatar
+        if not torch.is_grad_enabled():
+            return True
+        return not av.surfels.mu_loc.requires_grad and not any(p.requires_grad for p in av.sdf.encoding.parameters())
+
+    def _frozen_sources(self) -> tuple[torch.Tensor, ...]:
+        av = self.avatar
+        s = av.surfels
+        return (s.mu_loc, s.binding, av.R_c, av.T_c, av.k_c, *av.sdf.parameters(), *av.sdf.buffers())
+
+    def frozen_inputs(self) -> FrozenCanonical:
+        """The :class:`FrozenCanonical` inputs of the current avatar state, computed when a tensor they
+        depend on was replaced or modified in place since the last call (see the module doc)."""
+        av = self.avatar
+        sources = self._frozen_sources()
+        key = (av.attributes, *((id(t), t._version, t.data_ptr(), tuple(t.shape), t.dtype) for t in sources))
+        fz = self._frozen
+        if fz is not None and fz.key == key:
+            return fz
+        with torch.no_grad():
+            cs = av.canonical_state(with_sdf=False)
+            means = cs.means.detach()
+            enc = av.sdf.encoding(means).detach() if av.attributes == "mlp" else None
+            sdf, grad, feat = av.sdf.gradient(means)
+        prior = av.R_c[av.surfels.binding][..., 2].detach()
+        self._frozen = FrozenCanonical(key, sources, means, prior, enc, sdf.detach(), grad.detach(), feat.detach())
+        return self._frozen
 
     def correct(self, vertices: torch.Tensor, canonical: CanonicalSurfels) -> CorrectionResult:
         """Correction of every surfel for the posed mesh vertices: (V, 3) (no gradient)."""

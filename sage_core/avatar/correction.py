@@ -60,6 +60,7 @@ valid neighbours, or whose bound triangle is degenerate get dq = identity and un
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -114,15 +115,21 @@ def principal_stretches(G: torch.Tensor, eps: float = 1e-20) -> tuple[torch.Tens
     G: (..., 2, 2). Returns sigma (..., 2) (largest first) and the unit principal directions as the
     columns of (..., 2, 2), in the input (canonical tangent) coordinates.
     """
-    C = G.transpose(-1, -2) @ G
+    sigma, C = _principal_sigma(G, eps)
     a, b, c = C[..., 0, 0], C[..., 0, 1], C[..., 1, 1]
-    mean = 0.5 * (a + c)
-    rad = torch.sqrt(0.25 * (a - c) ** 2 + b * b + eps)
-    sigma = torch.stack([(mean + rad).clamp_min(0).sqrt(), (mean - rad).clamp_min(0).sqrt()], -1)
     psi = 0.5 * torch.atan2(2 * b, a - c)
     d1 = torch.stack([torch.cos(psi), torch.sin(psi)], -1)
     d2 = torch.stack([-torch.sin(psi), torch.cos(psi)], -1)
     return sigma, torch.stack([d1, d2], -1)
+
+
+def _principal_sigma(G: torch.Tensor, eps: float = 1e-20) -> tuple[torch.Tensor, torch.Tensor]:
+    """The sigma of :func:`principal_stretches` alone, and C = GᵀG (..., 2, 2)."""
+    C = G.transpose(-1, -2) @ G
+    a, b, c = C[..., 0, 0], C[..., 0, 1], C[..., 1, 1]
+    mean = 0.5 * (a + c)
+    rad = torch.sqrt(0.25 * (a - c) ** 2 + b * b + eps)
+    return torch.stack([(mean + rad).clamp_min(0).sqrt(), (mean - rad).clamp_min(0).sqrt()], -1), C
 
 
 class SurfelCorrection(torch.nn.Module):
@@ -132,6 +139,10 @@ class SurfelCorrection(torch.nn.Module):
     itself first, normalised-at-use weights, the inverse canonical affine frames and the canonical
     frame rotations and scales. Per-surfel inputs (binding, canonical rotation, SDF normal,
     curvatures) are given at call time, so rebinding needs no rebuild.
+
+    A call evaluates the neighbourhood sums Σ_j w_j F_j as one sparse (CSR) matrix product
+    (:meth:`neighbour_matrix`) and only for the triangles the surfels are bound to; those triangles
+    and their matrix are remembered for the last ``binding`` tensor while it is not modified.
 
     Args:
         canonical_vertices: (V, 3) canonical mesh.
@@ -202,6 +213,7 @@ class SurfelCorrection(torch.nn.Module):
         self.umbilic_tol = float(umbilic_tol)
         self.anisotropy_tol = float(anisotropy_tol)
         self.enabled = bool(enabled)
+        self._bound_cache: tuple | None = None
 
     @classmethod
     def from_mesh(
@@ -221,20 +233,58 @@ class SurfelCorrection(torch.nn.Module):
         """(F,) bool: non-degenerate triangles with at least ``min_neighbours`` valid neighbours."""
         return self.tri_ok & (self.n_neighbours >= self.min_neighbours)
 
-    def relative_deformation(self, posed_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def neighbour_matrix(self, triangles: torch.Tensor | None = None) -> torch.Tensor:
+        """The normalised neighbourhood weights as a sparse CSR matrix (M, F) (row q: w_qj / Σ_j w_qj at
+        the columns j of N(q) ∪ {q}, zero weights left out), of every triangle or of ``triangles``
+        (M,) int64. ``neighbour_matrix() @ X`` is Σ_j w_j X_j for per-triangle rows X (F, C)."""
+        rows = torch.arange(self.idx.shape[0], device=self.idx.device) if triangles is None else triangles.to(self.idx.device)
+        w = self.weights[rows]
+        w = w / w.sum(1, keepdim=True).clamp_min(1e-30)
+        cols = self.idx[rows]
+        keep = w != 0
+        r = torch.arange(rows.shape[0], device=rows.device)[:, None].expand_as(cols)
+        size = (rows.shape[0], self.idx.shape[0])
+        with warnings.catch_warnings():  # torch marks sparse CSR support as beta
+            warnings.simplefilter("ignore", UserWarning)
+            coo = torch.sparse_coo_tensor(torch.stack([r[keep], cols[keep]]), w[keep], size, check_invariants=True)
+            return coo.coalesce().to_sparse_csr()
+
+    def _bound_triangles(self, binding: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The distinct triangles of ``binding`` (N,) (M,), each surfel's row among them (N,) and their
+        :meth:`neighbour_matrix` (M, F); remembered for the last binding tensor (while unmodified)."""
+        key = (binding.data_ptr(), binding._version, tuple(binding.shape), self.weights.data_ptr(), self.weights._version)
+        cached = self._bound_cache
+        if cached is not None and cached[0] == key and cached[1] is binding:
+            return cached[2]
+        tri, inv = torch.unique(binding, return_inverse=True)
+        out = (tri, inv, self.neighbour_matrix(tri))
+        self._bound_cache = (key, binding, out)
+        return out
+
+    def relative_deformation(
+        self, posed_vertices: torch.Tensor, triangles: torch.Tensor | None = None, neighbours: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-triangle Σ_j w_j L_j (the relative linear maps, canonical coordinates) and r_q.
 
-        posed_vertices: (..., V, 3), computed in the canonical mesh's dtype. Returns L: (..., F, 3, 3)
-        and r: (..., F) = k^d / k^c.
+        posed_vertices: (..., V, 3), computed in the canonical mesh's dtype; triangles: optional (M,)
+        int64, the triangles q to compute (default all F), with ``neighbours`` their
+        :meth:`neighbour_matrix` when already built. Returns L: (..., M, 3, 3) and r: (..., M) = k^d / k^c.
         """
         posed_vertices = posed_vertices.to(self.A_inv.dtype)
+        if neighbours is None:
+            neighbours = self.neighbour_matrix(triangles)
         A_d, _ = affine_frames(posed_vertices, self.faces)
-        Fj = A_d @ self.A_inv  # (..., F, 3, 3)
-        w = self.weights / self.weights.sum(1, keepdim=True).clamp_min(1e-30)  # (F, K+1)
-        F_bar = (Fj[..., self.idx, :, :] * w[..., None, None]).sum(-3)  # (..., F, 3, 3)
-        R_d, _, k_d = triangle_frames(posed_vertices, self.faces)
-        Q = R_d @ self.R_c.transpose(-1, -2)
-        r = k_d / self.k_c.clamp_min(1e-30)
+        Fj = A_d @ self.A_inv  # (..., F, 3, 3): every triangle, the neighbourhoods reach them all
+        batch, n_faces = Fj.shape[:-3], Fj.shape[-3]
+        cols = Fj.reshape(-1, n_faces, 9).transpose(0, 1).reshape(n_faces, -1)  # (F, B*9)
+        F_bar = (neighbours @ cols).reshape(-1, max(1, math.prod(batch)), 9).transpose(0, 1)
+        F_bar = F_bar.reshape(*batch, -1, 3, 3)  # (..., M, 3, 3)
+        faces_q = self.faces if triangles is None else self.faces[triangles]
+        R_c = self.R_c if triangles is None else self.R_c[triangles]
+        k_c = self.k_c if triangles is None else self.k_c[triangles]
+        R_d, _, k_d = triangle_frames(posed_vertices, faces_q)
+        Q = R_d @ R_c.transpose(-1, -2)
+        r = k_d / k_c.clamp_min(1e-30)
         L = Q.transpose(-1, -2) @ F_bar / r[..., None, None].clamp_min(1e-30)
         return L, r
 
@@ -268,9 +318,10 @@ class SurfelCorrection(torch.nn.Module):
             ones = rotations.new_ones(*batch, N, 2)
             return CorrectionResult(ident, ones, ones, ones, rotations.new_zeros(*batch, N), torch.zeros_like(valid))
 
-        L, r = self.relative_deformation(posed_vertices)
-        L = L[..., binding, :, :]  # (..., N, 3, 3)
-        r = r[..., binding]
+        tri, row, nbr = self._bound_triangles(binding)
+        L, r = self.relative_deformation(posed_vertices, tri, nbr)  # only the bound triangles
+        L = L[..., row, :, :]  # (..., N, 3, 3)
+        r = r[..., row]
         work = L.dtype
         rotations = rotations.to(work)
         normals = normals.to(work)
@@ -287,6 +338,7 @@ class SurfelCorrection(torch.nn.Module):
         e2 = torch.linalg.cross(n, e1, dim=-1)
         E = torch.stack([e1, e2], -1)  # (N, 3, 2)
         G = E.transpose(-1, -2) @ L @ E  # (..., N, 2, 2)
+        sigma, _ = _principal_sigma(G)  # relative principal stretches, largest first
 
         if curvatures is not None and directions is not None:
             d1 = directions[..., 0, :]
@@ -296,8 +348,7 @@ class SurfelCorrection(torch.nn.Module):
             if self.umbilic_tol > 0:
                 phi = phi * ((k1 - k2).abs() / self.umbilic_tol).clamp(max=1.0)
             if self.anisotropy_tol > 0:
-                sig, _ = principal_stretches(G)
-                aniso = (sig[..., 0] - sig[..., 1]) / sig[..., 1].clamp_min(1e-12)
+                aniso = (sigma[..., 0] - sigma[..., 1]) / sigma[..., 1].clamp_min(1e-12)
                 phi = phi * (aniso / self.anisotropy_tol).clamp(max=1.0)
             theta = alpha - phi
             c2, s2 = torch.cos(theta) ** 2, torch.sin(theta) ** 2
@@ -312,8 +363,7 @@ class SurfelCorrection(torch.nn.Module):
         lam = (GU * GU).sum(-2).clamp_min(1e-30).sqrt()  # (..., N, 2), ‖G u_i‖
         lam = lam.clamp(*self.stretch_range)
         factor = lam / (1 + self.w_s * kappa.abs())
-        sigma_abs, _ = principal_stretches(G)
-        sigma_abs = sigma_abs * r.unsqueeze(-1)
+        sigma_abs = sigma * r.unsqueeze(-1)
 
         half = 0.5 * phi
         zero = torch.zeros_like(half)

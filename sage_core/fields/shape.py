@@ -9,6 +9,19 @@ det R = +1. The two tangent |eigenvalues| set the anisotropy, the scalar the ove
 Gradient guard: ``safe_eigh`` uses eigh's analytic backward with every eigenvalue gap clamped to at least
 ``eig_gap`` in magnitude, so the 1/(lambda_i - lambda_j) factors stay bounded (<= 1/eig_gap) and the
 gradients stay finite at repeated eigenvalues, where torch's own backward returns inf/nan.
+
+Eigensolver backends (``EIGH_BACKENDS``, the ``backend`` argument of ``safe_eigh`` and
+``frame_from_symmetric``): ``torch`` is ``torch.linalg.eigh``, the reference (LAPACK, one call per
+matrix on the CPU); ``cpp`` is the batched 3x3 Jacobi solver of ``_cpp_eigh`` (CPU float32/float64
+(..., 3, 3) only); ``auto`` (the default) takes ``cpp`` where it applies and builds, ``torch``
+otherwise (CUDA, other sizes or dtypes; a missing build warns once). The two agree in the eigenvalues
+(ascending) to rounding. What may differ is the eigenvectors' sign (``cpp`` makes each one's entry of
+largest magnitude positive, LAPACK fixes no sign) and, for repeated eigenvalues, the orthonormal basis
+chosen in their eigenspace. In ``frame_from_symmetric`` this changes R only by column signs (det R
+stays +1; with a reference normal the normal is the same and (t1, t2) may become (-t1, -t2), a half
+turn about the normal) or, for equal tangent |eigenvalues|, by a turn about the normal where s1 = s2:
+the surfel, R·diag(s1^2, s2^2, 0)·R^T, and the scales are the same. The quaternion may differ
+accordingly. The backward is the same for both.
 """
 
 from __future__ import annotations
@@ -20,14 +33,46 @@ from torch import nn
 
 from ..geometry.rotations import matrix_to_quat
 
-_TRIL_ROWS = (0, 1, 1, 2, 2, 2)
-_TRIL_COLS = (0, 0, 1, 0, 1, 2)
+EIGH_BACKENDS = ("auto", "torch", "cpp")
+
+# column of the tril entries (a00, a10, a11, a20, a21, a22) that holds entry (i, j) of the symmetric matrix
+_SYM_FROM_TRIL = torch.tensor([[0, 1, 3], [1, 2, 4], [3, 4, 5]])
+
+
+def resolve_eigh_backend(backend: str, a: torch.Tensor) -> str:
+    """``auto|torch|cpp`` for the symmetric matrices a (..., n, n) -> the solver that runs: ``torch`` or ``cpp``.
+
+    ``auto`` gives ``cpp`` for CPU float32/float64 3x3 matrices when the extension builds (a failed build
+    warns once), ``torch`` otherwise; an explicit ``cpp`` raises ValueError when it cannot run.
+    """
+    if backend not in EIGH_BACKENDS:
+        raise ValueError(f"safe_eigh: unknown backend {backend!r} (choose from {', '.join(EIGH_BACKENDS)})")
+    if backend == "torch":
+        return "torch"
+    from . import _cpp_eigh
+
+    why = _cpp_eigh.supports(a)
+    if why is not None:
+        if backend == "cpp":
+            raise ValueError(f"safe_eigh: backend='cpp' cannot take this input: {why}")
+        return "torch"
+    return _cpp_eigh.EXT.choose(backend, "safe_eigh")
+
+
+def eigh(a: torch.Tensor, backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+    """Eigenvalues (..., n) ascending and eigenvectors (..., n, n) (columns) of symmetric a (..., n, n),
+    without a gradient, from the solver ``resolve_eigh_backend(backend, a)`` picks (see the module doc)."""
+    if resolve_eigh_backend(backend, a) == "cpp":
+        from . import _cpp_eigh
+
+        return _cpp_eigh.eigh3(a)
+    return torch.linalg.eigh(a.detach())
 
 
 class _SafeEigh(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, a: torch.Tensor, gap: float):  # type: ignore[override]
-        evals, evecs = torch.linalg.eigh(a)
+    def forward(ctx, a: torch.Tensor, gap: float, backend: str):  # type: ignore[override]
+        evals, evecs = eigh(a, backend)
         ctx.save_for_backward(evals, evecs)
         ctx.gap = gap
         return evals, evecs
@@ -46,36 +91,37 @@ class _SafeEigh(torch.autograd.Function):
         if g_evals is not None:
             inner = inner + torch.diag_embed(g_evals)
         g_a = evecs @ inner @ vt
-        return 0.5 * (g_a + g_a.transpose(-1, -2)), None
+        return 0.5 * (g_a + g_a.transpose(-1, -2)), None, None
 
 
-def safe_eigh(a: torch.Tensor, gap: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
-    """``torch.linalg.eigh`` with a gap-clamped backward.
+def safe_eigh(a: torch.Tensor, gap: float = 1e-3, backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+    """Symmetric eigen-decomposition with a gap-clamped backward.
 
     a: (..., n, n) symmetric -> eigenvalues (..., n) ascending, eigenvectors (..., n, n) as columns.
+    backend: the eigensolver (``auto``, ``torch`` or ``cpp``, see the module doc).
     """
-    return _SafeEigh.apply(a, gap)
+    return _SafeEigh.apply(a, gap, backend)
 
 
 def symmetric_from_tril(entries: torch.Tensor) -> torch.Tensor:
-    """entries (N, 6) in order a00, a10, a11, a20, a21, a22 -> symmetric (N, 3, 3)."""
-    n = entries.shape[0]
-    a = entries.new_zeros(n, 3, 3)
-    rows = torch.tensor(_TRIL_ROWS, device=entries.device)
-    cols = torch.tensor(_TRIL_COLS, device=entries.device)
-    a = a.index_put((torch.arange(n, device=entries.device)[:, None], rows[None], cols[None]), entries)
-    return a + a.transpose(1, 2) - torch.diag_embed(torch.diagonal(a, dim1=1, dim2=2))
+    """entries (N, 6) in order a00, a10, a11, a20, a21, a22 -> symmetric (N, 3, 3).
+
+    One gather: entry (i, j) and (j, i) both read the same input column, so the values are exact and
+    the gradient of an off-diagonal input is the sum of the two mirrored output gradients."""
+    return entries[:, _SYM_FROM_TRIL.to(entries.device)]
 
 
 def frame_from_symmetric(
-    a: torch.Tensor, reference_normal: torch.Tensor | None = None, gap: float = 1e-3
+    a: torch.Tensor, reference_normal: torch.Tensor | None = None, gap: float = 1e-3, backend: str = "auto"
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Surfel frame from a symmetric matrix.
 
-    a: (N, 3, 3) symmetric; reference_normal: optional (N, 3), the normal is flipped to face it.
-    Returns R (N, 3, 3) with columns (t1, t2, n), det +1, and the tangent |eigenvalues| (N, 2), |l1| >= |l2|.
+    a: (N, 3, 3) symmetric; reference_normal: optional (N, 3), the normal is flipped to face it;
+    backend: the eigensolver (see the module doc: the backends may give (t1, t2) opposite signs, the
+    same surfel). Returns R (N, 3, 3) with columns (t1, t2, n), det +1, and the tangent |eigenvalues|
+    (N, 2), |l1| >= |l2|.
     """
-    evals, evecs = safe_eigh(a, gap)
+    evals, evecs = safe_eigh(a, gap, backend)
     order = torch.argsort(evals.abs().detach(), dim=-1, descending=True)  # t1, t2, normal
     vecs = torch.gather(evecs, 2, order[:, None, :].expand(-1, 3, -1))
     mags = torch.gather(evals.abs(), 1, order)

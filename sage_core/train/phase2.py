@@ -2,7 +2,9 @@
 
 Starting from the phase-1 avatar, the SDF and its hash grid are frozen (``requires_grad`` False, not
 in the optimizer) and the surfel offsets and attribute heads (appearance and shape networks, or the
-free per-surfel attributes) are fine-tuned. Each step:
+free per-surfel attributes) are fine-tuned; a group whose rate is 0 (by default the offsets) is
+frozen the same way, so that what depends only on frozen tensors (the canonical centres, the SDF at
+them and its hash encoding) is computed once, not every step. Each step:
 
 1. samples an expression and pose: :class:`ExpressionSampler` with per-component ranges from the
    model's expression blendshapes (:func:`component_ranges_from_dirs`), a jaw range, gaze, and a
@@ -237,9 +239,15 @@ class Phase2Trainer:
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._images: dict[tuple[int, int], torch.Tensor] = {}
         groups = self._param_groups()
+        # the phase trains exactly the optimizer's parameters: the others take no gradient, so the
+        # backward pass spends nothing on them and the posing may reuse what depends on them only
+        # (CorrectedPosing.frozen_inputs: the surfel centres and the SDF at them)
+        trained = {id(p) for g in groups for p in g["params"]}
+        for p in avatar.parameters():
+            p.requires_grad_(id(p) in trained)
         # every rate 0: the phase only attaches the mouth prior (and the wrinkle statistics) and
         # poses with the correction, without gradient steps
-        self.optimizer: torch.optim.Adam | None = torch.optim.Adam(groups, eps=1e-15) if groups else None
+        self.optimizer: torch.optim.Adam | None = _adam(groups) if groups else None
         for g in self.optimizer.param_groups if self.optimizer is not None else []:
             g["base_lr"] = g["lr"]
         self.distortion_curve: list[float] = []
@@ -420,7 +428,8 @@ class Phase2Trainer:
         fid = raster.face_id.reshape(-1)[pix]
         bary = raster.bary.reshape(-1, 3)[pix]
         _, dirs = pixel_rays(camera.K, camera.w2c, camera.width, camera.height, pix)
-        look = self.rest_teacher.lookup(av.faces, fid, bary, dirs.to(posed_vertices), surfel_frames(posed_vertices, av.faces))
+        rot = surfel_frames(posed_vertices, av.faces[fid])[0]  # the hit triangles' frames only
+        look = self.rest_teacher.lookup(av.faces, fid, bary, dirs.to(posed_vertices), deformed_rotations=rot)
         return look.color, look.valid
 
     # ------------------------------------------------------------------ one step
@@ -560,6 +569,16 @@ class Phase2Trainer:
         self.step_count = int(state["step"])
         self.distortion_curve = list(state.get("distortion_curve", []))
         self.posing.load_cache_state(state.get("curvature_cache"))
+
+
+def _adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
+    """Adam over ``groups`` as one fused kernel per parameter where this torch has one for the
+    parameters' device (the same update, to rounding), else the default implementation. A resumed
+    optimizer takes the setting of its checkpoint."""
+    try:  # on copies: a refused attempt has already written its defaults into the groups
+        return torch.optim.Adam([dict(g) for g in groups], eps=1e-15, fused=True)
+    except (RuntimeError, ValueError):  # no fused kernel for this device in this torch
+        return torch.optim.Adam([dict(g) for g in groups], eps=1e-15)
 
 
 def _module_state(module: torch.nn.Module | None) -> dict[str, torch.Tensor] | None:

@@ -24,7 +24,7 @@ import torch
 
 from ..flame.frames import surfel_frames
 from ..geometry.rigid import rays_world_to_canonical
-from ..render.mesh_raster import MeshRaster, points_on_mesh, ray_directions, rasterize_mesh
+from ..render.mesh_raster import MeshRaster, points_on_mesh, rasterize_mesh
 
 Frames = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -99,9 +99,21 @@ def rigid_rays_to_canonical(
 
 
 def pixel_rays(K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, pix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """World rays of flat pixel ids. K: (3, 3); w2c: (4, 4); pix: (R,) -> origins (R, 3), unit dirs (R, 3)."""
-    o, d = ray_directions(K, w2c, width, height)
-    return o.reshape(-1, 3)[pix], d.reshape(-1, 3)[pix]
+    """World rays of flat pixel ids. K: (3, 3); w2c: (4, 4); pix: (R,) -> origins (R, 3), unit dirs (R, 3).
+
+    The rays of :func:`~sage_core.render.mesh_raster.ray_directions` through the centres
+    (j + 0.5, i + 0.5) of those pixels (pix = i·width + j), computed for them only, in K's dtype."""
+    w2c = w2c.to(K)
+    pix = pix.to(device=K.device, dtype=torch.long)
+    width = int(width)
+    col = (pix % width).to(K.dtype) + 0.5
+    row = torch.div(pix, width, rounding_mode="floor").to(K.dtype) + 0.5
+    d_cam = torch.stack([col, row, torch.ones_like(col)], -1) @ torch.linalg.inv(K).T  # K⁻¹·(u, v, 1)
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    d_world = d_cam @ R  # Rᵀ·d for row vectors
+    dirs = d_world / d_world.norm(dim=-1, keepdim=True)
+    centre = -(R.T @ t)
+    return centre.expand(pix.shape[0], 3).contiguous(), dirs
 
 
 def warp_pixels_to_canonical(
