@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
+
 from ..avatar.model import Avatar
 
 
@@ -48,3 +50,13 @@ def surfel_param_groups(
     if hasattr(s, "sh_rest"):
         groups.append({"name": "sh_rest", "params": [s.sh_rest], "lr": lr_color / 20.0})
     return [g for g in groups if g["lr"] > 0]
+
+
+def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
+    """Adam over ``groups`` as one fused kernel per parameter where this torch has one for the
+    parameters' device (the same update, to rounding), else the default implementation. A resumed
+    optimizer takes the setting of its checkpoint."""
+    try:  # on copies: a refused attempt has already written its defaults into the groups
+        return torch.optim.Adam([dict(g) for g in groups], eps=1e-15, fused=True)
+    except (RuntimeError, ValueError):  # no fused kernel for this device in this torch
+        return torch.optim.Adam([dict(g) for g in groups], eps=1e-15)

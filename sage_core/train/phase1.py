@@ -64,7 +64,7 @@ from ..render.mesh_raster import ray_directions
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
-from ._groups import surfel_param_groups
+from ._groups import adam, surfel_param_groups
 from .densify import DensityControl, DensifySchedule, scene_extent
 from .canonical_warp import CanonicalWarp, make_warp
 from .exposure import ExposureGain
@@ -243,7 +243,7 @@ class Phase1Trainer:
         self._pseudo: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, RenderCamera]] = []
         self._mirror: Callable[[torch.Tensor], torch.Tensor] | None = None
         self.set_pseudo_views(pseudo_views or [], mirror_index)
-        self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
+        self.optimizer = adam(self._param_groups())
         self._not_mouth = avatar.surfels.region_id != REGION_MOUTH
         self.density: DensityControl | None = None
         if cfg.densify:
@@ -662,7 +662,7 @@ class Phase1Trainer:
         av = self.avatar
         av.surfels = SurfelSet.from_state_dict(_surfel_rows(saved)).to(av.surfels.mu_loc.device)
         av.base_scale = saved["base_scale"].to(av.base_scale)
-        self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
+        self.optimizer = adam(self._param_groups())
         if self.density is not None:
             self.density.clear_statistics()
 

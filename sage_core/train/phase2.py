@@ -79,7 +79,7 @@ from ..render.volume import render_neus
 from ..runtime import resolve_render_backend
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
-from ._groups import surfel_param_groups
+from ._groups import adam, surfel_param_groups
 from .expressions import ExpressionSampler, component_ranges_from_dirs
 from .rest_teacher import RestTeacher, erode_mask
 from .warp import pixel_rays, warp_pixels_to_canonical
@@ -247,7 +247,7 @@ class Phase2Trainer:
             p.requires_grad_(id(p) in trained)
         # every rate 0: the phase only attaches the mouth prior (and the wrinkle statistics) and
         # poses with the correction, without gradient steps
-        self.optimizer: torch.optim.Adam | None = _adam(groups) if groups else None
+        self.optimizer: torch.optim.Adam | None = adam(groups) if groups else None
         for g in self.optimizer.param_groups if self.optimizer is not None else []:
             g["base_lr"] = g["lr"]
         self.distortion_curve: list[float] = []
@@ -569,16 +569,6 @@ class Phase2Trainer:
         self.step_count = int(state["step"])
         self.distortion_curve = list(state.get("distortion_curve", []))
         self.posing.load_cache_state(state.get("curvature_cache"))
-
-
-def _adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
-    """Adam over ``groups`` as one fused kernel per parameter where this torch has one for the
-    parameters' device (the same update, to rounding), else the default implementation. A resumed
-    optimizer takes the setting of its checkpoint."""
-    try:  # on copies: a refused attempt has already written its defaults into the groups
-        return torch.optim.Adam([dict(g) for g in groups], eps=1e-15, fused=True)
-    except (RuntimeError, ValueError):  # no fused kernel for this device in this torch
-        return torch.optim.Adam([dict(g) for g in groups], eps=1e-15)
 
 
 def _module_state(module: torch.nn.Module | None) -> dict[str, torch.Tensor] | None:
