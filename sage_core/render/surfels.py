@@ -244,6 +244,26 @@ def rasterize_surfels(
     if tuple(bg.shape) != (Dch,):
         raise ValueError(f"rasterize_surfels: 'background' must be a scalar or ({Dch},), got {tuple(bg.shape)}")
 
+    if cpp is not None and not (Ks.requires_grad or w2cs.requires_grad):
+        # the whole render in the extension (a differentiated camera keeps the torch projection below)
+        feats_per_cam = []
+        for c in range(C):
+            if colors.dim() == 3:
+                centre = -(w2cs[c, :3, :3].T @ w2cs[c, :3, 3])
+                feats_per_cam.append(eval_sh_colors(colors, F.normalize(means - centre, dim=-1), sh_degree))
+            else:
+                feats_per_cam.append(colors)
+        res = cpp.render_cpp(
+            means, quats, scales, opacities, feats_per_cam, Ks, w2cs, bg, W, H, near, far, cam.batched, progress
+        )
+        return SurfelRender(
+            **res.images,
+            visible=res.visible if return_statistics else None,
+            radii=res.radii if return_statistics else None,
+            means2d=res.means2d if return_statistics else None,
+            num_pairs=res.num_pairs,
+        )
+
     proj = project_surfels(means, quats, scales, Ks, w2cs, W, H, near, squeeze=not cam.batched)
 
     outs: dict[str, list[torch.Tensor]] = {}
