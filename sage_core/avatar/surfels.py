@@ -23,7 +23,7 @@ Binding and labels are buffers, so rebinding survives ``state_dict`` / ``load_st
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -339,6 +339,27 @@ class SurfelSet(nn.Module):
             self.index_select(~remove, optimizer)
         return n_removed
 
+def _swap_optimizer_param(
+    optimizer: torch.optim.Optimizer, old: torch.Tensor, new: nn.Parameter, per_row: Callable[[torch.Tensor], torch.Tensor]
+) -> bool:
+    """Swap ``old`` for ``new`` in ``optimizer``'s param groups; state tensors whose first
+    dimension matches ``old``'s go through ``per_row``, other entries (e.g. Adam's ``step``) are
+    copied. Returns False if ``old`` is not in the optimizer."""
+    for group in optimizer.param_groups:
+        for i, p in enumerate(group["params"]):
+            if p is not old:
+                continue
+            group["params"][i] = new
+            state = optimizer.state.pop(old, None)
+            if state:
+                optimizer.state[new] = {
+                    key: per_row(v) if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == old.shape[0] else v
+                    for key, v in state.items()
+                }
+            return True
+    return False
+
+
 def replace_optimizer_param(
     optimizer: torch.optim.Optimizer, old: torch.Tensor, new: nn.Parameter, rows: torch.Tensor
 ) -> bool:
@@ -348,41 +369,11 @@ def replace_optimizer_param(
     matches ``old``'s are row-selected; other state entries (e.g. Adam's ``step``) are copied.
     Returns False if ``old`` is not in the optimizer.
     """
-    for group in optimizer.param_groups:
-        for i, p in enumerate(group["params"]):
-            if p is not old:
-                continue
-            group["params"][i] = new
-            state = optimizer.state.pop(old, None)
-            if state:
-                moved = {}
-                for key, v in state.items():
-                    if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == old.shape[0]:
-                        moved[key] = v[rows.to(v.device)].clone()
-                    else:
-                        moved[key] = v
-                optimizer.state[new] = moved
-            return True
-    return False
+    return _swap_optimizer_param(optimizer, old, new, lambda v: v[rows.to(v.device)].clone())
 
 
 def extend_optimizer_param(optimizer: torch.optim.Optimizer, old: torch.Tensor, new: nn.Parameter, n_new: int) -> bool:
     """Swap ``old`` for ``new`` (``old``'s rows followed by ``n_new`` more) in ``optimizer``'s param
     groups; state tensors whose first dimension matches ``old``'s get ``n_new`` zero rows, other
     state entries (e.g. Adam's ``step``) are copied. Returns False if ``old`` is not in the optimizer."""
-    for group in optimizer.param_groups:
-        for i, p in enumerate(group["params"]):
-            if p is not old:
-                continue
-            group["params"][i] = new
-            state = optimizer.state.pop(old, None)
-            if state:
-                moved = {}
-                for key, v in state.items():
-                    if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == old.shape[0]:
-                        moved[key] = torch.cat([v, v.new_zeros((n_new, *v.shape[1:]))], 0)
-                    else:
-                        moved[key] = v
-                optimizer.state[new] = moved
-            return True
-    return False
+    return _swap_optimizer_param(optimizer, old, new, lambda v: torch.cat([v, v.new_zeros((n_new, *v.shape[1:]))], 0))
