@@ -20,10 +20,6 @@ Written: ``OUT/hashgrid.json`` and ``OUT/hashgrid.md`` (also printed).
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -31,6 +27,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _kernel_bench  # noqa: E402 - after the path set-up
 
 APP = dict(n_levels=8, n_features=2, log2_table=15, base_res=16, max_res=512)
 SDF_GRID = dict(n_levels=8, n_features=2, log2_table=14, base_res=16, max_res=256)
@@ -167,44 +166,20 @@ def markdown(meta: dict, rows: list[dict]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (the cpp kernel follows it)")
-    ap.add_argument("--repeats", type=int, default=9)
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--quick", action="store_true", help="N / 10, for a smoke test (writes nothing)")
-    ap.add_argument("--out", default="docs/benchmarks", help="folder for hashgrid.json / hashgrid.md")
-    args = ap.parse_args()
+    args = _kernel_bench.parse_args(__doc__.splitlines()[0], "hashgrid", repeats=9)
 
     import torch
 
-    from sage_core.atomic import atomic_write_text
     from sage_core.fields import _cpp_hashgrid
 
     torch.set_num_threads(args.threads)
     ok, reason = _cpp_hashgrid.available()
     if not ok:
         raise SystemExit(f"the native hash-grid extension is unavailable: {reason}")
-    load_before = [round(x, 2) for x in os.getloadavg()]
+    load_before = _kernel_bench.loadavg()
     rows = run(args.repeats, args.warmup, args.quick)
-    meta = {
-        "command": "python benchmarks/hashgrid.py " + " ".join(sys.argv[1:]),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-        "cpu_count": os.cpu_count(),
-        "platform": platform.platform(),
-        "repeats": args.repeats,
-        "warmup": args.warmup,
-        "load_before": load_before,
-        "load_after": [round(x, 2) for x in os.getloadavg()],
-        "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
-    }
-    text = markdown(meta, rows)
-    print(text)
-    if not args.quick:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "hashgrid.json", json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
-        atomic_write_text(out / "hashgrid.md", text)
+    meta = _kernel_bench.run_meta("hashgrid.py", args, load_before)
+    _kernel_bench.write(args, "hashgrid", meta, rows, markdown(meta, rows))
 
 
 if __name__ == "__main__":

@@ -25,11 +25,7 @@ Written: ``OUT/sdf_network.json`` and ``OUT/sdf_network.md`` (also printed).
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import os
-import platform
 import statistics
 import sys
 import time
@@ -37,6 +33,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _kernel_bench  # noqa: E402 - after the path set-up
 
 GRIDS = {
     "tiny": dict(n_levels=8, n_features=2, log2_table=14, base_res=16, max_res=256),
@@ -193,8 +192,8 @@ def markdown(meta: dict, rows: list[dict]) -> str:
         f"Command: `{meta['command']}`",
         "",
         f"Machine: {meta['cpu_count']} CPUs ({meta['cpu']}), torch {meta['torch']}, {meta['threads']} thread(s), "
-        f"AVX2 build: {meta['avx2']}; load average before/after {meta['load_before']} / {meta['load_after']} "
-        f"(other jobs were running); {meta['date_utc']} UTC.",
+        f"AVX2 build: {meta['avx2']}; load average before/after {meta['load_before']} / {meta['load_after']}"
+        f"{' (other jobs were running)' if meta['load_before'][0] > 1.0 else ''}; {meta['date_utc']} UTC.",
         f"Median of {meta['repeats']} interleaved repeats after {meta['warmup']} warm-up steps per backend; "
         "wall time, and CPU time of the process (less sensitive to the other jobs).",
         "",
@@ -220,59 +219,25 @@ def markdown(meta: dict, rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def cpu_name() -> str:
-    """The CPU model from /proc/cpuinfo (or the platform's processor string)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (the cpp kernel follows it)")
-    ap.add_argument("--repeats", type=int, default=11)
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--quick", action="store_true", help="N / 10, for a smoke test (writes nothing)")
-    ap.add_argument("--out", default="docs/benchmarks", help="folder for sdf_network.json / sdf_network.md")
-    args = ap.parse_args()
+    args = _kernel_bench.parse_args(__doc__.splitlines()[0], "sdf_network", repeats=11)
 
     import torch
 
-    from sage_core.atomic import atomic_write_text
     from sage_core.fields import _cpp_sdf
 
     torch.set_num_threads(args.threads)
     ok, reason = _cpp_sdf.available()
     if not ok:
         raise SystemExit(f"the native SDF extension is unavailable: {reason}")
-    load_before = [round(x, 2) for x in os.getloadavg()]
+    load_before = _kernel_bench.loadavg()
     rows = run(args.repeats, args.warmup, args.quick)
-    meta = {
-        "command": "python benchmarks/sdf_network.py " + " ".join(sys.argv[1:]),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-        "cpu_count": os.cpu_count(),
-        "cpu": cpu_name(),
-        "avx2": bool(torch.ops.sage_sdf_cpu.avx2()),
-        "platform": platform.platform(),
-        "repeats": args.repeats,
-        "warmup": args.warmup,
-        "load_before": load_before,
-        "load_after": [round(x, 2) for x in os.getloadavg()],
-        "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
-        "geomean_speedup_wall": round(math.exp(statistics.mean(math.log(r["speedup"]) for r in rows)), 2),
-    }
-    text = markdown(meta, rows)
-    print(text)
-    if not args.quick:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "sdf_network.json", json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
-        atomic_write_text(out / "sdf_network.md", text)
+    meta = _kernel_bench.run_meta(
+        "sdf_network.py", args, load_before,
+        avx2=bool(torch.ops.sage_sdf_cpu.avx2()),
+        geomean_speedup_wall=round(math.exp(statistics.mean(math.log(r["speedup"]) for r in rows)), 2),
+    )  # fmt: skip
+    _kernel_bench.write(args, "sdf_network", meta, rows, markdown(meta, rows))
 
 
 if __name__ == "__main__":
