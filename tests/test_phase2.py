@@ -161,7 +161,7 @@ def test_sample_pixels_prefers_high_error():
 
 
 def test_sdf_frozen_teacher_detached(phase1_avatar_path, p2_data, p2_init_dir):
-    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, teacher="neus")
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, teacher="neus", lr_networks=1e-4)  # a student that learns
     av = tr.avatar
     sdf0 = {k: v.clone() for k, v in av.sdf.state_dict().items()}
     teach0 = {k: v.clone() for k, v in tr.teacher_app.state_dict().items()}
@@ -650,3 +650,16 @@ def test_pixel_rays_equal_the_full_image_rays(dtype):
     torch.testing.assert_close(o, o_ref.reshape(-1, 3)[pix], atol=tol, rtol=0)
     empty_o, empty_d = pixel_rays(K, w2c, W, H, pix[:0])
     assert empty_o.shape == empty_d.shape == (0, 3)
+
+
+def test_default_phase2_keeps_the_appearance_network_and_trains_the_shape_network(phase1_avatar_path, p2_data, p2_init_dir):
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir)
+    assert tr.cfg.lr_networks == 0.0 and tr.cfg.lr_shape > 0
+    av = tr.avatar
+    app0 = {k: v.clone() for k, v in av.appearance.state_dict().items()}
+    shape0 = {k: v.clone() for k, v in av.shape.state_dict().items()}
+    for _ in range(3):
+        tr.step()
+    for k, v in av.appearance.state_dict().items():
+        torch.testing.assert_close(v, app0[k], atol=0, rtol=0)
+    assert any(not torch.equal(v, shape0[k]) for k, v in av.shape.state_dict().items())
