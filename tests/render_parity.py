@@ -7,19 +7,9 @@ import numpy as np
 import torch
 
 from sage_core.render import RenderCamera, rasterize_surfels
+from sage_core.render._packed import IMAGE_OUTPUTS
 
-OUTPUTS = (
-    "color",
-    "alpha",
-    "depth",
-    "depth_sum",
-    "median_depth",
-    "normal_cam",
-    "normal_world",
-    "surf_normal_cam",
-    "surf_normal_world",
-    "distortion",
-)
+OUTPUTS = IMAGE_OUTPUTS
 """Every image output of :func:`rasterize_surfels`."""
 PARAMS = ("means", "quats", "scales", "opacities", "features")
 """Scene keys of the surfel parameters, in ``rasterize_surfels`` order."""

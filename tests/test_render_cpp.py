@@ -460,6 +460,22 @@ def test_gradcheck_float64_full_render_full_jacobian(cpp_ext: float) -> None:
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
+def _assert_identical(a, ga, b, gb) -> None:
+    """Two renders (outputs and input gradients) are bit-identical."""
+    assert all(torch.equal(getattr(a, n), getattr(b, n)) for n in OUTPUTS)
+    assert len(ga) == len(gb) and all(torch.equal(x, y) for x, y in zip(ga, gb))
+
+
+def test_image_outputs_are_the_image_fields_of_surfel_render() -> None:
+    from dataclasses import fields
+
+    from sage_core.render._packed import IMAGE_OUTPUTS
+    from sage_core.render.surfels import SurfelRender
+
+    per_surfel = ("visible", "radii", "means2d", "num_pairs")
+    assert IMAGE_OUTPUTS == tuple(f.name for f in fields(SurfelRender) if f.name not in per_surfel)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_avx2_and_sse2_builds_agree_exactly(cpp_ext: float, dtype: torch.dtype) -> None:
     """The tile loops are built for AVX2 and for SSE2 from one source; both give identical results
@@ -474,8 +490,7 @@ def test_avx2_and_sse2_builds_agree_exactly(cpp_ext: float, dtype: torch.dtype) 
         b, gb = render_with_grads(params, cam, "cpp", far=10.0)
     finally:
         ops.use_avx2(before)
-    assert all(torch.equal(getattr(a, n), getattr(b, n)) for n in OUTPUTS)
-    assert all(torch.equal(x, y) for x, y in zip(ga, gb))
+    _assert_identical(a, ga, b, gb)
 
 
 def test_thread_count_invariance_float64_batch_and_sh(cpp_ext: float) -> None:
@@ -493,8 +508,7 @@ def test_thread_count_invariance_float64_batch_and_sh(cpp_ext: float) -> None:
         b, gb = render_with_grads(params, batch, "cpp", far=10.0)
     finally:
         torch.set_num_threads(old)
-    assert all(torch.equal(getattr(a, n), getattr(b, n)) for n in OUTPUTS)
-    assert all(torch.equal(x, y) for x, y in zip(ga, gb))
+    _assert_identical(a, ga, b, gb)
 
 
 def test_larger_scene_parity_float32(cpp_ext: float) -> None:

@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 from ..native_build import NativeExtension, cache_dir
-from ._packed import PackedImages
+from ._packed import IMAGE_OUTPUTS, PackedImages
 
 __all__ = [
     "EXT",
@@ -55,19 +55,6 @@ available = EXT.available
 first call compiles it unless a cached build exists, and the result is remembered for the process."""
 warn_unavailable_once = EXT.warn_unavailable_once
 
-IMAGE_OUTPUTS = (
-    "color",
-    "alpha",
-    "depth",
-    "depth_sum",
-    "median_depth",
-    "normal_cam",
-    "normal_world",
-    "surf_normal_cam",
-    "surf_normal_world",
-    "distortion",
-)
-"""The image outputs of :func:`render_cpp`, in the order the extension returns them."""
 
 
 def _ops():  # noqa: ANN202 - a torch.ops namespace

@@ -20,6 +20,14 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 
 
+IMAGE_OUTPUTS: tuple[str, ...] = (
+    "color", "alpha", "depth", "depth_sum", "median_depth",
+    "normal_cam", "normal_world", "surf_normal_cam", "surf_normal_world", "distortion",
+)  # fmt: skip
+"""The image fields of ``rasterize_surfels``' result (``SurfelRender``), in order; the native
+backend returns them in this order."""
+
+
 @dataclass
 class PackedImages:
     """Per-camera buffers, flattened over pixels (index = y·W + x).
