@@ -176,6 +176,15 @@ def resolve_backend(name: str, device: torch.device | str) -> str:
     return _cpp_surfels.EXT.choose(name, "rasterize_surfels")
 
 
+def _camera_features(colors: torch.Tensor, means: torch.Tensor, w2c: torch.Tensor, sh_degree: int) -> torch.Tensor:
+    """Per-surfel features seen by one camera: colors (N, D) as given, or SH coefficients (N, K, D)
+    evaluated along the view directions from the camera centre of w2c (4, 4). Returns (N, D)."""
+    if colors.dim() != 3:
+        return colors
+    centre = -(w2c[:3, :3].T @ w2c[:3, 3])
+    return eval_sh_colors(colors, F.normalize(means - centre, dim=-1), sh_degree)
+
+
 def rasterize_surfels(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -246,13 +255,7 @@ def rasterize_surfels(
 
     if cpp is not None and not (Ks.requires_grad or w2cs.requires_grad):
         # the whole render in the extension (a differentiated camera keeps the torch projection below)
-        feats_per_cam = []
-        for c in range(C):
-            if colors.dim() == 3:
-                centre = -(w2cs[c, :3, :3].T @ w2cs[c, :3, 3])
-                feats_per_cam.append(eval_sh_colors(colors, F.normalize(means - centre, dim=-1), sh_degree))
-            else:
-                feats_per_cam.append(colors)
+        feats_per_cam = [_camera_features(colors, means, w2cs[c], sh_degree) for c in range(C)]
         res = cpp.render_cpp(
             means, quats, scales, opacities, feats_per_cam, Ks, w2cs, bg, W, H, near, far, cam.batched, progress
         )
@@ -270,12 +273,7 @@ def rasterize_surfels(
     num_pairs = []
     for c in range(C):
         Rcw = w2cs[c, :3, :3]
-        if colors.dim() == 3:
-            centre = -(Rcw.T @ w2cs[c, :3, 3])
-            dirs = F.normalize(means - centre, dim=-1)
-            feats = eval_sh_colors(colors, dirs, sh_degree)
-        else:
-            feats = colors
+        feats = _camera_features(colors, means, w2cs[c], sh_degree)
         vid = torch.nonzero(proj.valid[c], as_tuple=False).squeeze(1)
         vid = vid[torch.argsort(proj.depth[c, vid].detach(), stable=True)]
         M = proj.M[c].index_select(0, vid)
