@@ -1,11 +1,14 @@
 """Where the error of an evaluated avatar falls: silhouette band, inside, face regions.
 
 Usage:
-    python benchmarks/error_regions.py WS:STAGE[:LABEL] [WS:STAGE[:LABEL] ...] [--split test|val]
-        [--cams 2,8,12] [--panels DIR] [--scale 3] [--out FILE.json]
+    python benchmarks/error_regions.py WS:STAGE[:LABEL] [WS:STAGE[:LABEL] | ceiling:CAPTURE ...]
+        [--split test|val] [--cams 2,8,12] [--panels DIR] [--scale 3] [--out FILE.json]
 
 Every avatar renders every frame of the split as ``sage eval`` renders it (the stage's render
-settings, surfel correction included) and is compared with the ground-truth image. Per image, the
+settings, surfel correction included) and is compared with the ground-truth image;
+``ceiling:CAPTURE`` adds the tracking ceiling of the synthetic capture the workspaces were ingested
+from (its ground-truth appearance on the tracked FLAME fit, :mod:`sage_core.evaluate.ceiling`).
+The first item must be an avatar. Per image, the
 sum of squared errors over the pixels and the three channels (SSE) is split by where it falls:
 
 * ``band``: pixels within 2 px of the ground-truth silhouette (the mask dilated minus the mask eroded,
@@ -28,7 +31,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -45,7 +48,7 @@ COLUMNS = ("total", "band", "inside", *GROUPS, "skin", "silhouette")
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python benchmarks/error_regions.py", description=__doc__.split("\n\n")[0])
-    ap.add_argument("items", nargs="+", help="WS:STAGE[:LABEL] (stage phase1 or phase2)")
+    ap.add_argument("items", nargs="+", help="WS:STAGE[:LABEL] (stage phase1 or phase2), or ceiling:CAPTURE")
     ap.add_argument("--split", default="test", choices=("test", "val"), help="split of the ingested data")
     ap.add_argument("--cams", default="2,8,12", help="camera indices of the panels")
     ap.add_argument("--panels", type=Path, default=None, help="folder for GT | renders | errors panels")
@@ -86,25 +89,39 @@ def main(argv: list[str] | None = None) -> int:
     from sage_core.workspace import Workspace
 
     torch.set_num_threads(1)
-    avatars: list[tuple[str, AvatarRenderer]] = []
+    avatars: list[tuple[str, Callable[[Any], np.ndarray]]] = []
     data = None
+    first: AvatarRenderer | None = None
     first_ws = None
     for item in args.items:
         parts = item.split(":")
         if len(parts) < 2:
-            print(f"error: {item!r} is not WS:STAGE[:LABEL]", file=sys.stderr)
+            print(f"error: {item!r} is not WS:STAGE[:LABEL] or ceiling:CAPTURE", file=sys.stderr)
             return 2
+        if parts[0] == "ceiling":
+            if data is None:
+                print("error: the first item must be an avatar (WS:STAGE)", file=sys.stderr)
+                return 2
+            from sage_core.data.synthetic.ceiling import TrackedTruth
+            from sage_core.evaluate.ceiling import ceiling_render_fn
+
+            fn = ceiling_render_fn(TrackedTruth.open(parts[1]), data)
+            avatars.append(("ceiling", lambda fr, fn=fn: fn(fr).numpy()))
+            continue
         ws = Workspace(parts[0])
         d = IngestedData.open(ws.stage_dir("ingest"))
         data = data or d
         first_ws = first_ws or ws
         sa = load_stage_avatar(ws, parts[1], d)
-        avatars.append((parts[2] if len(parts) > 2 else f"{Path(parts[0]).name}/{parts[1]}", AvatarRenderer(sa.avatar, sa.render)))
-    assert data is not None and first_ws is not None
+        rd = AvatarRenderer(sa.avatar, sa.render)
+        first = first or rd
+        avatars.append((parts[2] if len(parts) > 2 else f"{Path(parts[0]).name}/{parts[1]}",
+                        lambda fr, rd=rd: rd.render(fr.camera, rd.avatar.frame_inputs(fr.timestep)).clamp(0, 1).cpu().numpy()))
+    assert data is not None and first_ws is not None and first is not None
     labels = _face_labels(first_ws.stage_dir("init-mesh") / "regions.json")
     cams = {int(c) for c in args.cams.split(",") if c.strip()}
     per_image: dict[str, list[dict[str, Any]]] = {lab: [] for lab, _ in avatars}
-    ref = avatars[0][1].avatar
+    ref = first.avatar
     with torch.no_grad():
         for fr in data.role(args.split):
             gt = data.load_image(fr)
@@ -116,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
             group = np.where(fid >= 0, labels[np.clip(fid, 0, labels.size - 1)], -1)
             sil = (fid >= 0) != (mask > 0.5)
             row, errs = [gt], []
-            for lab, rd in avatars:
-                img = rd.render(fr.camera, rd.avatar.frame_inputs(fr.timestep)).clamp(0, 1).cpu().numpy()
+            for lab, render in avatars:
+                img = render(fr)
                 e = ((img - gt) ** 2).sum(-1)
                 rec = {"timestep": fr.timestep, "camera": fr.camera_index, "total": float(e.sum()), "band": float(e[band].sum()),
                        "inside": float(e[inside].sum()), "silhouette": float(e[sil].sum())}  # fmt: skip

@@ -95,6 +95,18 @@ def test_rows_map_to_the_expected_cli_arguments(tmp_path):
     assert "eval_phase1=false" in _sets(by_key["sage:phase2"].argv)
 
 
+def test_the_ceiling_row_trains_nothing_and_renders_the_tracked_truth(tmp_path):
+    by_key, needs, _ = _steps(tmp_path, rows=("ceiling",))
+    assert by_key["ceiling:copy"].stages == ("ingest",) and "sage:ingest" in needs["ceiling"]
+    assert not any(k.startswith("ceiling:") and k.split(":")[1] in ("init-mesh", "phase1", "phase2", "reenact") for k in by_key)
+    assert not any(k.startswith("sage:") and k != "sage:ingest" for k in by_key)
+    step = by_key["ceiling:eval:test"]
+    assert step.kind == "ceiling" and step.split == "test" and step.out == tmp_path / "out/ws/ceiling"
+    assert step.capture == tmp_path / "out/captures/multiview" and step.lpips_weights == Path("/w/lpips.pth")
+    cmd = step_command(step)
+    assert cmd.startswith('python -c "from sage_core.evaluate.ceiling import evaluate_ceiling;') and "'test'" in cmd
+
+
 def test_plan_is_deduplicated_and_ordered(tmp_path):
     by_key, needs, steps = _steps(tmp_path, rows=("no_phase2", "sage", "ga_mvsf"))
     keys = [s.key for s in steps]
@@ -335,10 +347,13 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     import suite
 
     docs, out = tmp_path / "docs", tmp_path / "out"
-    args = ["--size", "tiny", "--smoke", "--out", str(out), "--rows", "no_phase2", "--device", "cpu", "--docs", str(docs)]
+    args = ["--size", "tiny", "--smoke", "--out", str(out), "--rows", "no_phase2,ceiling", "--device", "cpu", "--docs", str(docs)]
     assert suite.main(args) == 0
     doc = json.loads((docs / "benchmarks" / "suite_tiny.json").read_text())
-    assert doc["smoke"] is True and set(doc["rows"]) == {"no_phase2"}
+    assert doc["smoke"] is True and set(doc["rows"]) == {"no_phase2", "ceiling"}
+    c = doc["rows"]["ceiling"]
+    assert c["errors"] == [] and set(c["metrics"]) == {"test"} and 15 < c["metrics"]["test"]["overall"]["psnr"] < 45
+    assert c["metrics"]["test"]["overall"]["count"] == doc["rows"]["no_phase2"]["metrics"]["test"]["overall"]["count"]
     r = doc["rows"]["no_phase2"]
     assert r["errors"] == [], r["errors"]
     assert r["metrics"]["val"]["overall"]["psnr"] > 5 and r["metrics"]["test"]["overall"]["psnr"] > 5

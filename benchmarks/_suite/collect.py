@@ -38,7 +38,19 @@ def eval_metrics(ws: Path, stage: str, split: str) -> dict[str, Any]:
 
     if f"{stage}/{split}" not in fresh_results(Workspace(ws), "eval"):
         raise FileNotFoundError(f"{ws}: no current eval result {stage}/{split}")
-    path = ws / "eval" / stage / split / "metrics.json"
+    return metrics_file(ws / "eval" / stage / split / "metrics.json")
+
+
+def ceiling_metrics(ws: Path, split: str) -> dict[str, Any]:
+    """Means of the tracking ceiling's ``WS/eval/ceiling/<split>/metrics.json`` (the suite's own
+    step writes it on every run, so it is never stale), as :func:`eval_metrics` gives them."""
+    from sage_core.evaluate.ceiling import CEILING_STAGE
+
+    return metrics_file(ws / "eval" / CEILING_STAGE / split / "metrics.json")
+
+
+def metrics_file(path: Path) -> dict[str, Any]:
+    """The means of one evaluation protocol ``metrics.json`` (see :func:`eval_metrics`)."""
     doc = json.loads(path.read_text(encoding="utf-8"))
     out = {
         "overall": _means(doc.get("overall")),

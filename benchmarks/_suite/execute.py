@@ -12,7 +12,7 @@ from sage_core.workspace import Workspace, now_iso
 from . import collect
 from .rows import ROWS, RowSpec, Settings, Step
 from .runner import command_line, run_process, sage_argv
-from .workspaces import capture_is_current, copy_command, copy_stages, motion_command, write_test_motion
+from .workspaces import capture_is_current, ceiling_command, copy_command, copy_stages, motion_command, write_test_motion
 
 Log = Callable[[str], None]
 
@@ -27,6 +27,9 @@ def step_command(step: Step) -> str:
     if step.kind == "motion":
         assert step.capture is not None and step.out is not None
         return motion_command(step.capture, step.out, step.steps)
+    if step.kind == "ceiling":
+        assert step.capture is not None and step.out is not None
+        return ceiling_command(step.capture, step.out, step.split, step.lpips_weights)
     raise ValueError(f"unknown step kind {step.kind!r}")
 
 
@@ -66,6 +69,13 @@ def run_step(step: Step, settings: Settings, previous: dict[str, Any] | None, po
             assert step.capture is not None and step.out is not None
             path, keys = write_test_motion(step.capture, step.out, step.steps)
             rec.update(rc=0, ran=True, wall_s=time.perf_counter() - t0, motion=str(path), key_timesteps=keys)
+            return rec
+        if step.kind == "ceiling":
+            assert step.capture is not None and step.out is not None
+            from sage_core.evaluate.ceiling import evaluate_ceiling
+
+            report = evaluate_ceiling(step.capture, step.out, step.split, step.lpips_weights)
+            rec.update(rc=0, ran=True, wall_s=time.perf_counter() - t0, run_wall_s=time.perf_counter() - t0, metrics=str(report.metrics_path))
             return rec
         raise ValueError(f"unknown step kind {step.kind!r}")
     except Exception as e:  # noqa: BLE001 - one failed step must not stop the suite
@@ -167,7 +177,7 @@ def collect_row(row: RowSpec, settings: Settings, needs: list[str], records: dic
         names = ("val", "test") if split == "all" else (split,)
         for name in names:
             try:
-                metrics[name] = collect.eval_metrics(ws, row.eval_stage, name)
+                metrics[name] = collect.ceiling_metrics(ws, name) if row.ceiling else collect.eval_metrics(ws, row.eval_stage, name)
             except (OSError, ValueError) as e:
                 if not any(k.startswith(f"{row.id}:eval:{split}") for k in errors):
                     errors.append(f"{row.id}:eval:{split}: no {name} result ({type(e).__name__})")

@@ -56,7 +56,9 @@ class RowSpec:
     ``sage eval --split`` run each. has_sdf: the row has a trained SDF (geometry metrics).
     reenact: drive the avatar with the test-split motion (needs a test split). init_mesh: extra
     options of the row's own init-mesh run. densify: add the size's density-control schedule to
-    the row's phase 1.
+    the row's phase 1. ceiling: the row is its capture's tracking ceiling
+    (:mod:`sage_core.evaluate.ceiling`): nothing is trained, each split of ``eval_splits`` is the
+    ground truth's appearance rendered on the tracked FLAME fit of the ingested data.
     """
 
     id: str
@@ -74,6 +76,7 @@ class RowSpec:
     reenact: bool
     init_mesh: tuple[str, ...] = ()
     densify: bool = False
+    ceiling: bool = False
 
 
 ROWS: dict[str, RowSpec] = {
@@ -96,6 +99,8 @@ ROWS: dict[str, RowSpec] = {
                 GA_PHASE1, None, "phase1", ("all",), False, True, GA_INIT_MESH, True),
         RowSpec("free_mvsf", "Free surfels on SAGE's layout (photometric only)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
                 FREE_PHASE1, None, "phase1", ("all",), False, True),
+        RowSpec("ceiling", "Ground truth on the tracked FLAME fit (tracking ceiling)", "—", "multiview", "mv-sf", "sage", ("ingest",),
+                None, None, "ceiling", ("test",), False, False, ceiling=True),
         RowSpec("sv_hr", "SAGE", "SV-HR", "monocular", "sv-hr", None, (), ("--attributes", "mlp"), (), "phase2", ("novel", "test"), True, True),
         RowSpec("one_shot", "SAGE", "One-shot", "oneshot", "one-shot", None, (), ("--attributes", "mlp"), (), "phase2", ("novel",), True, False),
     )
@@ -179,10 +184,11 @@ def smoke_size(size: Size) -> Size:
 class Step:
     """One step of the plan.
 
-    kind: "synth" | "cli" | "copy" | "motion". key: unique id (e.g. ``sage:phase1``). argv: the
-    arguments after ``sage`` ("synth" and "cli"). row: the row whose workspace the step writes
-    (None: shared). stage: the workspace stage it writes (manifest to read), if any. deps: keys
-    of the steps it needs. src / dst / stages: the copy. capture / out: the motion.
+    kind: "synth" | "cli" | "copy" | "motion" | "ceiling". key: unique id (e.g. ``sage:phase1``).
+    argv: the arguments after ``sage`` ("synth" and "cli"). row: the row whose workspace the step
+    writes (None: shared). stage: the workspace stage it writes (manifest to read), if any. deps:
+    keys of the steps it needs. src / dst / stages: the copy. capture / out: the motion, or the
+    ceiling's capture and workspace. split / lpips_weights: the ceiling's split and LPIPS weights.
     """
 
     kind: str
@@ -197,6 +203,8 @@ class Step:
     capture: Path | None = None
     out: Path | None = None
     steps: int = 8
+    split: str = "test"
+    lpips_weights: Path | None = None
 
 
 @dataclass
@@ -283,7 +291,10 @@ def synth_argv(st: Settings, kind: str) -> list[str]:
 
 
 def own_stages(row: RowSpec) -> list[str]:
-    """The workspace stages a row runs itself, in order."""
+    """The workspace stages a row runs itself, in order (none for the tracking ceiling: it renders
+    the capture's ground truth on the ingested data it copies)."""
+    if row.ceiling:
+        return []
     out = [s for s in ("ingest", "init-mesh") if s not in row.copy_stages]
     if row.phase1 is not None:
         out.append("phase1")
@@ -312,7 +323,12 @@ def row_steps(st: Settings, row: RowSpec) -> list[Step]:
         deps = [key]
     last = deps
     for split in row.eval_splits:
-        steps.append(Step("cli", f"{row.id}:eval:{split}", eval_argv(st, row, split), row=row.id, stage="eval", deps=last))
+        key = f"{row.id}:eval:{split}"
+        if row.ceiling:
+            steps.append(Step("ceiling", key, row=row.id, deps=last, capture=st.capture_dir(row.capture), out=st.ws(row.id), split=split,
+                              lpips_weights=st.lpips_weights))
+        else:
+            steps.append(Step("cli", key, eval_argv(st, row, split), row=row.id, stage="eval", deps=last))
     if row.reenact:
         mkey = f"motion:{row.capture}"
         steps.append(Step("motion", mkey, deps=[f"synth:{row.capture}"], capture=st.capture_dir(row.capture),

@@ -104,6 +104,13 @@ def write_test_motion(capture: Path, out: Path, steps: int) -> tuple[Path, list[
     return write_key_motion(capture, out, steps)
 
 
+def ceiling_command(capture: Path, ws: Path, split: str, lpips_weights: Path | None) -> str:
+    """The shell line equivalent to the suite's ceiling step (:func:`sage_core.evaluate.ceiling.evaluate_ceiling`)."""
+    lp = "None" if lpips_weights is None else f"'{lpips_weights}'"
+    code = f"from sage_core.evaluate.ceiling import evaluate_ceiling; evaluate_ceiling('{capture}', '{ws}', '{split}', {lp})"
+    return f'python -c "{code}"'
+
+
 def motion_command(capture: Path, out: Path, steps: int) -> str:
     """The shell line equivalent to :func:`write_test_motion`."""
     code = f"from pathlib import Path; from sage_core.export.motion import write_key_motion; write_key_motion(Path('{capture}'), Path('{out}'), {steps})"
