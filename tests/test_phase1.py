@@ -150,3 +150,16 @@ def test_background_band_rays_and_mask_terms(init_ws, one_thread):
             if key in out:
                 assert np.isfinite(out[key]) and out[key] >= 0, key
     assert {"neus_mask", "mask"} <= seen
+
+
+def test_posed_mesh_is_kept_while_the_inputs_are_constant(init_ws, one_thread):
+    """The trainer poses each timestep's mesh once, and not while a pose correction is learned."""
+    tr = _trainer(init_ws, "mlp", iterations=4, pose_refine=True, pose_refine_from=2)
+    t = tr.frames[0].timestep
+    inputs, _ = tr.frame_inputs(t)
+    mesh = tr.posed_mesh(t, inputs, None)
+    assert mesh is not None and tr.posed_mesh(t, inputs, None) is mesh
+    assert torch.equal(mesh.vertices, tr.avatar.pose_mesh(inputs))
+    tr.step_count = 2
+    corrected, _ = tr.frame_inputs(t)
+    assert tr.posed_mesh(t, corrected, None) is None
