@@ -61,7 +61,6 @@ from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
 from ..image_metrics import psnr, ssim, ssim_map
 from ..render import RenderCamera
-from ..render.mesh_raster import ray_directions
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
@@ -70,6 +69,7 @@ from .densify import DensityControl, DensifySchedule, scene_extent
 from .canonical_warp import CanonicalWarp, make_warp
 from .exposure import ExposureGain
 from .symmetry import MirrorPlane, color_symmetry_loss, plane_from_pairs, sdf_symmetry_loss
+from .warp import pixel_rays
 
 Progress = Callable[..., None]
 STATE_FORMAT = 1
@@ -185,6 +185,16 @@ def mirror_transform(mirror_index: torch.Tensor) -> Callable[[torch.Tensor], tor
     return lambda verts: mirror_vertices(verts, mirror_index)
 
 
+def near_mask(mask: torch.Tensor, radius: int) -> torch.Tensor:
+    """Pixels within Chebyshev distance ``radius`` of a True pixel of ``mask`` (H, W) bool -> (H, W) bool:
+    a square max filter of side 2·radius + 1, run as its two one-dimensional passes."""
+    k = 2 * radius + 1
+    m = mask.to(torch.float32)[None, None]
+    m = torch.nn.functional.max_pool2d(m, (k, 1), stride=1, padding=(radius, 0))
+    m = torch.nn.functional.max_pool2d(m, (1, k), stride=1, padding=(0, radius))
+    return m[0, 0] > 0
+
+
 def weighted_rgb_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
     """(1 − w)·mean(ω·|pred − gt|) + w·mean(ω·(1 − SSIM map)); pred, gt: (H, W, 3), weight ω: (H, W)."""
     om = weight[..., None]
@@ -226,7 +236,7 @@ class Phase1Trainer:
         if not self.frames:
             raise ValueError("no training frames")
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
-        self._bands: dict[int, torch.Tensor] = {}
+        self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
         self._meshes: dict[tuple[int, bool], PosedMesh] = {}
@@ -305,16 +315,15 @@ class Phase1Trainer:
             if g["name"] == "mu_loc":
                 g["lr"] = lr
 
-    def _background_band(self, i: int, mask: torch.Tensor) -> torch.Tensor:
-        """Flat indices (M,) of the background pixels of training frame ``i`` within
-        ``neus_background_band`` pixels of its foreground mask (H, W); cached per frame."""
-        if i not in self._bands:
-            fg = (mask > 0.5).to(torch.float32)[None, None]
-            k = 2 * int(self.cfg.neus_background_band) + 1
-            near = torch.nn.functional.max_pool2d(fg, k, stride=1, padding=k // 2)[0, 0] > 0
-            band = near & ~(fg[0, 0] > 0)
-            self._bands[i] = torch.nonzero(band.reshape(-1), as_tuple=False).reshape(-1)
-        return self._bands[i]
+    def _ray_pixels(self, i: int, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flat indices of the pixels NeuS rays are drawn from in training frame ``i``: its foreground
+        (mask (H, W) > 0.5) and the background pixels within ``neus_background_band`` pixels
+        (Chebyshev) of it; cached per frame."""
+        if i not in self._pixels:
+            fg = mask > 0.5
+            band = near_mask(fg, int(self.cfg.neus_background_band)) & ~fg
+            self._pixels[i] = (torch.nonzero(fg.reshape(-1)).reshape(-1), torch.nonzero(band.reshape(-1)).reshape(-1))
+        return self._pixels[i]
 
     def _frame(self, i: int) -> tuple[torch.Tensor, torch.Tensor, RenderCamera]:
         if i not in self._cache:
@@ -503,12 +512,11 @@ class Phase1Trainer:
         eik = canon.means.new_zeros(())
         if rays is not None:
             img, mask, cam, inputs, rigid, fi = rays
-            fg = torch.nonzero(mask.reshape(-1) > 0.5, as_tuple=False).reshape(-1)
+            fg, bg = self._ray_pixels(fi, mask)
             if fg.numel() > 0 and c.rays_per_step > 0:
                 pix = fg[self._randint(fg.numel(), c.rays_per_step).to(fg.device)]
                 n_bg = int(round(c.neus_background_rays * c.rays_per_step))
-                bg = self._background_band(fi, mask) if (n_bg > 0 and self.frames[fi].mask is not None) else None
-                if bg is not None and bg.numel() > 0:
+                if n_bg > 0 and self.frames[fi].mask is not None and bg.numel() > 0:
                     pix = torch.cat([pix, bg[self._randint(bg.numel(), n_bg).to(bg.device)]])
                 cr = self.warp.map(av, {k: v.detach() for k, v in inputs.items()}, cam, pix, rigid)
                 o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
@@ -533,8 +541,8 @@ class Phase1Trainer:
                 # surfel depth (camera z) -> distance along the world ray -> canonical distance
                 with torch.no_grad():
                     Rw = cam.w2c[:3, :3]
-                    _, d_w = ray_directions(cam.K, cam.w2c, cam.width, cam.height)
-                    dz = (d_w.reshape(-1, 3)[pix] @ Rw.T)[:, 2]
+                    _, d_w = pixel_rays(cam.K, cam.w2c, cam.width, cam.height, pix)
+                    dz = (d_w @ Rw.T)[:, 2]
                     a = render.alpha.reshape(-1)[pix]
                     t_s = render.depth.reshape(-1)[pix] / dz.clamp_min(1e-6) * ratio
                     n_s = (rot @ render.normal_world.reshape(-1, 3)[pix][..., None]).squeeze(-1)
