@@ -59,7 +59,7 @@ from ..avatar.shading import shade_foreground
 from ..runtime import resolve_render_backend
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
-from ..image_metrics import psnr, ssim, ssim_map
+from ..image_metrics import SSIMTarget, psnr, ssim, ssim_map, ssim_target
 from ..render import RenderCamera
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
@@ -237,6 +237,7 @@ class Phase1Trainer:
             raise ValueError("no training frames")
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._ssim_targets: dict[int, SSIMTarget] = {}
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
         self._meshes: dict[tuple[int, bool], PosedMesh] = {}
@@ -324,6 +325,12 @@ class Phase1Trainer:
             band = near_mask(fg, int(self.cfg.neus_background_band)) & ~fg
             self._pixels[i] = (torch.nonzero(fg.reshape(-1)).reshape(-1), torch.nonzero(band.reshape(-1)).reshape(-1))
         return self._pixels[i]
+
+    def _ssim_target(self, i: int, img: torch.Tensor) -> SSIMTarget:
+        """The SSIM target moments of training frame ``i``'s image (H, W, 3); cached per frame."""
+        if i not in self._ssim_targets:
+            self._ssim_targets[i] = ssim_target(img.permute(2, 0, 1)[None])
+        return self._ssim_targets[i]
 
     def _frame(self, i: int) -> tuple[torch.Tensor, torch.Tensor, RenderCamera]:
         if i not in self._cache:
@@ -429,7 +436,8 @@ class Phase1Trainer:
             color = self.exposure.apply(color, render.alpha, i, c.background)
         terms: dict[str, torch.Tensor] = {}
         if weight is None:
-            terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight)
+            target = self._ssim_target(i, img) if c.ssim_weight != 0 and i is not None else None
+            terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight, target)
             total = terms["rgb"]
             if c.w_mask > 0 and i is not None and self.frames[i].mask is not None:
                 terms["mask"] = L.alpha_mask_loss(render.alpha, mask)
