@@ -166,3 +166,16 @@ def test_posed_mesh_is_kept_while_the_inputs_are_constant(init_ws, one_thread):
     tr.step_count = 2
     corrected, _ = tr.frame_inputs(t)
     assert tr.posed_mesh(t, corrected, None) is None
+
+
+def test_ssim_targets_are_kept_within_their_budget(init_ws, one_thread, monkeypatch):
+    """Frames past the byte budget get their SSIM target made anew each step, with the same losses."""
+    import sage_core.train.phase1 as p1
+
+    runs = []
+    for budget in (p1.SSIM_TARGET_BUDGET, 1):
+        monkeypatch.setattr(p1, "SSIM_TARGET_BUDGET", budget)
+        tr = _trainer(init_ws, "mlp", iterations=3)
+        runs.append(([tr.step()["rgb"] for _ in range(3)], len(tr._ssim_targets)))
+    (kept_losses, kept), (made_losses, made) = runs
+    assert kept_losses == made_losses and kept >= 1 and made == 0

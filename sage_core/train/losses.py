@@ -21,7 +21,9 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     return (x * m).sum() / m.sum().clamp_min(1.0)
 
 
-def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2, target: SSIMTarget | None = None) -> torch.Tensor:
+def rgb_loss(
+    pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2, target: SSIMTarget | None = None
+) -> torch.Tensor:
     """L_rgb = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS / 2DGS). pred, gt: (H, W, 3); target: gt's
     kept :func:`ssim_target` (of ``gt.permute(2, 0, 1)[None]``), made here when None."""
     l1 = (pred - gt).abs().mean()

@@ -73,6 +73,9 @@ from .warp import pixel_rays
 
 Progress = Callable[..., None]
 STATE_FORMAT = 1
+SSIM_TARGET_BUDGET = 256 * 2**20
+"""Bytes of SSIM target moments a trainer keeps (the first frames visited; about 470 tiny, 120 small or
+25 full-size frames): a kept target saves two of the five SSIM window blurs of each later step."""
 
 
 def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, device: str | torch.device, generator: torch.Generator) -> Avatar:
@@ -238,6 +241,7 @@ class Phase1Trainer:
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._ssim_targets: dict[int, SSIMTarget] = {}
+        self._ssim_target_bytes = 0
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
         self._meshes: dict[tuple[int, bool], PosedMesh] = {}
@@ -323,14 +327,21 @@ class Phase1Trainer:
         if i not in self._pixels:
             fg = mask > 0.5
             band = near_mask(fg, int(self.cfg.neus_background_band)) & ~fg
-            self._pixels[i] = (torch.nonzero(fg.reshape(-1)).reshape(-1), torch.nonzero(band.reshape(-1)).reshape(-1))
+            fg_ids, band_ids = (torch.nonzero(m.reshape(-1)).reshape(-1) for m in (fg, band))
+            self._pixels[i] = (fg_ids, band_ids)
         return self._pixels[i]
 
     def _ssim_target(self, i: int, img: torch.Tensor) -> SSIMTarget:
-        """The SSIM target moments of training frame ``i``'s image (H, W, 3); cached per frame."""
-        if i not in self._ssim_targets:
-            self._ssim_targets[i] = ssim_target(img.permute(2, 0, 1)[None])
-        return self._ssim_targets[i]
+        """The SSIM target moments of training frame ``i``'s image (H, W, 3): kept per frame (two images'
+        worth) for the first frames visited, up to ``SSIM_TARGET_BUDGET`` bytes, made anew for the others."""
+        if i in self._ssim_targets:
+            return self._ssim_targets[i]
+        target = ssim_target(img.permute(2, 0, 1)[None])
+        size = 2 * img.numel() * img.element_size()
+        if self._ssim_target_bytes + size <= SSIM_TARGET_BUDGET:
+            self._ssim_targets[i] = target
+            self._ssim_target_bytes += size
+        return target
 
     def _frame(self, i: int) -> tuple[torch.Tensor, torch.Tensor, RenderCamera]:
         if i not in self._cache:
