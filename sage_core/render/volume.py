@@ -223,8 +223,9 @@ def _render_hits(
 def _rows_of_all_rays(
     pieces: list[torch.Tensor], hit_idx: torch.Tensor, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device
 ) -> torch.Tensor:
-    """One per-ray output of every ray, shape (R, ...): the chunks' rows (in ``hit_idx`` order, (H,)
-    the rays that hit the box) at their rays, zeros elsewhere; the rows themselves when every ray hit."""
+    """One per-ray output for all R rays, ``shape`` (R, ...): ``pieces`` are the chunks' rows of the rays
+    ``hit_idx`` (H,) that hit the box, in that order; they are placed at their rays over zeros, or returned
+    as they are when every ray hit."""
     if not pieces:
         return torch.zeros(shape, dtype=dtype, device=device)
     rows = pieces[0] if len(pieces) == 1 else torch.cat(pieces, 0)
