@@ -16,6 +16,7 @@ evaluation caller clamps renders before calling it.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -181,26 +182,55 @@ def _blur_conv(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, wy, padding=(pad, 0), groups=c)
 
 
+@dataclass(frozen=True)
+class SSIMTarget:
+    """The part of SSIM that depends on the target image only, kept for a target that is compared with
+    many predictions (a training image): the image (B, C, H, W) and its window means of x and x²
+    (B, C, H, W each), for the window ``window_size``, ``sigma``. Made by :func:`ssim_target`."""
+
+    image: torch.Tensor
+    mean: torch.Tensor
+    mean_sq: torch.Tensor
+    window_size: int
+    sigma: float
+
+
+def ssim_target(gt: torch.Tensor, window_size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> SSIMTarget:
+    """:class:`SSIMTarget` of a target image (B, C, H, W) or (C, H, W) (kept batched)."""
+    gt = gt.unsqueeze(0) if gt.dim() == 3 else gt
+    if gt.dim() != 4:
+        raise ValueError(f"expected (B, C, H, W) or (C, H, W), got shape {tuple(gt.shape)}")
+    g = gaussian_window_1d(window_size, sigma, dtype=gt.dtype, device=gt.device)
+    mean, mean_sq = _blur(torch.cat([gt, gt * gt], dim=1), g).split(gt.shape[1], dim=1)
+    return SSIMTarget(gt, mean, mean_sq, window_size, sigma)
+
+
 def ssim_map(
     pred: torch.Tensor,
-    gt: torch.Tensor,
+    gt: torch.Tensor | SSIMTarget,
     window_size: int = SSIM_WINDOW,
     sigma: float = SSIM_SIGMA,
 ) -> torch.Tensor:
     """Per-pixel, per-channel SSIM map (formats.md §8).
 
     Gaussian window ``window_size``² with std ``sigma``, zero-padded 'same' convolution as in the
-    3DGS code, ``C1 = 0.01²``, ``C2 = 0.03²`` (data range 1). No clamping; differentiable.
+    3DGS code, ``C1 = 0.01²``, ``C2 = 0.03²`` (data range 1). No clamping; differentiable in pred.
 
-    pred, gt: (B, C, H, W) or (C, H, W) -> same shape.
+    pred: (B, C, H, W) or (C, H, W); gt: the target of the same shape, or its :class:`SSIMTarget`
+    (of the same window; batched) -> the shape of pred.
     """
-    pred, gt, single = _check_pair(pred, gt)
+    target = gt if isinstance(gt, SSIMTarget) else ssim_target(gt, window_size, sigma)
+    if (target.window_size, target.sigma) != (window_size, sigma):
+        raise ValueError(f"SSIM target of window {target.window_size}/{target.sigma}, asked for {window_size}/{sigma}")
+    single = pred.dim() == 3
+    pred = pred.unsqueeze(0) if single else pred
+    if pred.shape != target.image.shape:
+        raise ValueError(f"image shapes differ: {tuple(pred.shape)} vs {tuple(target.image.shape)}")
     g = gaussian_window_1d(window_size, sigma, dtype=pred.dtype, device=pred.device)
     c = pred.shape[1]
-    # blur the five moment images in one grouped call: (B, 5C, H, W)
-    stack = torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], dim=1)
-    m = _blur(stack, g)
-    mu1, mu2, e11, e22, e12 = m.split(c, dim=1)
+    # blur the prediction's three moment images in one grouped call: (B, 3C, H, W)
+    mu1, e11, e12 = _blur(torch.cat([pred, pred * pred, pred * target.image], dim=1), g).split(c, dim=1)
+    mu2, e22 = target.mean, target.mean_sq
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
     s11 = e11 - mu1_sq
     s22 = e22 - mu2_sq
@@ -213,13 +243,14 @@ def ssim_map(
 
 def ssim(
     pred: torch.Tensor,
-    gt: torch.Tensor,
+    gt: torch.Tensor | SSIMTarget,
     window_size: int = SSIM_WINDOW,
     sigma: float = SSIM_SIGMA,
 ) -> torch.Tensor:
     """SSIM per image: mean of :func:`ssim_map` over channels and pixels.
 
-    pred, gt: (B, C, H, W) or (C, H, W) -> (B,) or 0-d. Identical images give exactly 1.
+    pred, gt: (B, C, H, W) or (C, H, W) (gt may be its :class:`SSIMTarget`) -> (B,) or 0-d. Identical
+    images give exactly 1.
     As a training loss use ``1 - ssim(pred, gt).mean()``.
     """
     m = ssim_map(pred, gt, window_size, sigma)

@@ -112,20 +112,27 @@ def test_float32_table_with_float64_points(cpp_ext: None) -> None:
 
 @pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-10), (torch.float32, 2e-5)])
 @pytest.mark.parametrize("active", [6, 3])
-def test_first_gradients_match_reference(cpp_ext: None, dtype: torch.dtype, rtol: float, active: int) -> None:
-    g = make_grid(dtype)
+@pytest.mark.parametrize("features", [2, 3])
+def test_first_gradients_match_reference(
+    cpp_ext: None, dtype: torch.dtype, rtol: float, active: int, features: int
+) -> None:
+    """The gradients of x and the table, and of the table alone (x without a gradient: the kernel's
+    table-only pass), for a compiled (2) and a run-time (3) feature count."""
+    g = make_grid(dtype, n_features=features)
     g.set_active_levels(active)
     x0 = sample_points(600, dtype)
-    upstream = torch.randn(x0.shape[0], 6, 2, generator=torch.Generator().manual_seed(5), dtype=dtype)
+    upstream = torch.randn(x0.shape[0], 6, features, generator=torch.Generator().manual_seed(5), dtype=dtype)
     grads = {}
     for backend in ("torch", "cpp"):
         g.backend = backend
         g.table.grad = None
         x = x0.clone().requires_grad_(True)
         (g.level_features(x) * upstream).sum().backward()
-        grads[backend] = (x.grad, g.table.grad.clone())
-    (gx_ref, gt_ref), (gx, gt) = grads["torch"], grads["cpp"]
+        (table_alone,) = torch.autograd.grad((g.level_features(x0) * upstream).sum(), g.table)
+        grads[backend] = (x.grad, g.table.grad.clone(), table_alone)
+    (gx_ref, gt_ref, ta_ref), (gx, gt, ta) = grads["torch"], grads["cpp"]
     assert rel_err(gx, gx_ref) <= rtol and rel_err(gt, gt_ref) <= rtol
+    assert torch.equal(ta, gt) and rel_err(ta, ta_ref) <= rtol
     n_special = 10  # the last points of sample_points: 3 outside, then 3 on faces; outside -> no gradient
     assert torch.all(gx[-6:-3] == 0) and float(gx[:-n_special].abs().max()) > 0
     masked_rows = sum(g.level_sizes[:active])

@@ -9,7 +9,16 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from sage_core.image_metrics import gaussian_window_1d, mean_psnr, psnr, psnr_per_channel_mean, ssim, ssim_map, to_nchw
+from sage_core.image_metrics import (
+    gaussian_window_1d,
+    mean_psnr,
+    psnr,
+    psnr_per_channel_mean,
+    ssim,
+    ssim_map,
+    ssim_target,
+    to_nchw,
+)
 
 
 def _rand(shape, seed=0, dtype=torch.float64):
@@ -140,6 +149,28 @@ def test_ssim_gradients_flow_as_loss():
     small_gt = gt[..., :8, :8].contiguous()
     x = pred[..., :8, :8].detach().clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda y: ssim(y, small_gt), (x,), eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_ssim_against_a_kept_target_is_ssim_against_the_image(dtype):
+    """A target's moments computed once (a training image) give the same map and gradients, batched
+    or not; a target of another window is refused."""
+    gt = _rand((1, 3, 21, 17), 16, dtype)
+    target = ssim_target(gt)
+    for pred0 in (_rand((1, 3, 21, 17), 17, dtype), _rand((3, 21, 17), 18, dtype)):
+        grads = []
+        for against in (gt[0] if pred0.dim() == 3 else gt, target):
+            pred = pred0.clone().requires_grad_(True)
+            m = ssim_map(pred, against)
+            (g,) = torch.autograd.grad((m * m).sum(), pred)
+            grads.append((m, g))
+        (m1, g1), (m2, g2) = grads
+        assert m1.shape == pred0.shape and torch.equal(m1, m2) and torch.equal(g1, g2)
+    assert torch.equal(ssim(gt, target), ssim(gt, gt))
+    with pytest.raises(ValueError, match="window"):
+        ssim_map(gt, target, window_size=7)
+    with pytest.raises(ValueError, match="shapes differ"):
+        ssim_map(gt[..., :-1], target)
 
 
 def _native_blur_or_skip():

@@ -132,16 +132,19 @@ def test_background_band_rays_and_mask_terms(init_ws, one_thread):
     tr = _trainer(init_ws, "mlp", iterations=4, neus_background_rays=0.5, neus_background_band=3, w_neus_mask=0.1, w_mask=0.1)
     assert tr.frames[0].mask is not None
     _, mask, _ = tr._frame(0)
-    band = tr._background_band(0, mask)
+    fg_pix, band = tr._ray_pixels(0, mask)
     assert band.numel() > 0
     flat = mask.reshape(-1)
-    assert bool((flat[band] <= 0.5).all())
-    # every band pixel lies within 3 pixels (Chebyshev) of a foreground pixel
+    assert torch.equal(fg_pix, torch.nonzero(flat > 0.5).reshape(-1))
+    # the band is exactly the background within 3 pixels (Chebyshev) of a foreground pixel
     h, w = mask.shape
-    fg = torch.nonzero(mask > 0.5)
-    by, bx = band // w, band % w
-    cheb = torch.maximum((by[:, None] - fg[None, :, 0]).abs(), (bx[:, None] - fg[None, :, 1]).abs()).min(1).values
-    assert int(cheb.max()) <= 3 and int(cheb.min()) >= 1
+    fg = mask > 0.5
+    padded = torch.nn.functional.pad(fg.to(torch.uint8), (3, 3, 3, 3)).bool()
+    near = torch.zeros_like(fg)
+    for dy in range(7):
+        for dx in range(7):
+            near |= padded[dy : dy + h, dx : dx + w]
+    assert torch.equal(band, torch.nonzero((near & ~fg).reshape(-1)).reshape(-1))
     seen = set()
     for _ in range(4):
         out = tr.step()
@@ -150,3 +153,29 @@ def test_background_band_rays_and_mask_terms(init_ws, one_thread):
             if key in out:
                 assert np.isfinite(out[key]) and out[key] >= 0, key
     assert {"neus_mask", "mask"} <= seen
+
+
+def test_posed_mesh_is_kept_while_the_inputs_are_constant(init_ws, one_thread):
+    """The trainer poses each timestep's mesh once, and not while a pose correction is learned."""
+    tr = _trainer(init_ws, "mlp", iterations=4, pose_refine=True, pose_refine_from=2)
+    t = tr.frames[0].timestep
+    inputs, _ = tr.frame_inputs(t)
+    mesh = tr.posed_mesh(t, inputs, None)
+    assert mesh is not None and tr.posed_mesh(t, inputs, None) is mesh
+    assert torch.equal(mesh.vertices, tr.avatar.pose_mesh(inputs))
+    tr.step_count = 2
+    corrected, _ = tr.frame_inputs(t)
+    assert tr.posed_mesh(t, corrected, None) is None
+
+
+def test_ssim_targets_are_kept_within_their_budget(init_ws, one_thread, monkeypatch):
+    """Frames past the byte budget get their SSIM target made anew each step, with the same losses."""
+    import sage_core.train.phase1 as p1
+
+    runs = []
+    for budget in (p1.SSIM_TARGET_BUDGET, 1):
+        monkeypatch.setattr(p1, "SSIM_TARGET_BUDGET", budget)
+        tr = _trainer(init_ws, "mlp", iterations=3)
+        runs.append(([tr.step()["rgb"] for _ in range(3)], len(tr._ssim_targets)))
+    (kept_losses, kept), (made_losses, made) = runs
+    assert kept_losses == made_losses and kept >= 1 and made == 0

@@ -275,6 +275,27 @@ def test_plain_forward_and_detached_gradient(cpp_ext: None) -> None:
     assert type(fused(x0)[0].grad_fn).__name__ == "_SDFEvalBackward"
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_sdf_alone_is_the_forward_sdf(cpp_ext: None, dtype: torch.dtype) -> None:
+    """sdf() runs the kernel without the feature rows of the last layer: the values of forward()[0] and
+    the parameters' gradients through them, bit for bit, in the portable and (where the CPU has it) the
+    AVX2 build."""
+    _, fused = make_pair(dtype)
+    x0 = sample_points(300, dtype)
+    ops = torch.ops.sage_sdf_cpu
+    try:
+        for portable in (False, True):
+            ops.force_portable(portable)
+            with torch.no_grad():
+                assert torch.equal(fused.sdf(x0), fused(x0)[0])
+            grads = [torch.autograd.grad(s.square().sum(), params_of(fused), allow_unused=True)
+                     for s in (fused.sdf(x0), fused(x0)[0])]  # fmt: skip
+            for a, b in zip(*grads):
+                assert (a is None and b is None) or torch.equal(a, b)
+    finally:
+        ops.force_portable(False)
+
+
 def test_forward_with_a_differentiable_x_stays_twice_differentiable(cpp_ext: None) -> None:
     """forward() on an x that requires a gradient runs the torch path, so autograd.grad(..., create_graph)
     followed by a loss on that gradient still works (the pattern of external callers)."""

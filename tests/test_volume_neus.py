@@ -79,6 +79,13 @@ def test_neus_alpha_formula():
     it = -torch.relu(-cos)
     prev, nxt = torch.sigmoid((sdf - it * dist / 2) * s), torch.sigmoid((sdf + it * dist / 2) * s)
     torch.testing.assert_close(a, ((prev - nxt + 1e-5) / (prev + 1e-5)).clamp(0, 1))
+    # r = 1 skips the annealed term of weight 0: the same gradients as the whole formula
+    c1, c2 = cos.clone().requires_grad_(True), cos.clone().requires_grad_(True)
+    (g1,) = torch.autograd.grad(neus_alpha(sdf, c1, dist, s, cos_anneal_ratio=1.0).sum(), c1)
+    full = -(torch.relu(-c2 * 0.5 + 0.5) * 0.0 + torch.relu(-c2) * 1.0)
+    p2, n2 = torch.sigmoid((sdf - full * dist / 2) * s), torch.sigmoid((sdf + full * dist / 2) * s)
+    (g2,) = torch.autograd.grad(((p2 - n2 + 1e-5) / (p2 + 1e-5)).clamp(0, 1).sum(), c2)
+    assert torch.equal(g1, g2)
     a0 = neus_alpha(sdf, cos, dist, s, cos_anneal_ratio=0.0)
     it0 = -torch.relu(-cos * 0.5 + 0.5)
     prev, nxt = torch.sigmoid((sdf - it0 * dist / 2) * s), torch.sigmoid((sdf + it0 * dist / 2) * s)
@@ -117,6 +124,30 @@ def test_missed_box_gives_background_and_chunking_invariance():
     full = render_neus(sphere, constant_app, o, d, inv_s=500.0, n_samples=32, n_importance=32, background=bg)
     torch.testing.assert_close(out.color, full.color)
     torch.testing.assert_close(out.depth, full.depth)
+
+
+def test_rays_that_hit_render_alike_beside_a_missed_ray(one_thread):
+    """The outputs of rays that hit the box, and the gradients they give, do not depend on whether a
+    ray that misses it is rendered with them (its rows are zeros)."""
+    torch.manual_seed(0)
+    box = ([-0.2] * 3, [0.2] * 3)
+    net = SDFNetwork(*box, n_levels=4, log2_table=10, base_res=8, max_res=64, hidden=16, feature_dim=4)
+    app = AppearanceNetwork(4, *box, hidden=16, n_layers=1, sh_degree=1)
+    o = torch.tensor([[0.0, 0.0, -0.6]]).repeat(5, 1)
+    d = torch.cat([torch.randn(5, 2).clamp(-2, 2) * 0.05, torch.ones(5, 1)], -1)
+    miss = (torch.tensor([[0.0, 1.0, -0.6]]), torch.tensor([[0.0, 0.0, 1.0]]))
+    results = []
+    for rays_o, rays_d in ((o, d), (torch.cat([o, miss[0]]), torch.cat([d, miss[1]]))):
+        net.zero_grad(set_to_none=True)
+        out = render_neus(net, app, rays_o, rays_d, 50.0, n_samples=8, n_importance=8, up_sample_steps=1,
+                          length_unit=0.2, return_samples=True)  # fmt: skip
+        keys = ("color", "depth", "normal", "weights_sum", "t", "weights", "sdf", "gradients")
+        rows = {k: getattr(out, k)[:5] for k in keys}
+        (rows["color"].sum() + rows["normal"].sum() + rows["gradients"].norm(dim=-1).sum()).backward()
+        results.append((rows, net.layers[0].weight.grad.clone(), net.encoding.table.grad.clone()))
+    (a, wa, ta), (b, wb, tb) = results
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert torch.equal(wa, wb) and torch.equal(ta, tb)
 
 
 def test_importance_sampling_concentrates_samples_at_surface():

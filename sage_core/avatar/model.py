@@ -48,7 +48,8 @@ networks, and thin methods that call the others):
 * :mod:`~sage_core.avatar.build` — :meth:`Avatar.build` from a workspace's init-mesh outputs;
 * :mod:`~sage_core.avatar.storage` — :meth:`Avatar.save` / :meth:`Avatar.load` (the avatar file);
 * :mod:`~sage_core.avatar.posing` — :meth:`Avatar.canonical_state`, :meth:`Avatar.posed`,
-  :meth:`Avatar.pose`, :meth:`Avatar.pose_mesh`, :meth:`Avatar.rigid_transform` and the correction hook;
+  :meth:`Avatar.pose`, :meth:`Avatar.pose_mesh`, :meth:`Avatar.posed_mesh`, :meth:`Avatar.rigid_transform` and
+  the correction hook;
 * :mod:`~sage_core.avatar.rendering` — :meth:`Avatar.render`, :meth:`Avatar.shade_colors` and the
   exposure gains; :mod:`~sage_core.avatar.shading` — the world light.
 
@@ -59,7 +60,8 @@ kwargs of batch 1):
   device)`` -> Avatar; ``avatar.save(path)`` -> Path;
 * ``avatar.frame_inputs(timestep)``, ``avatar.params_inputs(params, row)``, ``avatar.flame_inputs(flame,
   row, **overrides)`` -> flame_inputs;
-* ``avatar.pose_mesh(flame_inputs)`` -> (V, 3); ``avatar.canonical_state()`` -> :class:`CanonicalSurfels`
+* ``avatar.pose_mesh(flame_inputs)`` -> (V, 3); ``avatar.posed_mesh(flame_inputs)`` -> :class:`PosedMesh`
+  (the posed mesh and each triangle's canonical → posed map); ``avatar.canonical_state()`` -> :class:`CanonicalSurfels`
   (means (N, 3), quats (N, 4), scales (N, 2)); ``avatar.posed(flame_inputs, camera_centre (3,))`` and
   ``avatar.pose(flame, row, **overrides)`` -> :class:`PosedSurfels` (means (N, 3), quats (N, 4),
   scales (N, 2), opacities (N,), colors (N, 3), vertices (V, 3));
@@ -98,7 +100,7 @@ from . import storage as _storage
 from .build import clip_cameras_at_canonical as _clip_cameras_at_canonical
 from .build import rigid_world_from_canonical as _rigid_world_from_canonical
 from .correction import SurfelCorrection
-from .posing import CanonicalSurfels, PosedSurfels, params_row_inputs
+from .posing import CanonicalSurfels, PosedMesh, PosedSurfels, params_row_inputs
 from .shading import SHADING_MODES, SHIrradiance, world_normals
 from .storage import AVATAR_FORMAT, AVATAR_KIND, FLAME_REF_SEARCH_DEPTH, flame_model_sha256
 from .surfels import SurfelSet
@@ -353,6 +355,7 @@ class Avatar(nn.Module):
         vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
         shade: bool = True,
         light_transform: torch.Tensor | None = None,
+        mesh: PosedMesh | None = None,
     ) -> PosedSurfels:
         """World-space surfels of one frame.
 
@@ -366,10 +369,19 @@ class Avatar(nn.Module):
         by the world irradiance at the (corrected) surfel normals (False: the albedo; no effect when
         ``shading`` is "none"); light_transform: (3, 3) orthogonal map applied to the world normals
         before the irradiance, for a render that should see a transformed light (a left-right mirror
-        view of the capture sees the mirror image of the world light: S = diag(−1, 1, 1)).
+        view of the capture sees the mirror image of the world light: S = diag(−1, 1, 1)); mesh: the
+        frame's :meth:`posed_mesh` if already computed (then ``vertices`` and ``vertex_transform`` are
+        not used), e.g. kept by a trainer that poses one frame many times.
         """
         return _posing.posed(self, flame_inputs, camera_center_world, correction, canonical, vertices, vertex_transform,
-                             shade, light_transform)  # fmt: skip
+                             shade, light_transform, mesh)  # fmt: skip
+
+    def posed_mesh(
+        self, flame_inputs: dict[str, torch.Tensor], vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None
+    ) -> PosedMesh:
+        """The frame-only part of posing (:class:`~sage_core.avatar.posing.PosedMesh`: the posed mesh
+        and each triangle's canonical → posed map) of one frame, ``vertex_transform`` as in :meth:`posed`."""
+        return _posing.posed_mesh(self, flame_inputs, vertex_transform)
 
     def pose(
         self,
@@ -421,12 +433,13 @@ class Avatar(nn.Module):
         vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
         shade: bool = True,
         light_transform: torch.Tensor | None = None,
+        mesh: PosedMesh | None = None,
         **raster_kwargs: Any,
     ) -> tuple[SurfelRender, PosedSurfels]:
         """Pose and rasterize for one (unbatched) camera; raster_kwargs go to ``rasterize_surfels``;
-        vertex_transform, shade and light_transform as in :meth:`posed`."""
+        vertex_transform, shade, light_transform and mesh as in :meth:`posed`."""
         return _rendering.render(self, camera, flame_inputs, background, correction, canonical, vertex_transform, shade,
-                                 light_transform, **raster_kwargs)  # fmt: skip
+                                 light_transform, mesh, **raster_kwargs)  # fmt: skip
 
     # ------------------------------------------------------------------ canonical <-> world
     def rigid_transform(self, flame_inputs: dict[str, torch.Tensor], tol: float = 1e-5) -> tuple[torch.Tensor, torch.Tensor] | None:

@@ -12,10 +12,12 @@ surfels through the canonical (R_c, T_c, k_c) and posed (R_p, T_p, k_p) triangle
 
     μ = k_p·R_p·R_cᵀ·(x_c − T_c)/k_c + T_p,    R = R_p·R_cᵀ·R_canon,    s = s_c·k_p/k_c
 
-then applies the optional surfel-correction hook (a :class:`SurfelCorrection`, phase 2), computes the
-colours for the camera centre (view direction mapped to canonical space by the bound triangle's
-rotation), the phase-2 colour prior and wrinkle shading, and the optional world-light shading
-(:func:`sage_core.avatar.shading.shade`).
+The part that depends on the frame only (the posed mesh and its triangles' frames) is a
+:class:`PosedMesh` (:func:`posed_mesh`), which a caller that poses one frame many times (a trainer)
+may keep. Posing then applies the optional surfel-correction hook (a :class:`SurfelCorrection`,
+phase 2), computes the colours for the camera centre (view direction mapped to canonical space by the
+bound triangle's rotation), the phase-2 colour prior and wrinkle shading, and the optional
+world-light shading (:func:`sage_core.avatar.shading.shade`).
 
 Rigid frames (:func:`rigid_transform`): a frame that differs from canonical only in global rotation
 and translation maps by the rigid head map of :mod:`sage_core.geometry.rigid`.
@@ -184,9 +186,43 @@ def shape_forward(avatar: Avatar, x: torch.Tensor, prior_normal: torch.Tensor, e
 
 
 # ---------------------------------------------------------------------- posing
+@dataclass(frozen=True)
+class PosedMesh:
+    """A frame's posed mesh and what posing needs of each of its triangles (the frame-only part of
+    :func:`posed`).
+
+    vertices: (V, 3); R: (F, 3, 3), T: (F, 3), k: (F,) the triangles' surfel frames (R_p, T_p, k_p);
+    ratio: (F,) k_p/k_c; quat: (F, 4) q(R_p) ⊗ q̄_c, the canonical → posed rotation R_p·R_cᵀ as a unit
+    quaternion (wxyz).
+    """
+
+    vertices: torch.Tensor
+    R: torch.Tensor
+    T: torch.Tensor
+    k: torch.Tensor
+    ratio: torch.Tensor
+    quat: torch.Tensor
+
+
 def pose_mesh(avatar: Avatar, flame_inputs: dict[str, torch.Tensor]) -> torch.Tensor:
     """(V, 3) posed FLAME vertices of one frame (batch-1 kwargs)."""
     return avatar.flame(**flame_inputs).vertices[0]
+
+
+def posed_mesh(
+    avatar: Avatar, flame_inputs: dict[str, torch.Tensor], vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None
+) -> PosedMesh:
+    """The :class:`PosedMesh` of one frame's FLAME mesh (batch-1 kwargs), with ``vertex_transform``
+    (V, 3) -> (V, 3) applied as in :func:`posed`."""
+    verts = pose_mesh(avatar, flame_inputs)
+    return mesh_map(avatar, verts if vertex_transform is None else vertex_transform(verts))
+
+
+def mesh_map(avatar: Avatar, vertices: torch.Tensor) -> PosedMesh:
+    """The :class:`PosedMesh` of posed vertices (V, 3) of the avatar's mesh (differentiable in them)."""
+    R_p, T_p, k_p = surfel_frames(vertices, avatar.faces)
+    quat = quat_multiply(matrix_to_quat(R_p), quat_conjugate(avatar.q_c))
+    return PosedMesh(vertices, R_p, T_p, k_p, k_p / avatar.k_c, quat)
 
 
 def posed(
@@ -199,25 +235,21 @@ def posed(
     vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
     shade_colors: bool = True,
     light_transform: torch.Tensor | None = None,
+    mesh: PosedMesh | None = None,
 ) -> PosedSurfels:
     """World-space surfels of one frame (the arguments of :meth:`Avatar.posed`; ``shade_colors`` is
     its ``shade``)."""
-    if vertices is None:
-        verts = pose_mesh(avatar, flame_inputs)
-        if vertex_transform is not None:
-            verts = vertex_transform(verts)
-    else:
-        verts = vertices
-    R_p, T_p, k_p = surfel_frames(verts, avatar.faces)
+    if mesh is None:
+        mesh = posed_mesh(avatar, flame_inputs, vertex_transform) if vertices is None else mesh_map(avatar, vertices)
+    verts = mesh.vertices
     cs = canonical if canonical is not None else canonical_state(avatar, with_sdf=avatar.attributes == "mlp")
     b = avatar.surfels.binding
     Rcb, Tcb, kcb = avatar.R_c[b], avatar.T_c[b], avatar.k_c[b]
-    Rpb, Tpb, kpb = R_p[b], T_p[b], k_p[b]
+    Rpb, Tpb, kpb = mesh.R[b], mesh.T[b], mesh.k[b]
     local = (Rcb.transpose(-1, -2) @ (cs.means - Tcb)[..., None]).squeeze(-1) / kcb[:, None]
     means = kpb[:, None] * (Rpb @ local[..., None]).squeeze(-1) + Tpb
-    q_rel = quat_multiply(matrix_to_quat(R_p)[b], quat_conjugate(avatar.q_c[b]))
-    quats = quat_multiply(q_rel, cs.quats)
-    scales = cs.scales * (kpb / kcb)[:, None]
+    quats = quat_multiply(mesh.quat[b], cs.quats)
+    scales = cs.scales * mesh.ratio[b][:, None]
     if correction is not None:
         with torch.no_grad():
             kappa, dirs, normal = avatar.sdf.curvature(cs.means.detach())

@@ -21,7 +21,7 @@ import torch
 from ..flame.frames import surfel_frames
 from ..render import RenderCamera, SurfelRender, rasterize_surfels
 from .correction import SurfelCorrection
-from .posing import CanonicalSurfels, PosedSurfels, posed
+from .posing import CanonicalSurfels, PosedMesh, PosedSurfels, posed
 from .shading import shade
 
 if TYPE_CHECKING:
@@ -44,13 +44,14 @@ def render(
     vertex_transform: Callable[[torch.Tensor], torch.Tensor] | None = None,
     shade_colors: bool = True,
     light_transform: torch.Tensor | None = None,
+    mesh: PosedMesh | None = None,
     **raster_kwargs: Any,
 ) -> tuple[SurfelRender, PosedSurfels]:
     """Pose and rasterize for one (unbatched) camera (the arguments of :meth:`Avatar.render`;
     ``shade_colors`` is its ``shade``); raster_kwargs go to ``rasterize_surfels``."""
     centre = camera_centre(camera, avatar.canonical_vertices)
     p = posed(avatar, flame_inputs, centre, correction=correction, canonical=canonical, vertex_transform=vertex_transform,
-              shade_colors=shade_colors, light_transform=light_transform)  # fmt: skip
+              shade_colors=shade_colors, light_transform=light_transform, mesh=mesh)  # fmt: skip
     img = rasterize_surfels(p.means, p.quats, p.scales, p.opacities, p.colors, camera, background, **raster_kwargs)
     return img, p
 

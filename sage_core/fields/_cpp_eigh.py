@@ -8,7 +8,9 @@ What agrees with ``torch.linalg.eigh``: only the lower triangle is read; eigenva
 rounding; eigenvectors as orthonormal columns. What may differ: the sign of each eigenvector (here
 the entry of largest magnitude is made non-negative, LAPACK fixes no sign), and, for repeated
 eigenvalues, the basis chosen in their eigenspace. Non-finite inputs give NaN outputs instead of an
-error. There is no backward here: ``shape._SafeEigh`` supplies it.
+error. ``eigh3`` has no autograd of its own: ``shape._SafeEigh`` supplies the gap-clamped backward,
+which for these solutions runs as ``eigh3_backward`` (the torch formula's operations in its order, so
+the same values bit for bit).
 
 The extension is built on first use by ``sage_core.native_build``; ``available()`` reports whether it
 could be.
@@ -22,7 +24,7 @@ import torch
 
 from ..native_build import NativeExtension
 
-__all__ = ["EXT", "available", "eigh3", "supports", "warn_unavailable_once"]
+__all__ = ["EXT", "available", "eigh3", "eigh3_backward", "supports", "warn_unavailable_once"]
 
 EXT = NativeExtension(
     name="sage_eigh3_cpu",
@@ -64,3 +66,24 @@ def eigh3(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     batch = a.shape[:-2]
     evals, evecs = ops.eigh3(a.detach().reshape(-1, 3, 3).contiguous())
     return evals.reshape(*batch, 3), evecs.reshape(*batch, 3, 3)
+
+
+def eigh3_backward(
+    evals: torch.Tensor, evecs: torch.Tensor, g_evals: torch.Tensor | None, g_evecs: torch.Tensor | None, gap: float
+) -> torch.Tensor:
+    """The gap-clamped backward of ``shape.safe_eigh`` (``shape.eigh_backward_torch`` is the reference).
+
+    evals (..., 3), evecs (..., 3, 3): an ``eigh3`` solution; g_evals (..., 3), g_evecs (..., 3, 3): the
+    upstream gradients (either may be None); gap: the smallest |eigenvalue gap| of the 1/gap factors.
+    Returns the gradient of the symmetric input (..., 3, 3), in evecs' dtype.
+    """
+    why = supports(evecs)
+    if why is not None:
+        raise ValueError(f"eigh3_backward: {why}")
+    batch = evecs.shape[:-2]
+
+    def flat(t: torch.Tensor | None, *shape: int) -> torch.Tensor | None:
+        return None if t is None else t.to(evecs.dtype).reshape(-1, *shape).contiguous()
+
+    ga = EXT.ops("eigh3").eigh3_backward(flat(evals, 3), flat(evecs, 3, 3), flat(g_evals, 3), flat(g_evecs, 3, 3), float(gap))
+    return ga.reshape(*batch, 3, 3)

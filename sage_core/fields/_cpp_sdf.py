@@ -1,13 +1,13 @@
 """Native CPU SDF network (C++/OpenMP): the ``backend="cpp"`` path of ``SDFNetwork``.
 
-``evaluate(x, table, w0, b0, w1, b1, layout, with_grad, with_encoding, keep)`` runs a one-hidden-layer
-``SDFNetwork`` (hash encoding, Linear, Softplus, Linear) and returns sdf (N,), the spatial gradient
-d sdf / dx (N, 3) (with ``with_grad``), the feature (N, F_z) and the hash encoding (N, L*F) (with
-``with_encoding``). It is one autograd node: its backward takes the upstream gradients of all four
-outputs (any may be unused) and returns the exact gradients of x, the hash table and the four MLP
-tensors, the second-order terms of the gradient output included (the eikonal, alignment and NeuS
-losses on the gradient). The backward itself is not differentiable (``once_differentiable``): a loss
-on a gradient of these gradients raises. With ``keep`` (the default) the node holds the kernel's
+``evaluate(x, table, w0, b0, w1, b1, layout, with_grad, with_encoding, keep, with_feature)`` runs a
+one-hidden-layer ``SDFNetwork`` (hash encoding, Linear, Softplus, Linear) and returns sdf (N,), the
+spatial gradient d sdf / dx (N, 3) (with ``with_grad``), the feature (N, F_z) (with ``with_feature``)
+and the hash encoding (N, L*F) (with ``with_encoding``). It is one autograd node: its backward takes the
+upstream gradients of all four outputs (any may be unused) and returns the exact gradients of x, the
+hash table and the four MLP tensors, the second-order terms of the gradient output included (the
+eikonal, alignment and NeuS losses on the gradient). The backward itself is not differentiable
+(``once_differentiable``): a loss on a gradient of these gradients raises. With ``keep`` (the default) the node holds the kernel's
 per-point hash features and their derivatives until the backward, which then reads the table only to
 scatter its gradient.
 
@@ -86,13 +86,13 @@ class _SDFEval(torch.autograd.Function):
 
     @staticmethod
     def forward(  # type: ignore[override]
-        ctx, x, table, w0, b0, w1, b1, layout, with_grad, with_enc, keep, keep_second
+        ctx, x, table, w0, b0, w1, b1, layout, with_grad, with_enc, keep, keep_second, with_feature
     ):
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(x, table, w0, b0, w1, b1)
         ctx.layout = layout
         sdf, grad, feature, enc, kept = _ops().forward(
-            x, table, w0, b0, w1, b1, *layout.args(), with_grad, with_enc, keep, keep_second
+            x, table, w0, b0, w1, b1, *layout.args(), with_grad, with_enc, keep, keep_second, with_feature
         )
         ctx.kept = (kept if keep else None, with_grad, keep_second)
         return sdf, grad, feature, enc
@@ -106,7 +106,7 @@ class _SDFEval(torch.autograd.Function):
         need_x, need_table = _needed(ctx, 0), _needed(ctx, 1)
         need_mlp = through_mlp and any(_needed(ctx, i) for i in range(2, 6))
         if not (need_x or need_table or need_mlp) or all(u is None for u in ups):
-            return (None,) * 11
+            return (None,) * 12
         kept, kept_first, kept_second = ctx.kept
         gx, gt, gw0, gb0, gw1, gb1 = _ops().backward(
             x, table, w0, b0, w1, b1, *ctx.layout.args(), kept, kept_first, kept_second, *ups, need_x, need_table,
@@ -114,7 +114,7 @@ class _SDFEval(torch.autograd.Function):
         )
         wanted = [need_x, need_table] + [need_mlp and ctx.needs_input_grad[i] for i in range(2, 6)]
         outs = [g if w else None for g, w in zip((gx, gt, gw0, gb0, gw1, gb1), wanted)]
-        return (*outs, None, None, None, None, None)
+        return (*outs, None, None, None, None, None, None)
 
 
 def evaluate(
@@ -128,13 +128,15 @@ def evaluate(
     with_grad: bool,
     with_encoding: bool = False,
     keep: bool = True,
+    with_feature: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """sdf, gradient, feature and encoding of a one-hidden-layer SDF network at x.
 
     x: (N, 3) world points, float32 or float64 CPU; table: (T, F) hash table; w0: (H, 3 + L*F), b0: (H,),
     w1: (1 + F_z, H), b1: (1 + F_z,) the two Linear layers, all of x's dtype; layout: see ``Layout``.
     Returns sdf (N,) (already multiplied by the half extent), grad (N, 3) (an empty (0,) tensor unless
-    ``with_grad``), feature (N, F_z) and the encoding (N, L*F) (empty unless ``with_encoding``).
+    ``with_grad``), feature (N, F_z) (empty unless ``with_feature``: then the second layer computes the
+    sdf row only, the same values) and the encoding (N, L*F) (empty unless ``with_encoding``).
     Differentiable once in every input that requires a gradient when grad mode is on. ``keep=False``
     makes the backward recompute the hash features instead of holding them (worth it when only the
     encoding's gradient can arrive). Raises RuntimeError when the extension is unavailable.
@@ -146,4 +148,5 @@ def evaluate(
     tensors = [t.contiguous() for t in (x, table, w0, b0, w1, b1)]
     keep = keep and torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
     keep_second = keep and bool(with_grad) and x.requires_grad  # a loss on grad can then reach x
-    return _SDFEval.apply(*tensors, layout, bool(with_grad), bool(with_encoding), keep, keep_second)
+    flags = (bool(with_grad), bool(with_encoding), keep, keep_second, bool(with_feature))
+    return _SDFEval.apply(*tensors, layout, *flags)

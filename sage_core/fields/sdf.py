@@ -261,16 +261,17 @@ class SDFNetwork(nn.Module):
         )
 
     def _fused(
-        self, x: torch.Tensor, with_grad: bool, with_encoding: bool = False, keep: bool = True
+        self, x: torch.Tensor, with_grad: bool, with_encoding: bool = False, keep: bool = True, with_feature: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The native kernel (``_cpp_sdf.evaluate``): x (N, 3) -> sdf (N,), grad (N, 3) (empty unless
-        ``with_grad``), feature (N, F_z), encoding (N, L*F) (empty unless ``with_encoding``)."""
+        ``with_grad``), feature (N, F_z) (empty unless ``with_feature``), encoding (N, L*F) (empty unless
+        ``with_encoding``)."""
         from . import _cpp_sdf
 
         first, last = self.layers[0], self.layers[1]
         return _cpp_sdf.evaluate(
             x, self.encoding.table, first.weight, first.bias, last.weight, last.bias, self.fused_layout(x.dtype),
-            with_grad, with_encoding, keep,
+            with_grad, with_encoding, keep, with_feature,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ evaluation
@@ -279,10 +280,14 @@ class SDFNetwork(nn.Module):
 
         Fused unless x requires a gradient in grad mode (see the class docstring).
         """
-        if not (x.requires_grad and torch.is_grad_enabled()) and self.resolve_backend(x) == "cpp":
+        if self._fused_forward(x):
             sdf, _, feature, _ = self._fused(x, with_grad=False)
             return sdf, feature
         return self._forward_torch(x)
+
+    def _fused_forward(self, x: torch.Tensor) -> bool:
+        """Whether ``forward`` at x (N, 3) runs the fused kernel (see the class docstring)."""
+        return not (x.requires_grad and torch.is_grad_enabled()) and self.resolve_backend(x) == "cpp"
 
     def _forward_torch(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The autograd reference of ``forward``."""
@@ -300,8 +305,10 @@ class SDFNetwork(nn.Module):
         return out[:, 0] * self.half_extent, out[:, 1:], enc
 
     def sdf(self, x: torch.Tensor) -> torch.Tensor:
-        """x: (N, 3) -> sdf (N,)."""
-        return self.forward(x)[0]
+        """x: (N, 3) -> sdf (N,), ``forward(x)[0]`` (the fused kernel then leaves the feature out)."""
+        if self._fused_forward(x):
+            return self._fused(x, with_grad=False, with_feature=False)[0]
+        return self._forward_torch(x)[0]
 
     def gradient(
         self, x: torch.Tensor, create_graph: bool = False

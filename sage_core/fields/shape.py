@@ -21,7 +21,8 @@ chosen in their eigenspace. In ``frame_from_symmetric`` this changes R only by c
 stays +1; with a reference normal the normal is the same and (t1, t2) may become (-t1, -t2), a half
 turn about the normal) or, for equal tangent |eigenvalues|, by a turn about the normal where s1 = s2:
 the surfel, R·diag(s1^2, s2^2, 0)·R^T, and the scales are the same. The quaternion may differ
-accordingly. The backward is the same for both.
+accordingly. The backward is the same formula for both (:func:`eigh_backward_torch`); after the
+``cpp`` solver it runs natively (``_cpp_eigh.eigh3_backward``, the same values bit for bit).
 """
 
 from __future__ import annotations
@@ -69,29 +70,45 @@ def eigh(a: torch.Tensor, backend: str = "auto") -> tuple[torch.Tensor, torch.Te
     return torch.linalg.eigh(a.detach())
 
 
+def eigh_backward_torch(
+    evals: torch.Tensor, evecs: torch.Tensor, g_evals: torch.Tensor | None, g_evecs: torch.Tensor | None, gap: float
+) -> torch.Tensor:
+    """The gap-clamped eigh backward (the reference; ``_cpp_eigh.eigh3_backward`` runs it for the ``cpp``
+    solver). evals (..., n), evecs (..., n, n) columns; g_evals, g_evecs their upstream gradients (either
+    may be None) -> the gradient of the symmetric input (..., n, n):
+    ``sym(V (V^T gV / safe * (1 - I) + diag(gw)) V^T)``, ``safe_ij = sign(l_j - l_i) max(|l_j - l_i|, gap)``."""
+    vt = evecs.transpose(-1, -2)
+    inner = torch.zeros_like(evecs)
+    if g_evecs is not None:
+        diff = evals[..., None, :] - evals[..., :, None]  # (.., i, j) = l_j - l_i
+        sign = torch.where(diff >= 0, torch.ones_like(diff), -torch.ones_like(diff))
+        safe = sign * diff.abs().clamp_min(gap)
+        eye = torch.eye(evals.shape[-1], dtype=evals.dtype, device=evals.device)
+        inner = (vt @ g_evecs) / safe * (1.0 - eye)
+    if g_evals is not None:
+        inner = inner + torch.diag_embed(g_evals)
+    g_a = evecs @ inner @ vt
+    return 0.5 * (g_a + g_a.transpose(-1, -2))
+
+
 class _SafeEigh(torch.autograd.Function):
     @staticmethod
     def forward(ctx, a: torch.Tensor, gap: float, backend: str):  # type: ignore[override]
-        evals, evecs = eigh(a, backend)
+        chosen = resolve_eigh_backend(backend, a)
+        evals, evecs = eigh(a, chosen)
         ctx.save_for_backward(evals, evecs)
         ctx.gap = gap
+        ctx.native = chosen == "cpp"
         return evals, evecs
 
     @staticmethod
     def backward(ctx, g_evals: torch.Tensor | None, g_evecs: torch.Tensor | None):  # type: ignore[override]
         evals, evecs = ctx.saved_tensors
-        vt = evecs.transpose(-1, -2)
-        inner = torch.zeros_like(evecs)
-        if g_evecs is not None:
-            diff = evals[..., None, :] - evals[..., :, None]  # (.., i, j) = l_j - l_i
-            sign = torch.where(diff >= 0, torch.ones_like(diff), -torch.ones_like(diff))
-            safe = sign * diff.abs().clamp_min(ctx.gap)
-            eye = torch.eye(evals.shape[-1], dtype=evals.dtype, device=evals.device)
-            inner = (vt @ g_evecs) / safe * (1.0 - eye)
-        if g_evals is not None:
-            inner = inner + torch.diag_embed(g_evals)
-        g_a = evecs @ inner @ vt
-        return 0.5 * (g_a + g_a.transpose(-1, -2)), None, None
+        if ctx.native:
+            from . import _cpp_eigh
+
+            return _cpp_eigh.eigh3_backward(evals, evecs, g_evals, g_evecs, ctx.gap), None, None
+        return eigh_backward_torch(evals, evecs, g_evals, g_evecs, ctx.gap), None, None
 
 
 def safe_eigh(a: torch.Tensor, gap: float = 1e-3, backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:

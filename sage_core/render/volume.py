@@ -104,7 +104,10 @@ def neus_alpha(
     sdf, cos (= d . grad f), dists: (...,) -> alpha (...,) in [0, 1]. ``inv_s`` already per length unit.
     """
     r = float(cos_anneal_ratio)
-    iter_cos = -(torch.relu(-cos * 0.5 + 0.5) * (1.0 - r) + torch.relu(-cos) * r)
+    if r == 1.0:  # the annealed term has weight 0 (the same values and gradients without it)
+        iter_cos = -torch.relu(-cos)
+    else:
+        iter_cos = -(torch.relu(-cos * 0.5 + 0.5) * (1.0 - r) + torch.relu(-cos) * r)
     prev = sdf - iter_cos * dists * 0.5
     nxt = sdf + iter_cos * dists * 0.5
     prev_cdf = torch.sigmoid(prev * inv_s)
@@ -217,6 +220,20 @@ def _render_hits(
     }
 
 
+def _rows_of_all_rays(
+    pieces: list[torch.Tensor], hit_idx: torch.Tensor, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
+    """One per-ray output for all R rays, ``shape`` (R, ...): ``pieces`` are the chunks' rows of the rays
+    ``hit_idx`` (H,) that hit the box, in that order; they are placed at their rays over zeros, or returned
+    as they are when every ray hit."""
+    if not pieces:
+        return torch.zeros(shape, dtype=dtype, device=device)
+    rows = pieces[0] if len(pieces) == 1 else torch.cat(pieces, 0)
+    if hit_idx.shape[0] == shape[0]:  # hit_idx is arange(R)
+        return rows
+    return torch.zeros(shape, dtype=dtype, device=device).index_copy(0, hit_idx, rows)
+
+
 def render_neus(
     sdf_net: SDFField,
     app_net: nn.Module,
@@ -281,10 +298,7 @@ def render_neus(
             pieces[k].append(out[k])
     shapes = {"color": (3,), "depth": (), "normal": (3,), "weights_sum": (), "t": (s_tot,),
               "weights": (s_tot,), "sdf": (s_tot,), "gradients": (s_tot, 3)}  # fmt: skip
-    full: dict[str, torch.Tensor] = {}
-    for k in keys:
-        empty = torch.zeros((r, *shapes[k]), dtype=dtype, device=device)
-        full[k] = empty.index_copy(0, hit_idx, torch.cat(pieces[k], 0)) if pieces[k] else empty
+    full = {k: _rows_of_all_rays(pieces[k], hit_idx, (r, *shapes[k]), dtype, device) for k in keys}
     color, depth, normal, wsum = full["color"], full["depth"], full["normal"], full["weights_sum"]
 
     bg = torch.as_tensor(background, dtype=dtype, device=device)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..image_metrics import ssim
+from ..image_metrics import SSIMTarget, ssim
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -21,12 +21,15 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     return (x * m).sum() / m.sum().clamp_min(1.0)
 
 
-def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
-    """L_rgb = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS / 2DGS). pred, gt: (H, W, 3)."""
+def rgb_loss(
+    pred: torch.Tensor, gt: torch.Tensor, ssim_weight: float = 0.2, target: SSIMTarget | None = None
+) -> torch.Tensor:
+    """L_rgb = (1 − w)·L1 + w·(1 − SSIM), w = 0.2 (3DGS / 2DGS). pred, gt: (H, W, 3); target: gt's
+    kept :func:`ssim_target` (of ``gt.permute(2, 0, 1)[None]``), made here when None."""
     l1 = (pred - gt).abs().mean()
     if ssim_weight == 0:
         return l1
-    s = ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]).mean()
+    s = ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None] if target is None else target).mean()
     return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - s)
 
 

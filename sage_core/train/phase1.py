@@ -54,13 +54,13 @@ from torch import nn
 
 from ..avatar.init import REGION_MOUTH
 from ..avatar.model import Avatar
+from ..avatar.posing import PosedMesh
 from ..avatar.shading import shade_foreground
 from ..runtime import resolve_render_backend
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
-from ..image_metrics import psnr, ssim, ssim_map
+from ..image_metrics import SSIMTarget, psnr, ssim, ssim_map, ssim_target
 from ..render import RenderCamera
-from ..render.mesh_raster import ray_directions
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
@@ -69,9 +69,13 @@ from .densify import DensityControl, DensifySchedule, scene_extent
 from .canonical_warp import CanonicalWarp, make_warp
 from .exposure import ExposureGain
 from .symmetry import MirrorPlane, color_symmetry_loss, plane_from_pairs, sdf_symmetry_loss
+from .warp import pixel_rays
 
 Progress = Callable[..., None]
 STATE_FORMAT = 1
+SSIM_TARGET_BUDGET = 256 * 2**20
+"""Bytes of SSIM target moments a trainer keeps (the first frames visited; about 470 tiny, 120 small or
+25 full-size frames): a kept target saves two of the five SSIM window blurs of each later step."""
 
 
 def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, device: str | torch.device, generator: torch.Generator) -> Avatar:
@@ -184,6 +188,16 @@ def mirror_transform(mirror_index: torch.Tensor) -> Callable[[torch.Tensor], tor
     return lambda verts: mirror_vertices(verts, mirror_index)
 
 
+def near_mask(mask: torch.Tensor, radius: int) -> torch.Tensor:
+    """Pixels within Chebyshev distance ``radius`` of a True pixel of ``mask`` (H, W) bool -> (H, W) bool:
+    a square max filter of side 2·radius + 1, run as its two one-dimensional passes."""
+    k = 2 * radius + 1
+    m = mask.to(torch.float32)[None, None]
+    m = torch.nn.functional.max_pool2d(m, (k, 1), stride=1, padding=(radius, 0))
+    m = torch.nn.functional.max_pool2d(m, (1, k), stride=1, padding=(0, radius))
+    return m[0, 0] > 0
+
+
 def weighted_rgb_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
     """(1 − w)·mean(ω·|pred − gt|) + w·mean(ω·(1 − SSIM map)); pred, gt: (H, W, 3), weight ω: (H, W)."""
     om = weight[..., None]
@@ -225,9 +239,12 @@ class Phase1Trainer:
         if not self.frames:
             raise ValueError("no training frames")
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
-        self._bands: dict[int, torch.Tensor] = {}
+        self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._ssim_targets: dict[int, SSIMTarget] = {}
+        self._ssim_target_bytes = 0
         self._inputs: dict[int, dict[str, torch.Tensor]] = {}
         self._rigid: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
+        self._meshes: dict[tuple[int, bool], PosedMesh] = {}
         self.warp = make_warp(cfg.canonical_warp)
         self.length_unit = float(avatar.sdf.half_extent)
         self.exposure: ExposureGain | None = None
@@ -303,16 +320,28 @@ class Phase1Trainer:
             if g["name"] == "mu_loc":
                 g["lr"] = lr
 
-    def _background_band(self, i: int, mask: torch.Tensor) -> torch.Tensor:
-        """Flat indices (M,) of the background pixels of training frame ``i`` within
-        ``neus_background_band`` pixels of its foreground mask (H, W); cached per frame."""
-        if i not in self._bands:
-            fg = (mask > 0.5).to(torch.float32)[None, None]
-            k = 2 * int(self.cfg.neus_background_band) + 1
-            near = torch.nn.functional.max_pool2d(fg, k, stride=1, padding=k // 2)[0, 0] > 0
-            band = near & ~(fg[0, 0] > 0)
-            self._bands[i] = torch.nonzero(band.reshape(-1), as_tuple=False).reshape(-1)
-        return self._bands[i]
+    def _ray_pixels(self, i: int, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flat indices of the pixels NeuS rays are drawn from in training frame ``i``: its foreground
+        (mask (H, W) > 0.5) and the background pixels within ``neus_background_band`` pixels
+        (Chebyshev) of it; cached per frame."""
+        if i not in self._pixels:
+            fg = mask > 0.5
+            band = near_mask(fg, int(self.cfg.neus_background_band)) & ~fg
+            fg_ids, band_ids = (torch.nonzero(m.reshape(-1)).reshape(-1) for m in (fg, band))
+            self._pixels[i] = (fg_ids, band_ids)
+        return self._pixels[i]
+
+    def _ssim_target(self, i: int, img: torch.Tensor) -> SSIMTarget:
+        """The SSIM target moments of training frame ``i``'s image (H, W, 3): kept per frame (two images'
+        worth) for the first frames visited, up to ``SSIM_TARGET_BUDGET`` bytes, made anew for the others."""
+        if i in self._ssim_targets:
+            return self._ssim_targets[i]
+        target = ssim_target(img.permute(2, 0, 1)[None])
+        size = 2 * img.numel() * img.element_size()
+        if self._ssim_target_bytes + size <= SSIM_TARGET_BUDGET:
+            self._ssim_targets[i] = target
+            self._ssim_target_bytes += size
+        return target
 
     def _frame(self, i: int) -> tuple[torch.Tensor, torch.Tensor, RenderCamera]:
         if i not in self._cache:
@@ -350,6 +379,21 @@ class Phase1Trainer:
             return base, self._rigid[timestep]
         inp = self.pose.apply(base, timestep)
         return inp, self.avatar.rigid_transform({k: v.detach() for k, v in inp.items()})
+
+    def posed_mesh(
+        self, timestep: int, inputs: dict[str, torch.Tensor], transform: Callable[[torch.Tensor], torch.Tensor] | None
+    ) -> PosedMesh | None:
+        """The frame-only part of posing (:meth:`Avatar.posed_mesh` of ``inputs`` with the mirror
+        ``transform`` or None) of a timestep, kept per timestep and mirroring (about 80 bytes a
+        triangle, less than a cached image) while the inputs are constants; None while they carry a
+        pose correction's gradient (the avatar then poses the mesh itself)."""
+        if any(v.requires_grad for v in inputs.values()):
+            return None
+        key = (int(timestep), transform is not None)
+        if key not in self._meshes:
+            with torch.no_grad():
+                self._meshes[key] = self.avatar.posed_mesh(inputs, transform)
+        return self._meshes[key]
 
     def _eval_inputs(self, timestep: int) -> dict[str, torch.Tensor]:
         base = self.inputs(timestep)
@@ -394,7 +438,8 @@ class Phase1Trainer:
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
         render, posed = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
-                                  vertex_transform=transform, light_transform=light_transform, backend=self.render_backend)
+                                  vertex_transform=transform, light_transform=light_transform, backend=self.render_backend,
+                                  mesh=self.posed_mesh(timestep, inputs, transform))  # fmt: skip
         if self.density is not None:
             posed.means.retain_grad()
         color = render.color
@@ -402,7 +447,8 @@ class Phase1Trainer:
             color = self.exposure.apply(color, render.alpha, i, c.background)
         terms: dict[str, torch.Tensor] = {}
         if weight is None:
-            terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight)
+            target = self._ssim_target(i, img) if c.ssim_weight != 0 and i is not None else None
+            terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight, target)
             total = terms["rgb"]
             if c.w_mask > 0 and i is not None and self.frames[i].mask is not None:
                 terms["mask"] = L.alpha_mask_loss(render.alpha, mask)
@@ -485,12 +531,11 @@ class Phase1Trainer:
         eik = canon.means.new_zeros(())
         if rays is not None:
             img, mask, cam, inputs, rigid, fi = rays
-            fg = torch.nonzero(mask.reshape(-1) > 0.5, as_tuple=False).reshape(-1)
+            fg, bg = self._ray_pixels(fi, mask)
             if fg.numel() > 0 and c.rays_per_step > 0:
                 pix = fg[self._randint(fg.numel(), c.rays_per_step).to(fg.device)]
                 n_bg = int(round(c.neus_background_rays * c.rays_per_step))
-                bg = self._background_band(fi, mask) if (n_bg > 0 and self.frames[fi].mask is not None) else None
-                if bg is not None and bg.numel() > 0:
+                if n_bg > 0 and self.frames[fi].mask is not None and bg.numel() > 0:
                     pix = torch.cat([pix, bg[self._randint(bg.numel(), n_bg).to(bg.device)]])
                 cr = self.warp.map(av, {k: v.detach() for k, v in inputs.items()}, cam, pix, rigid)
                 o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
@@ -515,8 +560,8 @@ class Phase1Trainer:
                 # surfel depth (camera z) -> distance along the world ray -> canonical distance
                 with torch.no_grad():
                     Rw = cam.w2c[:3, :3]
-                    _, d_w = ray_directions(cam.K, cam.w2c, cam.width, cam.height)
-                    dz = (d_w.reshape(-1, 3)[pix] @ Rw.T)[:, 2]
+                    _, d_w = pixel_rays(cam.K, cam.w2c, cam.width, cam.height, pix)
+                    dz = (d_w @ Rw.T)[:, 2]
                     a = render.alpha.reshape(-1)[pix]
                     t_s = render.depth.reshape(-1)[pix] / dz.clamp_min(1e-6) * ratio
                     n_s = (rot @ render.normal_world.reshape(-1, 3)[pix][..., None]).squeeze(-1)
@@ -653,6 +698,7 @@ class Phase1Trainer:
         set_rng_state(state["rng"])
         self.step_count = int(state["step"])
         self._not_mouth = self.avatar.surfels.region_id != REGION_MOUTH
+        self._meshes.clear()
 
     def _resize_surfels(self, saved: dict[str, torch.Tensor]) -> None:
         """Reshape the surfel set (and the optimizer over it) to a saved avatar state with another

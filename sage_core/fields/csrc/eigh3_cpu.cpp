@@ -31,12 +31,21 @@
 //
 // Threads: at::parallel_for over blocks (torch's intra-op threads, at::get_num_threads()), in chunks
 // of kGrain matrices; the results do not depend on the thread count.
+//
+// eigh3_backward(w, V, gw, gV, gap) is the gap-clamped backward of shape.safe_eigh for one batch, per
+// matrix (i, j over 0..2):
+//   inner_ij = (V^T gV)_ij / safe_ij * [i != j] + [i == j] gw_i,  safe_ij = sign(w_j - w_i) max(|w_j - w_i|, gap)
+//   (sign(0) = +1; gV absent: the first term is 0; gw absent: the second is),   G = V inner V^T,   ga = (G + G^T) / 2.
+// It runs the same operations in the same order as the torch formula in shape.py (products of 3x3
+// matrices summed over k = 0, 1, 2 in turn, as torch's batched matmul does for them; FMA contraction is
+// off), so both give the same values bit for bit; over matrices in parallel (at::parallel_for).
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <c10/util/Exception.h>
+#include <c10/util/Optional.h>
 #include <torch/library.h>
 
 #include <algorithm>
@@ -224,6 +233,80 @@ std::tuple<at::Tensor, at::Tensor> eigh3(const at::Tensor& a) {
   return std::make_tuple(evals, evecs);
 }
 
+// a0 b0 + a1 b1 + a2 b2 summed from 0 in this order: an entry of a product of 3x3 matrices as torch's
+// batched matmul forms it
+template <typename S>
+inline S dot3(S a0, S b0, S a1, S b1, S a2, S b2) {
+  S m = S(0);
+  m = m + a0 * b0;
+  m = m + a1 * b1;
+  return m + a2 * b2;
+}
+
+// one row-major 3x3 matrix of eigh3_backward (see the header): w (3,), V (9,), gw (3,) or null, gV (9,) or null
+template <typename S>
+void eigh3_backward_one(const S* w, const S* V, const S* gw, const S* gV, S gap, S* ga) {
+  S inner[9], P[9], G[9];
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      S t = S(0);
+      if (gV) {
+        const S diff = w[j] - w[i];
+        const S mag = std::abs(diff);
+        const S safe = (diff >= S(0) ? S(1) : S(-1)) * (mag < gap ? gap : mag);  // NaN stays NaN, as clamp_min
+        t = dot3(V[i], gV[j], V[3 + i], gV[3 + j], V[6 + i], gV[6 + j]) / safe * (i == j ? S(0) : S(1));
+      }
+      if (gw) t = t + (i == j ? gw[i] : S(0));
+      inner[3 * i + j] = t;
+    }
+  }
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      P[3 * i + j] = dot3(V[3 * i], inner[j], V[3 * i + 1], inner[3 + j], V[3 * i + 2], inner[6 + j]);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      G[3 * i + j] = dot3(P[3 * i], V[3 * j], P[3 * i + 1], V[3 * j + 1], P[3 * i + 2], V[3 * j + 2]);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) ga[3 * i + j] = S(0.5) * (G[3 * i + j] + G[3 * j + i]);
+}
+
+void check_batch(const at::Tensor& t, const at::Tensor& like, at::IntArrayRef shape, const char* what) {
+  TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == like.scalar_type() && t.sizes() == shape && t.is_contiguous(),
+              "eigh3_backward: ", what, " must be a contiguous CPU tensor of shape ", shape, " and dtype ",
+              like.scalar_type());
+}
+
+at::Tensor eigh3_backward(const at::Tensor& evals, const at::Tensor& evecs, const c10::optional<at::Tensor>& g_evals,
+                          const c10::optional<at::Tensor>& g_evecs, double gap) {
+  TORCH_CHECK(evecs.device().is_cpu() && evecs.dim() == 3 && evecs.size(1) == 3 && evecs.size(2) == 3 &&
+                  evecs.is_contiguous() && (evecs.scalar_type() == at::kFloat || evecs.scalar_type() == at::kDouble),
+              "eigh3_backward: evecs must be a contiguous CPU float32/float64 (N, 3, 3) tensor");
+  const int64_t n = evecs.size(0);
+  check_batch(evals, evecs, {n, 3}, "evals");
+  const bool has_w = g_evals.has_value() && g_evals->defined(), has_v = g_evecs.has_value() && g_evecs->defined();
+  if (has_w) check_batch(*g_evals, evecs, {n, 3}, "g_evals");
+  if (has_v) check_batch(*g_evecs, evecs, {n, 3, 3}, "g_evecs");
+  at::Tensor ga = at::empty({n, 3, 3}, evecs.options());
+  AT_DISPATCH_FLOATING_TYPES(evecs.scalar_type(), "eigh3_backward", [&] {
+    const scalar_t* w = evals.data_ptr<scalar_t>();
+    const scalar_t* v = evecs.data_ptr<scalar_t>();
+    const scalar_t* gw = has_w ? g_evals->data_ptr<scalar_t>() : nullptr;
+    const scalar_t* gv = has_v ? g_evecs->data_ptr<scalar_t>() : nullptr;
+    scalar_t* out = ga.data_ptr<scalar_t>();
+    const scalar_t g = static_cast<scalar_t>(gap);
+    at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+      for (int64_t b = begin; b < end; ++b)
+        eigh3_backward_one<scalar_t>(w + 3 * b, v + 9 * b, gw ? gw + 3 * b : nullptr, gv ? gv + 9 * b : nullptr, g,
+                                     out + 9 * b);
+    });
+  });
+  return ga;
+}
+
 }  // namespace
 
-TORCH_LIBRARY(sage_eigh3_cpu, m) { m.def("eigh3(Tensor a) -> (Tensor, Tensor)", &eigh3); }
+TORCH_LIBRARY(sage_eigh3_cpu, m) {
+  m.def("eigh3(Tensor a) -> (Tensor, Tensor)", &eigh3);
+  m.def("eigh3_backward(Tensor evals, Tensor evecs, Tensor? g_evals, Tensor? g_evecs, float gap) -> Tensor",
+        &eigh3_backward);
+}

@@ -47,6 +47,9 @@ namespace {
 
 // below this many (point, level) pairs a pass runs on one thread (waking threads costs more)
 constexpr int64_t kParallelWork = 4096;
+// points whose gradients and corners the backward reads before it scatters them (their index arithmetic
+// then runs while earlier scatters wait for memory)
+constexpr int kBackwardBlock = 32;
 
 int num_threads() { return std::max(1, at::get_num_threads()); }
 
@@ -66,7 +69,7 @@ struct Corners {
 };
 
 template <typename S, bool kDerivs = true>
-inline void corners(const S* x, S scale, const Level& lv, int64_t F, Corners<S>& c) {
+__attribute__((always_inline)) inline void corners(const S* x, S scale, const Level& lv, int64_t F, Corners<S>& c) {
   int64_t cell[3];
   for (int k = 0; k < 3; ++k) {
     const S pos = x[k] * scale + S(0.5);
@@ -275,58 +278,103 @@ at::Tensor encode_forward(const at::Tensor& x01, const at::Tensor& table, const 
 // ---------------------------------------------------------------------------------------------
 // backward: gx (N, 3) = d<G, feats>/dx01 and gT (T, F) = d<G, feats>/dtable (undefined when not needed)
 
+// One point's features (a compile-time count), kept in registers.
 template <typename S, int FC>
-void backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor& table, const std::vector<Level>& lv,
-                   const std::vector<S>& scale, const std::vector<S>& maskS, const std::vector<double>& mask,
-                   S* gx_part, S* gT) {
-  const int64_t N = x01.size(0), F = FC > 0 ? FC : table.size(1), L = static_cast<int64_t>(lv.size());
-  const S* x = x01.data_ptr<S>();
-  const S* T = table.data_ptr<S>();
-  const S* g = G.data_ptr<S>();
-  for_levels(lv, mask, N, [&](int64_t l) {
-    Corners<S> c;
-    Scratch<S, FC> gm(F);
-    S* part = gx_part ? gx_part + l * N * 3 : nullptr;
-    const Level lev = lv[l];
-    const S s = scale[l], ml = maskS[l];
-    if (gT) std::fill(gT + lev.offset * F, gT + (lev.offset + lev.size) * F, S(0));
-    for (int64_t n = 0; n < N; ++n) {
-      const S* gn = g + (n * L + l) * F;
-      bool any = false;
-      for (int64_t f = 0; f < F; ++f) {
-        gm[f] = gn[f] * ml;
-        any = any || gm[f] != S(0);
-      }
-      if (!any) continue;  // the partial buffer starts at 0
-      if (!part) {  // table gradient only: no weight derivatives needed
-        if (!gT) continue;
-        corners<S, false>(x + 3 * n, s, lev, F, c);
+struct FeatureValues {
+  S v[FC > 0 ? FC : 1];
+};
+
+// gT[row_q] += w_q * g over one point's 8 corners (g (F,) held in registers for a compile-time F).
+template <typename S, int FC>
+__attribute__((always_inline)) inline void scatter_point(S* __restrict gT, const Corners<S>& c, const S* __restrict g,
+                                                         int64_t F) {
+  if constexpr (FC > 0) {
+    FeatureValues<S, FC> gv;
+#pragma GCC unroll 16
+    for (int f = 0; f < FC; ++f) gv.v[f] = g[f];
 #pragma GCC unroll 8
-        for (int q = 0; q < 8; ++q) {
-          S* row = gT + c.row[q];
-          for (int64_t f = 0; f < F; ++f) row[f] += c.w[q] * gm[f];
-        }
-        continue;
+    for (int q = 0; q < 8; ++q) {
+      S* row = gT + c.row[q];
+      const S w = c.w[q];
+#pragma GCC unroll 16
+      for (int f = 0; f < FC; ++f) row[f] += w * gv.v[f];
+    }
+  } else {
+    for (int q = 0; q < 8; ++q) {
+      S* row = gT + c.row[q];
+      for (int64_t f = 0; f < F; ++f) row[f] += c.w[q] * g[f];
+    }
+  }
+}
+
+// One level l of the backward over all points, in point order: the level's table-gradient rows (gT, when
+// given) and each point's d/dx01 of the level (part, (N, 3), when given). Points go in blocks of
+// kBackwardBlock: a block's gradients and corners first, then its scatters and gathers. The pointers are
+// restrict (the table gradient is a buffer of its own), so the stores into it reload nothing.
+template <typename S, int FC>
+void backward_level(const Level lev, S s, S ml, int64_t l, int64_t N, int64_t L, int64_t F_table,
+                    const S* __restrict x, const S* __restrict T, const S* __restrict g, S* __restrict gT,
+                    S* __restrict part) {
+  const int64_t F = FC > 0 ? FC : F_table;
+  Corners<S> c[kBackwardBlock];
+  bool any[kBackwardBlock];
+  std::vector<S> gm_store(FC > 0 ? 0 : kBackwardBlock * F);
+  S gm_fixed[FC > 0 ? kBackwardBlock * FC : 1];
+  S* __restrict gm = FC > 0 ? gm_fixed : gm_store.data();
+  if (gT) std::fill(gT + lev.offset * F, gT + (lev.offset + lev.size) * F, S(0));
+  for (int64_t n0 = 0; n0 < N; n0 += kBackwardBlock) {
+    const int nb = static_cast<int>(std::min<int64_t>(kBackwardBlock, N - n0));
+    for (int i = 0; i < nb; ++i) {
+      const S* gn = g + ((n0 + i) * L + l) * F;
+      bool a = false;
+      for (int64_t f = 0; f < F; ++f) {
+        gm[i * F + f] = gn[f] * ml;
+        a = a || gm[i * F + f] != S(0);
       }
-      corners(x + 3 * n, s, lev, F, c);
+      any[i] = a;
+      if (!a) continue;  // the partial buffer starts at 0
+      if (part) {
+        corners(x + 3 * (n0 + i), s, lev, F, c[i]);
+      } else {  // table gradient only: no weight derivatives needed
+        corners<S, false>(x + 3 * (n0 + i), s, lev, F, c[i]);
+      }
+    }
+    for (int i = 0; i < nb; ++i) {
+      if (!any[i]) continue;
+      const Corners<S>& ci = c[i];
+      const S* gi = gm + i * F;
+      if (gT) scatter_point<S, FC>(gT, ci, gi, F);
+      if (!part) continue;
       S a0 = 0, a1 = 0, a2 = 0;
 #pragma GCC unroll 8
       for (int q = 0; q < 8; ++q) {
-        if (gT) {
-          S* grow = gT + c.row[q];
-          for (int64_t f = 0; f < F; ++f) grow[f] += c.w[q] * gm[f];
-        }
-        const S* row = T + c.row[q];
+        const S* row = T + ci.row[q];
         S gt = 0;
-        for (int64_t f = 0; f < F; ++f) gt += gm[f] * row[f];
-        a0 += c.dw[q][0] * gt;
-        a1 += c.dw[q][1] * gt;
-        a2 += c.dw[q][2] * gt;
+        for (int64_t f = 0; f < F; ++f) gt += gi[f] * row[f];
+        a0 += ci.dw[q][0] * gt;
+        a1 += ci.dw[q][1] * gt;
+        a2 += ci.dw[q][2] * gt;
       }
+      const int64_t n = n0 + i;
       part[3 * n + 0] = s * a0;
       part[3 * n + 1] = s * a1;
       part[3 * n + 2] = s * a2;
     }
+  }
+}
+
+template <typename S, int FC>
+void backward_impl(const at::Tensor& G, const at::Tensor& x01, const at::Tensor& table, const std::vector<Level>& lv,
+                   const std::vector<S>& scale, const std::vector<S>& maskS, const std::vector<double>& mask,
+                   S* gx_part, S* gT) {
+  const int64_t N = x01.size(0), F = table.size(1), L = static_cast<int64_t>(lv.size());
+  const S* x = x01.data_ptr<S>();
+  const S* T = table.data_ptr<S>();
+  const S* g = G.data_ptr<S>();
+  if (!gx_part && !gT) return;
+  for_levels(lv, mask, N, [&](int64_t l) {
+    S* part = gx_part ? gx_part + l * N * 3 : nullptr;
+    backward_level<S, FC>(lv[l], scale[l], maskS[l], l, N, L, F, x, T, g, gT, part);
   });
 }
 

@@ -8,7 +8,7 @@
 //   xn = (x - c) / h
 //   e_l = m_l * sum_q w_q(t_l) T[r_q]            per level l (F features), t_l = frac(x01 * s_l + 0.5)
 //   in = [xn, e] (D = 3 + L*F),  z = W0 in + b0 (H),  a = softplus_beta(z),  out = W1 a + b1 (O = 1 + F_z)
-//   sdf = h * out_0,  feature = out_1..
+//   sdf = h * out_0,  feature = out_1..   (without with_feature the forward computes out_0 alone)
 // and its gradient, with sigma = softplus' (the logistic of beta z, 1 where beta z > threshold):
 //   gz = (h W1_0) * sigma (H),  g_in = W0^T gz (D),  g_e = g_in[3:]
 //   grad_k = g_in_k / h + (inside_k ? sum_j J_jk g_e_j : 0) / ext_k,   J = d e / d x01 (D-3, 3).
@@ -421,14 +421,14 @@ std::vector<at::Tensor> sdf_forward(const at::Tensor& x, const at::Tensor& table
                                     const at::Tensor& b0, const at::Tensor& w1, const at::Tensor& b1,
                                     const at::Tensor& levels, const at::Tensor& scales, const at::Tensor& mask,
                                     const at::Tensor& box, double half_extent, double beta, double threshold,
-                                    bool with_grad, bool with_enc, bool keep, bool keep_second) {
+                                    bool with_grad, bool with_enc, bool keep, bool keep_second, bool with_feature) {
   TORCH_CHECK(x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble, "sdf_cpu: x must be float32 or float64");
   TORCH_CHECK(with_grad || !keep_second, "sdf_cpu: the second derivatives come with the gradient");
   const Args args{x, table, w0, b0, w1, b1, levels, scales, mask, box, half_extent, beta, threshold};
   const int64_t N = x.size(0);
   at::Tensor sdf = at::empty({N}, x.options());
   at::Tensor grad = with_grad ? at::empty({N, 3}, x.options()) : at::empty({0}, x.options());
-  at::Tensor feat = at::empty({N, w1.size(0) - 1}, x.options());
+  at::Tensor feat = with_feature ? at::empty({N, w1.size(0) - 1}, x.options()) : at::empty({0}, x.options());
   at::Tensor enc = with_enc ? at::empty({N, table.dim() == 2 ? levels.size(0) * table.size(1) : 0}, x.options())
                             : at::empty({0}, x.options());
   at::Tensor saved = at::empty({0}, x.options());
@@ -448,7 +448,7 @@ std::vector<at::Tensor> sdf_forward(const at::Tensor& x, const at::Tensor& table
     io.buf = feats.data_ptr<S>();
     io.sdf = sdf.data_ptr<S>();
     io.grad = with_grad ? grad.data_ptr<S>() : nullptr;
-    io.feat = feat.data_ptr<S>();
+    io.feat = with_feature ? feat.data_ptr<S>() : nullptr;
     io.enc = with_enc ? enc.data_ptr<S>() : nullptr;
     dispatch_features(net.F, [&](auto fc) { run_forward<S, decltype(fc)::value>(net, io); });
     if (keep) saved = feats;
@@ -633,7 +633,7 @@ TORCH_LIBRARY(sage_sdf_cpu, m) {
   m.def(
       "forward(Tensor x, Tensor table, Tensor w0, Tensor b0, Tensor w1, Tensor b1, Tensor levels, Tensor scales, "
       "Tensor mask, Tensor box, float half_extent, float beta, float threshold, bool with_grad, bool with_enc, "
-      "bool keep, bool keep_second) -> Tensor[]",
+      "bool keep, bool keep_second, bool with_feature=True) -> Tensor[]",
       &sdf_forward);
   m.def(
       "backward(Tensor x, Tensor table, Tensor w0, Tensor b0, Tensor w1, Tensor b1, Tensor levels, Tensor scales, "
@@ -1191,9 +1191,9 @@ void forward_block(const Net<S>& net, Work<S>& w, const Io<S>& io, int64_t b) {
   const S* inp = io.buf + b * io.stride * B;  // [xn, e]
   matvec<S, B>(net.W0, H, net.D, net.b0, inp, w.z);
   activate<S, B>(w.z, H * B, net.beta, net.thr, w.a, w.sg, nullptr);
-  matvec<S, B>(net.W1, net.O, H, net.b1, w.a, w.out);
+  matvec<S, B>(net.W1, io.feat ? net.O : 1, H, net.b1, w.a, w.out);  // each row on its own: sdf alone is row 0
   for (int p = 0; p < cnt; ++p) io.sdf[n0 + p] = w.out[p] * net.h;
-  store_points<S, B>(w.out + B, Fz, n0, cnt, io.feat);
+  if (io.feat) store_points<S, B>(w.out + B, Fz, n0, cnt, io.feat);
   if (io.enc) store_points<S, B>(inp + 3 * B, P, n0, cnt, io.enc);
   if (!io.grad) return;
   gradient_of_input<S, B>(net, w);
