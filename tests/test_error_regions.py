@@ -39,3 +39,15 @@ def test_error_split_adds_up(cmd_avatar_ws, tmp_path, one_thread, capsys):
     assert len(panels) == len({r["timestep"] for r in a})
     assert "| a |" in capsys.readouterr().out
     assert er.main(["no-stage-given"]) == 2
+
+
+def test_ceiling_item_renders_the_capture_truth(cmd_avatar_ws, tiny_capture, tmp_path, one_thread):
+    er = _module()
+    out = tmp_path / "regions.json"
+    assert er.main([f"ceiling:{tiny_capture}"]) == 2  # the first item must be an avatar
+    assert er.main([f"{cmd_avatar_ws}:phase1:a", f"ceiling:{tiny_capture}", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    a, c = doc["images"]["a"], doc["images"]["ceiling"]
+    assert [(r["timestep"], r["camera"]) for r in a] == [(r["timestep"], r["camera"]) for r in c]
+    # an exact capture: its ground truth on the written model is the ground truth
+    assert sum(r["total"] for r in c) < 1e-3 * sum(r["total"] for r in a)

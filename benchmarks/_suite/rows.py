@@ -21,10 +21,11 @@ FREE_PHASE1: tuple[str, ...] = (
     "--set", "w_normal_consistency=0",
     "--set", "w_distortion=0",
     "--set", "w_mask=0",
+    "--set", "shading=none",
 )  # fmt: skip
 """Phase-1 options of free per-surfel attributes trained on the photometric loss only (no SDF
-terms, no 2DGS regularizers, no alpha mask term), on SAGE's surfel layout and rebinding: the
-``free_mvsf`` row."""
+terms, no 2DGS regularizers, no alpha mask term) with colours fixed in head space (no world
+light), on SAGE's surfel layout and rebinding: the ``free_mvsf`` row."""
 
 GA_PHASE1: tuple[str, ...] = (
     *FREE_PHASE1,
@@ -91,8 +92,10 @@ ROWS: dict[str, RowSpec] = {
                 None, None, "phase1", ("all",), True, True),
         RowSpec("no_correction", "w/o correction", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
                 None, ("--correction", "off"), "phase2", ("all",), True, True),
-        RowSpec("wrinkles", "SAGE + wrinkle shading (skin)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
-                None, ("--set", "wrinkle_shading=true", "--set", "wrinkle_region=skin"), "phase2", ("all",), True, False),
+        RowSpec("no_wrinkles", "w/o wrinkle shading", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
+                None, ("--set", "wrinkle_shading=false"), "phase2", ("all",), True, False),
+        RowSpec("no_light", "w/o world light (colour in head space)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
+                ("--attributes", "mlp", "--set", "shading=none"), (), "phase2", ("all",), True, False),
         RowSpec("ga_mvsf", "GaussianAvatars (per-face init, densification)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest",),
                 GA_PHASE1, None, "phase1", ("all",), False, True, GA_INIT_MESH, True),
         RowSpec("ga_mvmf", "GaussianAvatars (per-face init, densification)", "MV-MF", "multiview", "mv-mf", None, (),

@@ -42,7 +42,7 @@ jaw opened to ``mouth_occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), 
 (:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
 of the appearance term.
 
-Wrinkle shading (``wrinkle_shading``, off by default; :mod:`sage_core.avatar.wrinkles`): the
+Wrinkle shading (``wrinkle_shading``, on by default; :mod:`sage_core.avatar.wrinkles`): the
 per-pixel distortion of every deformed render is accumulated on the posed-mesh triangle each pixel
 sees; after the last step the triangles' mean distortion sets per-surfel darkening amplitudes
 (``wrinkle_region`` ``distortion``; ``skin`` gives every skin triangle the full amplitude), stored in
