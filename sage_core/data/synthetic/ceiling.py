@@ -40,12 +40,14 @@ class TrackedTruth:
     """The ground truth of a ``sage synth`` capture, rendered on any pose of its written model.
 
     capture: the capture folder; config: its synthesis config (from ``gt/info.json``); subject:
-    the head, identity and appearance rebuilt from that config.
+    the head, identity and appearance rebuilt from that config; written: the written FLAME-format
+    model (float64 ``sage_core.flame.FlameModel``; the full head's on an exact capture).
     """
 
     capture: Path
     config: SynthConfig
     subject: _Subject
+    written: Any
 
     @classmethod
     def open(cls, capture_dir: str | Path) -> TrackedTruth:
@@ -66,7 +68,15 @@ class TrackedTruth:
             cfg = SynthConfig.from_dict(info["config"])
         except (TypeError, ValueError, KeyError) as e:
             raise InputError(info_path, f"its synthesis config is not readable by this version: {e}") from None
-        truth = cls(root, cfg, make_subject(cfg))
+        subject = make_subject(cfg)
+        if subject.tracked is not None:
+            written = subject.tracked.written
+        else:
+            from ...flame import FlameModel
+            from .model_files import flame_model_data
+
+            written = FlameModel(flame_model_data(subject.head)).double()
+        truth = cls(root, cfg, subject, written)
         truth._check(info)
         return truth
 
@@ -87,18 +97,6 @@ class TrackedTruth:
         scale = float(np.abs(ref).max())
         if canon.shape != ref.shape or float(np.abs(canon - ref).max()) > _MATCH_TOL * scale:
             raise InputError(path, "the canonical mesh differs from the one this version rebuilds from the capture's config")
-
-    @property
-    def written(self) -> Any:
-        """The written FLAME-format model as a float64 ``sage_core.flame.FlameModel``."""
-        if self.subject.tracked is not None:
-            return self.subject.tracked.written
-        if not hasattr(self, "_exact_model"):
-            from ...flame import FlameModel
-            from .model_files import flame_model_data
-
-            self._exact_model = FlameModel(flame_model_data(self.subject.head)).double()
-        return self._exact_model
 
     def pose(self, params: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """The written model posed with one frame's ``params`` (:data:`FLAME_KEYS`, each (k,) or
