@@ -25,7 +25,7 @@ err_console = Console(stderr=True, highlight=False)
 # ---- shared option types -----------------------------------------------------------------
 DeviceOpt = Annotated[str, typer.Option("--device", help="Device: auto, cpu or cuda[:N].")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed of this stage (recorded in the manifest).")]
-PresetOpt = Annotated[str, typer.Option("--preset", help="Settings preset: tiny (CPU, tests, demo: minutes), small (CPU, 256x372 captures, about 20k surfels: about half an hour) or default (the paper's, GPU).")]
+PresetOpt = Annotated[str, typer.Option("--preset", help="Settings preset: tiny (CPU, tests, demo: minutes), small (CPU, 256x372 captures, about 20k surfels: about a quarter of an hour on 2 idle cores) or default (the paper's, GPU).")]
 ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML/JSON config file; overrides the preset, flags override it.", exists=False)]
 ForceOpt = Annotated[bool, typer.Option("--force", help="Redo the stage even if it finished with the same config and inputs.")]
 VerboseOpt = Annotated[bool, typer.Option("--verbose/--quiet", help="Show detailed progress (default) or only errors and the final panel.")]
