@@ -373,10 +373,10 @@ def test_wrinkle_shading_statistics_storage_and_rest_pose(phase1_avatar_path, p2
     assert bool((dark < p.colors - 1e-6).any()) and bool((dark <= p.colors + 1e-7).all())
 
 
-def test_mouth_prior_colours_unseen_mouth_surfels_only(phase1_avatar_path, p2_data, p2_init_dir):
+def test_mouth_prior_by_face_visibility_colours_surfels_of_unseen_mouth_faces(phase1_avatar_path, p2_data, p2_init_dir):
     from sage_core.flame.regions import Regions
 
-    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_occlusion_jaw=0.0)
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="faces", mouth_occlusion_jaw=0.0)
     av = tr.avatar
     regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
     mouth = torch.as_tensor(regions.face_mask("mouth_interior") | regions.face_mask("teeth"))
@@ -655,7 +655,7 @@ def test_pixel_rays_equal_the_full_image_rays(dtype):
 
 def test_default_phase2_keeps_the_appearance_network_and_trains_the_shape_network(phase1_avatar_path, p2_data, p2_init_dir):
     tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir)
-    assert tr.cfg.lr_networks == 0.0 and tr.cfg.lr_shape > 0
+    assert tr.cfg.lr_networks == 0.0 and tr.cfg.lr_shape > 0 and tr.cfg.mouth_prior_visibility == "surfels"
     av = tr.avatar
     app0 = {k: v.clone() for k, v in av.appearance.state_dict().items()}
     shape0 = {k: v.clone() for k, v in av.shape.state_dict().items()}
