@@ -38,7 +38,7 @@ from ._files import write_json, write_npz, write_ply
 from .appearance import Appearance, Specular, crease_weights, render_head, sample_appearance
 from .config import SynthConfig
 from .head import EXPRESSION_NAMES, IDENTITY_NAMES, HeadModel, build_head
-from .model_files import MASKS_NAME, NPZ_NAME, PICKLE_NAME, flame_model_data, write_model_files
+from .model_files import MASKS_NAME, NPZ_NAME, PICKLE_NAME, flame_model, write_model_files
 from .motion import (
     Frame,
     arc_cameras,
@@ -85,9 +85,7 @@ def _pose(subject: _Subject, frames: list[Frame]) -> _Posed:
         return _Posed(tp.vertices, crease)
     import torch
 
-    from ...flame import FlameModel
-
-    model = FlameModel(flame_model_data(subject.head)).double()
+    model = flame_model(subject.head)
     st = lambda a: torch.as_tensor(np.stack(a), dtype=torch.float64)  # noqa: E731
     shape = torch.as_tensor(subject.shape, dtype=torch.float64)
     off = torch.as_tensor(subject.static_offset, dtype=torch.float64)

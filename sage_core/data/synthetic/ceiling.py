@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,10 @@ from ..cameras import Camera
 from .appearance import crease_weights, render_head
 from .capture import _Subject, make_subject, neck_line_mask
 from .config import SynthConfig
+from .model_files import flame_model
+
+if TYPE_CHECKING:
+    from ...flame import FlameModel
 
 FLAME_KEYS: tuple[str, ...] = ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
 """Per-frame FLAME parameters the ceiling poses the written model with."""
@@ -47,7 +51,7 @@ class TrackedTruth:
     capture: Path
     config: SynthConfig
     subject: _Subject
-    written: Any
+    written: FlameModel
 
     @classmethod
     def open(cls, capture_dir: str | Path) -> TrackedTruth:
@@ -69,13 +73,7 @@ class TrackedTruth:
         except (TypeError, ValueError, KeyError) as e:
             raise InputError(info_path, f"its synthesis config is not readable by this version: {e}") from None
         subject = make_subject(cfg)
-        if subject.tracked is not None:
-            written = subject.tracked.written
-        else:
-            from ...flame import FlameModel
-            from .model_files import flame_model_data
-
-            written = FlameModel(flame_model_data(subject.head)).double()
+        written = subject.tracked.written if subject.tracked is not None else flame_model(subject.head)
         truth = cls(root, cfg, subject, written)
         truth._check(info)
         return truth

@@ -59,6 +59,13 @@ def flame_model_data(head: HeadModel):
     )
 
 
+def flame_model(head: HeadModel):
+    """The head as a float64 ``sage_core.flame.FlameModel`` (what posing the synthetic truth uses)."""
+    from ...flame import FlameModel
+
+    return FlameModel(flame_model_data(head)).double()
+
+
 def write_model_files(head: HeadModel, folder: str | Path) -> dict[str, Path]:
     """Write ``synth_flame.pkl``, ``synth_flame.npz`` and ``FLAME_masks.pkl`` into ``folder``.
 

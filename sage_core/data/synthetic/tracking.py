@@ -48,14 +48,13 @@ class TrackedHead:
 
 def make_tracked_head(head: HeadModel, expr_keep: float, corrective_scale: float, crease_depth_mm: float) -> TrackedHead:
     """The truth / written-model pair of ``head`` (see :class:`TrackedHead`)."""
-    from ...flame import FlameModel
-    from .model_files import flame_model_data
+    from .model_files import flame_model
 
     n_keep = kept_expressions(expr_keep)
     written_head = truncated_head(head, n_keep)
     return TrackedHead(
-        full=FlameModel(flame_model_data(head)).double(),
-        written=FlameModel(flame_model_data(written_head)).double(),
+        full=flame_model(head),
+        written=flame_model(written_head),
         written_head=written_head,
         fields=truth_fields(head, corrective_scale, crease_depth_mm),
         n_keep=n_keep,
