@@ -179,3 +179,23 @@ def test_ssim_targets_are_kept_within_their_budget(init_ws, one_thread, monkeypa
         runs.append(([tr.step()["rgb"] for _ in range(3)], len(tr._ssim_targets)))
     (kept_losses, kept), (made_losses, made) = runs
     assert kept_losses == made_losses and kept >= 1 and made == 0
+
+
+@pytest.mark.parametrize("p", [0.5, 0.8808, 0.2])
+def test_app_init_opacity_sets_the_opacity_logit_bias(p):
+    """The appearance network starts every surfel near app_init_opacity: its opacity-logit bias is
+    logit(p), and with the last layer's weights zeroed every predicted opacity is exactly p."""
+    from sage_core.config import Phase1Config
+    from sage_core.fields.appearance import AppearanceNetwork
+    from sage_core.train.phase1 import appearance_args
+
+    assert Phase1Config().app_init_opacity == 0.5
+    args = appearance_args(Phase1Config(app_init_opacity=p, app_grid=False))
+    net = AppearanceNetwork(4, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], **args)
+    with torch.no_grad():
+        net.mlp[-1].weight.zero_()
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(10, 3, generator=g) * 2 - 1
+    v = torch.nn.functional.normalize(torch.randn(10, 3, generator=g), dim=-1)
+    _, alpha = net(x, v, v, torch.randn(10, 4, generator=g))
+    torch.testing.assert_close(alpha, torch.full((10,), p), rtol=0, atol=1e-6)
