@@ -28,8 +28,8 @@ class AppearanceNetwork(nn.Module):
         hidden: MLP width; n_layers: hidden layers (ReLU).
         sh_degree: degree (0..3) of the spherical-harmonics view encoding.
         view_dependent: use the view direction.
-        opacity_bias: initial bias of the opacity logit (sigmoid(2) ~ 0.88; phase 1 passes
-            logit(app_init_opacity), 0 by default, so surfels start at opacity 0.5).
+        opacity_bias: initial bias of the opacity logit (0: surfels start at opacity 0.5; phase 1
+            passes logit(app_init_opacity)).
         grid: optional :class:`HashGrid` kwargs (n_levels, n_features, log2_table, base_res, max_res) of
             an appearance-only hash grid over the same box; its features at x join the MLP input.
             The SDF feature z carries colour only through the SDF network, whose hash grid and MLP are
@@ -48,7 +48,7 @@ class AppearanceNetwork(nn.Module):
         n_layers: int = 2,
         sh_degree: int = 3,
         view_dependent: bool = True,
-        opacity_bias: float = 2.0,
+        opacity_bias: float = 0.0,
         grid: dict[str, int] | None = None,
     ) -> None:
         super().__init__()

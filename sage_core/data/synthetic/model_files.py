@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import pickle
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ._chumpy_pickle import Ch, csc_matrix, dumps_flame_pickle
 from ._files import normalize_zip, write_bytes
 from .head import PARENTS, HeadModel
+
+if TYPE_CHECKING:
+    from ...flame import FlameModel
 
 PICKLE_NAME = "synth_flame.pkl"
 NPZ_NAME = "synth_flame.npz"
@@ -59,8 +63,8 @@ def flame_model_data(head: HeadModel):
     )
 
 
-def flame_model(head: HeadModel):
-    """The head as a float64 ``sage_core.flame.FlameModel`` (what posing the synthetic truth uses)."""
+def flame_model(head: HeadModel) -> FlameModel:
+    """The head as a float64 :class:`sage_core.flame.FlameModel` (what posing the synthetic truth uses)."""
     from ...flame import FlameModel
 
     return FlameModel(flame_model_data(head)).double()
