@@ -3,6 +3,7 @@
 Usage:
     python benchmarks/error_regions.py WS:STAGE[:LABEL] [WS:STAGE[:LABEL] | ceiling:CAPTURE ...]
         [--split test|val] [--cams 2,8,12] [--panels DIR] [--scale 3] [--out FILE.json]
+        [--lpips WEIGHTS]
 
 Every avatar renders every frame of the split as ``sage eval`` renders it (the stage's render
 settings, surfel correction included) and is compared with the ground-truth image;
@@ -20,8 +21,16 @@ sum of squared errors over the pixels and the three channels (SSE) is split by w
   or the reverse. With tracked FLAME parameters this is error no avatar drawn on the tracked mesh
   can avoid; it overlaps ``band``.
 
+With ``--lpips`` (the AlexNet v0.1 weights), LPIPS is split the same way, by composites: for each of
+the disjoint areas ``band``, ``mouth`` (inside pixels where the posed mesh shows the mouth group,
+dilated by 2 px, kept inside), ``rest`` (the other inside pixels) and ``outside`` (the rest of the
+image), the image that is the render in that area and the ground truth everywhere else is scored
+against the ground truth (``lpips_band``, ``lpips_mouth``, ``lpips_rest``, ``lpips_outside``, beside
+``lpips`` of the whole render). LPIPS is not additive, so these do not sum to ``lpips``; each says how
+far the render's errors in one area alone are perceptually from the truth.
+
 The workspaces must share the data (the same capture and split). Prints a Markdown table of the mean
-SSE per image; ``--out`` writes the per-image values as JSON; ``--panels`` writes, for the frames of
+SSE per image (and of the LPIPS split); ``--out`` writes the per-image values as JSON; ``--panels`` writes, for the frames of
 ``--cams``, the ground truth, each avatar's render and its error (upscaled by ``--scale``).
 """
 
@@ -45,6 +54,9 @@ GROUPS: dict[str, tuple[str, ...]] = {
 
 COLUMNS = ("total", "band", "inside", *GROUPS, "skin", "silhouette")
 
+LPIPS_AREAS = ("band", "mouth", "rest", "outside")
+"""Disjoint areas of the ``--lpips`` composites (see the module doc)."""
+
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python benchmarks/error_regions.py", description=__doc__.split("\n\n")[0])
@@ -54,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--panels", type=Path, default=None, help="folder for GT | renders | errors panels")
     ap.add_argument("--scale", type=int, default=3, help="panel upscaling")
     ap.add_argument("--out", type=Path, default=None, help="JSON file of the per-image values")
+    ap.add_argument("--lpips", type=Path, default=None, help="LPIPS AlexNet v0.1 weights: also split LPIPS by area")
     return ap
 
 
@@ -65,6 +78,17 @@ def _band_and_inside(mask: np.ndarray, radius: int = 2) -> tuple[np.ndarray, np.
     dil = torch.nn.functional.max_pool2d(m, k, 1, radius)[0, 0] > 0
     ero = -torch.nn.functional.max_pool2d(-m, k, 1, radius)[0, 0] > 0
     return (dil & ~ero).numpy(), ero.numpy()
+
+
+def _lpips_areas(band: np.ndarray, inside: np.ndarray, group: np.ndarray, radius: int = 2) -> dict[str, np.ndarray]:
+    """The disjoint (H, W) bool areas of :data:`LPIPS_AREAS`: group (H, W) is the posed mesh's region
+    group per pixel (0 = mouth, -1 = background)."""
+    import torch
+
+    k = 2 * radius + 1
+    m = torch.as_tensor(group == 0, dtype=torch.float32)[None, None]
+    mouth = (torch.nn.functional.max_pool2d(m, k, 1, radius)[0, 0] > 0).numpy() & inside
+    return {"band": band, "mouth": mouth, "rest": inside & ~mouth, "outside": ~band & ~inside}
 
 
 def _face_labels(regions_path: Path) -> np.ndarray:
@@ -89,6 +113,19 @@ def main(argv: list[str] | None = None) -> int:
     from sage_core.workspace import Workspace
 
     torch.set_num_threads(1)
+    lpips = None
+    if args.lpips is not None:
+        from sage_core.evaluate.lpips import LPIPS
+
+        lpips = LPIPS.from_path(args.lpips)
+
+    def lp(xs: list[np.ndarray], gt: np.ndarray) -> list[float]:
+        """LPIPS of each (H, W, 3) image in xs against gt, in one batch."""
+        assert lpips is not None
+        pred = torch.stack([torch.as_tensor(x, dtype=torch.float32).permute(2, 0, 1) for x in xs])
+        ref = torch.as_tensor(gt, dtype=torch.float32).permute(2, 0, 1)[None].expand_as(pred)
+        return [float(v) for v in lpips(pred, ref)]
+
     avatars: list[tuple[str, Callable[[Any], np.ndarray]]] = []
     data = None
     first: AvatarRenderer | None = None
@@ -140,6 +177,11 @@ def main(argv: list[str] | None = None) -> int:
                        "inside": float(e[inside].sum()), "silhouette": float(e[sil].sum())}  # fmt: skip
                 for gi, name in enumerate((*GROUPS, "skin")):
                     rec[name] = float(e[inside & (group == gi)].sum())
+                if lpips is not None:
+                    areas = _lpips_areas(band, inside, group)
+                    vals = lp([img, *(np.where(areas[a][..., None], img, gt) for a in LPIPS_AREAS)], gt)
+                    rec["lpips"] = vals[0]
+                    rec.update({f"lpips_{a}": v for a, v in zip(LPIPS_AREAS, vals[1:])})
                 per_image[lab].append(rec)
                 row.append(img)
                 errs.append(np.repeat(np.clip(np.sqrt(e / 3.0) * 3.0, 0, 1)[..., None], 3, -1))
@@ -154,6 +196,15 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|" + "---:|" * len(COLUMNS))
     for lab, m in means.items():
         print(f"| {lab} | " + " | ".join(f"{m[c]:.1f}" for c in COLUMNS) + " |")
+    if lpips is not None:
+        cols = ("lpips", *(f"lpips_{a}" for a in LPIPS_AREAS))
+        for lab, recs in per_image.items():
+            means[lab].update({c: float(np.mean([r[c] for r in recs])) for c in cols})
+        print("\nMean LPIPS per image: of the render, and of the render in one area only (the ground truth elsewhere):\n")
+        print("| avatar | all | " + " | ".join(f"{a} only" for a in LPIPS_AREAS) + " |")
+        print("|---|" + "---:|" * len(cols))
+        for lab, m in means.items():
+            print(f"| {lab} | " + " | ".join(f"{m[c]:.4f}" for c in cols) + " |")
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"split": args.split, "items": args.items, "mean": means, "images": per_image}, indent=1))
