@@ -155,6 +155,16 @@ def test_background_band_rays_and_mask_terms(init_ws, one_thread):
     assert {"neus_mask", "mask"} <= seen
 
 
+def test_polish_steps_train_on_the_photometric_loss_alone(init_ws, one_thread):
+    tr = _trainer(init_ws, "mlp", iterations=6, polish_steps=3, w_mask=0.1)
+    hist = [tr.step() for _ in range(6)]
+    geometric = ("pt", "align", "depth", "normal", "neus_rgb", "eikonal", "normal_consistency", "distortion", "mask")
+    assert all({"pt", "neus_rgb"} <= set(h) for h in hist[:3])
+    assert {"normal_consistency", "distortion"} <= set(hist[2])
+    for h in hist[3:]:
+        assert "rgb" in h and not set(geometric) & set(h), sorted(h)
+
+
 def test_posed_mesh_is_kept_while_the_inputs_are_constant(init_ws, one_thread):
     """The trainer poses each timestep's mesh once, and not while a pose correction is learned."""
     tr = _trainer(init_ws, "mlp", iterations=4, pose_refine=True, pose_refine_from=2)

@@ -434,7 +434,8 @@ class Phase1Trainer:
         inputs, rigid = self.frame_inputs(timestep)
         self._set_lrs()
         step = self.step_count
-        use_sdf = step >= c.sdf_from
+        polish = c.polish_steps > 0 and step >= c.iterations - c.polish_steps
+        use_sdf = step >= c.sdf_from and not polish
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
         render, posed = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
@@ -450,16 +451,16 @@ class Phase1Trainer:
             target = self._ssim_target(i, img) if c.ssim_weight != 0 and i is not None else None
             terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight, target)
             total = terms["rgb"]
-            if c.w_mask > 0 and i is not None and self.frames[i].mask is not None:
+            if c.w_mask > 0 and not polish and i is not None and self.frames[i].mask is not None:
                 terms["mask"] = L.alpha_mask_loss(render.alpha, mask)
                 total = total + c.w_mask * terms["mask"]
         else:
             terms["pseudo_rgb"] = weighted_rgb_loss(color, img, weight, c.ssim_weight)
             total = view_weight * terms["pseudo_rgb"]
-        if c.w_normal_consistency > 0 and step >= c.normal_consistency_from:
+        if c.w_normal_consistency > 0 and step >= c.normal_consistency_from and not polish:
             terms["normal_consistency"] = L.normal_consistency_loss(render.normal_world, render.surf_normal_world)
             total = total + c.w_normal_consistency * terms["normal_consistency"]
-        if c.w_distortion > 0 and step >= c.distortion_from:
+        if c.w_distortion > 0 and step >= c.distortion_from and not polish:
             terms["distortion"] = L.distortion_loss(render.distortion)
             total = total + c.w_distortion * terms["distortion"]
 
