@@ -198,7 +198,7 @@ class Phase1Config:
     near: float = _f(0.2, "Near plane (m): culls surfels and sets the distortion's normalised depth.", gt=0)
     far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth (heads at about 1 m).", gt=0)
     sdf_from: int = _f(0, "First step of the SDF terms (L_pt, L_align, L_D, L_N, NeuS).", ge=0)
-    polish_steps: int = _f(0, "The last N steps of phase 1 train on the photometric loss alone (no SDF terms, 2DGS normal consistency, distortion or mask term), so appearance sharpens on the settled geometry. Off by default; with phase 2's correction_w_s=0 it lowered held-out LPIPS on two small benchmark subjects (docs/results.md).", ge=0)
+    polish_steps: int = _f(0, "The last N steps of phase 1 train on the photometric loss alone (no SDF terms, 2DGS normal consistency, distortion or mask term), so appearance sharpens on the settled geometry. Off by default; with phase 2's correction_w_s=0 it lowered held-out LPIPS on three small benchmark subjects (docs/results.md).", ge=0)
     rays_per_step: int = _f(1024, "Foreground rays per step for NeuS.", ge=1)
     neus_background_rays: float = _f(0.25, "Extra NeuS rays per step from background pixels within neus_background_band pixels of the silhouette, as a fraction of rays_per_step (frames with masks only). Without them the SDF never sees where the head ends and its zero level set, which the surfel centres follow (L_pt), can sit outside the silhouette.", ge=0, le=4)
     neus_background_band: int = _f(6, "Width in pixels of the background band around the foreground mask from which the background NeuS rays are drawn.", ge=1)
