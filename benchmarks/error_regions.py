@@ -70,24 +70,24 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _band_and_inside(mask: np.ndarray, radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def _dilate(area: np.ndarray, radius: int) -> np.ndarray:
+    """(H, W) bool area grown by ``radius`` px (square structuring element)."""
     import torch
 
-    m = torch.as_tensor(mask > 0.5, dtype=torch.float32)[None, None]
-    k = 2 * radius + 1
-    dil = torch.nn.functional.max_pool2d(m, k, 1, radius)[0, 0] > 0
-    ero = -torch.nn.functional.max_pool2d(-m, k, 1, radius)[0, 0] > 0
-    return (dil & ~ero).numpy(), ero.numpy()
+    m = torch.as_tensor(area, dtype=torch.float32)[None, None]
+    return (torch.nn.functional.max_pool2d(m, 2 * radius + 1, 1, radius)[0, 0] > 0).numpy()
+
+
+def _band_and_inside(mask: np.ndarray, radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    fg = mask > 0.5
+    dil, ero = _dilate(fg, radius), ~_dilate(~fg, radius)
+    return dil & ~ero, ero
 
 
 def _lpips_areas(band: np.ndarray, inside: np.ndarray, group: np.ndarray, radius: int = 2) -> dict[str, np.ndarray]:
     """The disjoint (H, W) bool areas of :data:`LPIPS_AREAS`: group (H, W) is the posed mesh's region
     group per pixel (0 = mouth, -1 = background)."""
-    import torch
-
-    k = 2 * radius + 1
-    m = torch.as_tensor(group == 0, dtype=torch.float32)[None, None]
-    mouth = (torch.nn.functional.max_pool2d(m, k, 1, radius)[0, 0] > 0).numpy() & inside
+    mouth = _dilate(group == 0, radius) & inside
     return {"band": band, "mouth": mouth, "rest": inside & ~mouth, "outside": ~band & ~inside}
 
 
@@ -116,15 +116,15 @@ def main(argv: list[str] | None = None) -> int:
     lpips = None
     if args.lpips is not None:
         from sage_core.evaluate.lpips import LPIPS
+        from sage_core.image_metrics import to_nchw
 
         lpips = LPIPS.from_path(args.lpips)
 
     def lp(xs: list[np.ndarray], gt: np.ndarray) -> list[float]:
         """LPIPS of each (H, W, 3) image in xs against gt, in one batch."""
         assert lpips is not None
-        pred = torch.stack([torch.as_tensor(x, dtype=torch.float32).permute(2, 0, 1) for x in xs])
-        ref = torch.as_tensor(gt, dtype=torch.float32).permute(2, 0, 1)[None].expand_as(pred)
-        return [float(v) for v in lpips(pred, ref)]
+        pred = to_nchw(np.stack(xs).astype(np.float32))
+        return [float(v) for v in lpips(pred, to_nchw(gt.astype(np.float32)).expand_as(pred))]
 
     avatars: list[tuple[str, Callable[[Any], np.ndarray]]] = []
     data = None

@@ -159,7 +159,7 @@ def test_polish_steps_train_on_the_photometric_loss_alone(init_ws, one_thread):
     tr = _trainer(init_ws, "mlp", iterations=6, polish_steps=3, w_mask=0.1)
     hist = [tr.step() for _ in range(6)]
     geometric = ("pt", "align", "depth", "normal", "neus_rgb", "eikonal", "normal_consistency", "distortion", "mask")
-    assert all({"pt", "neus_rgb"} <= set(h) for h in hist[:3])
+    assert all({"pt", "neus_rgb", "mask"} <= set(h) for h in hist[:3])
     assert {"normal_consistency", "distortion"} <= set(hist[2])
     for h in hist[3:]:
         assert "rgb" in h and not set(geometric) & set(h), sorted(h)
