@@ -30,6 +30,7 @@ _SMALL = {
     "normal_consistency_from": 2,
     "distortion_from": 2,
     "eval_every": 0,
+    "polish_fraction": 0.0,
 }
 
 
@@ -155,8 +156,9 @@ def test_background_band_rays_and_mask_terms(init_ws, one_thread):
     assert {"neus_mask", "mask"} <= seen
 
 
-def test_polish_steps_train_on_the_photometric_loss_alone(init_ws, one_thread):
-    tr = _trainer(init_ws, "mlp", iterations=6, polish_steps=3, w_mask=0.1)
+def test_polish_fraction_trains_on_the_photometric_loss_alone(init_ws, one_thread):
+    tr = _trainer(init_ws, "mlp", iterations=6, polish_fraction=0.5, w_mask=0.1)
+    assert tr.polish_from == 3
     hist = [tr.step() for _ in range(6)]
     geometric = ("pt", "align", "depth", "normal", "neus_rgb", "eikonal", "normal_consistency", "distortion", "mask")
     assert all({"pt", "neus_rgb", "mask"} <= set(h) for h in hist[:3])

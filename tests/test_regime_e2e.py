@@ -17,7 +17,8 @@ _INIT = ["--preset", "tiny", "--steps", "10", "--mc-resolution", "24", "--set", 
          "--set", "pretrain.batch_size=512", "--set", "pretrain.eval_samples=1000", "--quiet", "--device", "cpu"]  # fmt: skip
 _P1 = ["--preset", "tiny", "--device", "cpu", "--iterations", "3", "--surfels", "500"] + [
     a for kv in ("rays_per_step=32", "neus_samples=8", "neus_importance=8", "neus_up_steps=1", "app_hidden=16",
-                 "shape_hidden=16", "smooth_points=64", "sym_points=64", "mc_resolution=24", "eval_every=0")
+                 "shape_hidden=16", "smooth_points=64", "sym_points=64", "mc_resolution=24", "eval_every=0",
+                 "polish_fraction=0")
     for a in ("--set", kv)
 ]  # fmt: skip
 

@@ -311,7 +311,7 @@ def test_phase1_trains_the_light_and_saves_shading_and_gains(init_dir, tiny_ws, 
         "phase1", "tiny", None,
         {"iterations": 4, "n_surfels": 800, "rays_per_step": 64, "neus_samples": 8, "neus_importance": 8, "neus_up_steps": 1,
          "app_hidden": 16, "shape_hidden": 16, "mc_resolution": 32, "eval_every": 0, "rebind_every": 0,
-         "shading": "sh2", "exposure": "gain", "lr_light": 0.05},
+         "shading": "sh2", "exposure": "gain", "lr_light": 0.05, "polish_fraction": 0.0},
     )  # fmt: skip
     n = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -235,6 +235,8 @@ class Phase1Trainer:
         self.render_backend = resolve_render_backend(cfg.render_backend, str(self.device))
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.step_count = 0
+        self.polish_from = cfg.iterations - round(cfg.polish_fraction * cfg.iterations)
+        """First step of the polish (photometric loss alone): the last ``polish_fraction`` of the iterations."""
         self.frames: list[IngestedFrame] = list(data.train)
         if not self.frames:
             raise ValueError("no training frames")
@@ -434,7 +436,7 @@ class Phase1Trainer:
         inputs, rigid = self.frame_inputs(timestep)
         self._set_lrs()
         step = self.step_count
-        polish = c.polish_steps > 0 and step >= c.iterations - c.polish_steps
+        polish = step >= self.polish_from
         use_sdf = step >= c.sdf_from and not polish
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
