@@ -235,8 +235,8 @@ class Phase1Trainer:
         self.render_backend = resolve_render_backend(cfg.render_backend, str(self.device))
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.step_count = 0
+        # first step of the polish (photometric loss alone): the last polish_fraction of the iterations
         self.polish_from = cfg.iterations - round(cfg.polish_fraction * cfg.iterations)
-        """First step of the polish (photometric loss alone): the last ``polish_fraction`` of the iterations."""
         self.frames: list[IngestedFrame] = list(data.train)
         if not self.frames:
             raise ValueError("no training frames")
