@@ -539,6 +539,48 @@ class StageRun:
             atomic_write_text(self.work_dir / "FAILED", message + "\n")
 
 
+def _stage_fingerprint(
+    ws: Workspace, stage: str, config_hash: str, requires: list[str], external_inputs: dict[str, str] | None
+) -> tuple[dict[str, Any], str]:
+    """The run's inputs (upstream fingerprints, external files) and its fingerprint; StageError when
+    an upstream stage is not complete and fresh."""
+    inputs: dict[str, Any] = {"stages": {}, "files": dict(external_inputs or {})}
+    for up in requires:
+        inputs["stages"][up] = ws.require(up, stage)["fingerprint"]
+    fp = hashlib.sha256(json.dumps({"config": config_hash, "inputs": inputs}, sort_keys=True).encode()).hexdigest()[:16]
+    return inputs, fp
+
+
+def _complete_as(ws: Workspace, stage: str, fingerprint: str, seed: int) -> bool:
+    m = ws.manifest(stage)
+    return (m is not None and m.get("status") == "complete" and m.get("fingerprint") == fingerprint and m.get("seed") == seed
+            and not ws.missing_outputs(stage, m))
+
+
+def stage_up_to_date(
+    ws: Workspace,
+    stage: str,
+    config_hash: str,
+    *,
+    requires: list[str] = (),  # type: ignore[assignment]
+    external_inputs: dict[str, str] | None = None,
+    seed: int = 0,
+) -> bool:
+    """Whether ``stage`` already completed with this config, these inputs and this seed, read without
+    the workspace lock: manifests and stage folders are only ever replaced whole (atomic renames),
+    so a reader sees the old or the new state of a stage, never a mix. A stage that is up to date
+    can be reported as skipped while another process holds the lock to run a different stage
+    (e.g. phase 1 training while a second process asks for ingest). False when anything is
+    missing, stale or unreadable; :func:`begin_stage` under the lock then decides."""
+    if not ws.root.is_dir():
+        return False
+    try:
+        _, fp = _stage_fingerprint(ws, stage, config_hash, requires, external_inputs)
+        return _complete_as(ws, stage, fp, seed)
+    except (StageError, OSError, ValueError):
+        return False
+
+
 def begin_stage(
     ws: Workspace,
     stage: str,
@@ -561,14 +603,9 @@ def begin_stage(
     ``ws.lock``.
     """
     ws.recover(stage)
-    inputs: dict[str, Any] = {"stages": {}, "files": dict(external_inputs or {})}
-    for up in requires:
-        inputs["stages"][up] = ws.require(up, stage)["fingerprint"]
+    inputs, fp = _stage_fingerprint(ws, stage, config_hash, requires, external_inputs)
     run_id = {"config_hash": config_hash, "inputs": inputs, "seed": seed}
-    fp = hashlib.sha256(json.dumps({"config": config_hash, "inputs": inputs}, sort_keys=True).encode()).hexdigest()[:16]
-    m = ws.manifest(stage)
-    if (not force and m is not None and m.get("status") == "complete" and m.get("fingerprint") == fp and m.get("seed") == seed
-            and not ws.missing_outputs(stage, m)):
+    if not force and _complete_as(ws, stage, fp, seed):
         return None
     ws.check_writable()
     work = ws.work_dir(stage)

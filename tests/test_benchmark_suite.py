@@ -311,6 +311,37 @@ def test_copied_stages_are_complete_in_the_new_workspace_and_recopied_when_the_s
         copy_stages(src, tmp_path / "other", ("phase1",))
 
 
+def _hold_lock(root, ready, release):
+    from sage_core.workspace import Workspace
+
+    with Workspace(root).lock:
+        ready.set()
+        release.wait(60)
+
+
+def test_copying_finished_stages_does_not_need_the_source_lock(tmp_path):
+    """A row copies its base row's ingest and init-mesh while another suite process trains the base
+    row's phase 1 (and so holds its workspace lock)."""
+    import multiprocessing as mp
+
+    from sage_core.workspace import Workspace
+
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    _fake_stage(src, "ingest", [], "a")
+    _fake_stage(src, "init-mesh", ["ingest"], "b")
+    ctx = mp.get_context("spawn")
+    ready, release = ctx.Event(), ctx.Event()
+    holder = ctx.Process(target=_hold_lock, args=(str(src), ready, release))
+    holder.start()
+    try:
+        assert ready.wait(60)
+        assert copy_stages(src, dst, ("ingest", "init-mesh")) == ["ingest", "init-mesh"]
+    finally:
+        release.set()
+        holder.join(60)
+    assert Workspace(dst).status("init-mesh").status == "complete"
+
+
 def test_eval_metrics_are_read_only_while_current(tmp_path):
     from _suite.collect import eval_metrics
 

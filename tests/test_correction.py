@@ -437,3 +437,72 @@ def test_forward_on_bound_triangles_equals_every_triangle_then_gather(monkeypatc
         ref2 = run(binding)
     torch.testing.assert_close(moved.scale_factor, ref2.scale_factor, atol=1e-13, rtol=0)
     assert not torch.allclose(moved.scale_factor[:5], fast.scale_factor[:5])
+
+
+# ---------------------------------------------------------------- affine mode
+
+
+def _plane_covariance(R: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) covariance R·diag(s1², s2², 0)·Rᵀ of flat surfels with rotations R (N, 3, 3), scales s (N, 2)."""
+    d = torch.cat([s**2, torch.zeros_like(s[:, :1])], -1)
+    return R @ torch.diag_embed(d) @ R.transpose(-1, -2)
+
+
+@pytest.mark.parametrize("tilt", [False, True])
+def test_affine_mode_maps_each_ellipse_exactly_under_an_affine_deformation(tilt):
+    verts, faces = _grid(11)
+    A = torch.tensor([[1.4, 0.3, 0.0], [0.0, 0.8, 0.0], [0.0, 0.0, 1.0]], dtype=DT)  # stretch and shear in the plane
+    B = torch.eye(3, dtype=DT)
+    if tilt:
+        B = axis_angle_to_matrix(torch.tensor([0.5, 0.8, -0.2], dtype=DT))
+    canon, posed = verts @ B.T, verts @ A.T @ B.T
+    corr, binding = _setup(canon, faces, mode="affine")
+    N = binding.numel()
+    g = torch.Generator().manual_seed(3)
+    spin = (torch.rand(N, generator=g, dtype=DT) - 0.5) * 2 * math.pi
+    rot = _surfels(canon, faces, binding, spin)
+    scales = 0.002 + 0.004 * torch.rand(N, 2, generator=g, dtype=DT)
+    out = corr(posed, binding, rot, B[:, 2].expand(N, 3), scales=scales)
+    # the binding's posed surfel (similarity of the bound triangle), then the correction
+    R_c, _, k_c = triangle_frames(canon, faces)
+    R_d, _, k_d = triangle_frames(posed, faces)
+    Q = (R_d @ R_c.transpose(-1, -2))[binding]
+    r = (k_d / k_c)[binding].unsqueeze(-1)
+    q_posed = quat_multiply(matrix_to_quat(Q), rot)
+    q_new, s_new = SurfelCorrection.apply(out, q_posed, scales * r)
+    got = _plane_covariance(quat_to_matrix(q_new), s_new)
+    M = B @ A @ B.T  # the world deformation
+    want = M @ _plane_covariance(quat_to_matrix(rot), scales) @ M.T
+    torch.testing.assert_close(got, want, atol=1e-12 * float(want.abs().max()) * 1e4, rtol=1e-6)
+    assert float(out.angle.abs().max()) <= math.pi / 4 + 1e-12
+    # the paper's mode scales the fitted axes and cannot shear an ellipse: it is off here
+    paper, _ = _setup(canon, faces)
+    q_p, s_p = SurfelCorrection.apply(paper(posed, binding, rot, B[:, 2].expand(N, 3)), q_posed, scales * r)
+    assert float((_plane_covariance(quat_to_matrix(q_p), s_p) - want).abs().max()) > 0.05 * float(want.abs().max())
+
+
+def test_affine_mode_is_the_identity_under_similarities_and_needs_scales():
+    verts, faces = _grid()
+    corr, binding = _setup(verts, faces, mode="affine", w_s=0.0)
+    N = binding.numel()
+    g = torch.Generator().manual_seed(9)
+    rot = _surfels(verts, faces, binding, (torch.rand(N, generator=g, dtype=DT) - 0.5) * 6)
+    scales = 0.001 + 0.004 * torch.rand(N, 2, generator=g, dtype=DT)
+    n = quat_to_matrix(rot)[..., 2]
+    R = axis_angle_to_matrix(torch.tensor([0.2, -0.4, 0.7], dtype=DT))
+    kappa = torch.tensor([40.0, -10.0], dtype=DT).expand(N, 2)
+    d1 = torch.tensor([1.0, 0.0, 0.0], dtype=DT).expand(N, 3)
+    dirs = torch.stack([d1, torch.linalg.cross(n, d1, dim=-1)], -2)
+    for posed in (verts, 1.7 * verts @ R.T + 0.3):
+        out = corr(posed, binding, rot, n, kappa, dirs, scales=scales)
+        # the ellipse is unchanged (its angle is ill-conditioned only for nearly round surfels)
+        c, s_ = torch.cos(out.angle), torch.sin(out.angle)
+        U = torch.stack([torch.stack([c, -s_], -1), torch.stack([s_, c], -1)], -2)
+        ellipse = U @ torch.diag_embed((out.scale_factor * scales) ** 2) @ U.transpose(-1, -2)
+        torch.testing.assert_close(ellipse, torch.diag_embed(scales**2), atol=1e-12 * float(scales.max()) ** 2 * 1e3, rtol=0)
+        torch.testing.assert_close(out.scale_factor, torch.ones(N, 2, dtype=DT), atol=1e-9, rtol=0)
+        assert float(out.angle[(scales[:, 0] - scales[:, 1]).abs() > 1e-4].abs().max()) < 1e-9
+    with pytest.raises(ValueError, match="scales"):
+        corr(verts, binding, rot, n)
+    with pytest.raises(ValueError, match="mode"):
+        _setup(verts, faces, mode="shear")

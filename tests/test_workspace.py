@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing as mp
+from dataclasses import dataclass
 
 import pytest
 import torch
@@ -255,3 +256,56 @@ def test_failed_rename_keeps_the_finished_run_and_next_run_promotes_it(tmp_path,
     assert begin_stage(ws, "ingest", {"k": "c2"}, "c2", seed=0) is None
     assert (ws.stage_dir("ingest") / "out.txt").read_text() == "new"
     assert not (ws.stage_dir("ingest") / "checkpoints").exists() and not ws.work_dir("ingest").exists()
+
+
+@dataclass
+class _ToyConfig:
+    value: int = 1
+
+
+def _toy_body(run, emitter) -> None:
+    (run.work_dir / "out.txt").write_text(str(run.config["value"]))
+
+
+def _hold_lock(root, ready, release):
+    with Workspace(root).lock:
+        ready.set()
+        release.wait(60)
+
+
+def test_an_up_to_date_stage_is_skipped_while_another_process_holds_the_lock(tmp_path):
+    from sage_core.config import config_hash
+    from sage_core.stages._runner import StageSettings, execute_stage
+    from sage_core.stages.events import Emitter
+    from sage_core.workspace import stage_up_to_date
+
+    ws = Workspace(tmp_path / "ws")
+    events = []
+    emitter = Emitter("ingest", events.append)
+    first = execute_stage("ingest", ws, _ToyConfig(1), _toy_body, StageSettings(seed=3, device="cpu"), emitter)
+    assert first.manifest is not None
+    assert stage_up_to_date(ws, "ingest", config_hash(_ToyConfig(1)), seed=3)
+    assert not stage_up_to_date(ws, "ingest", config_hash(_ToyConfig(2)), seed=3)
+    assert not stage_up_to_date(ws, "ingest", config_hash(_ToyConfig(1)), seed=4)
+    assert not stage_up_to_date(ws, "phase1", config_hash(_ToyConfig(1)), requires=["ingest"], seed=3)
+    ctx = mp.get_context("spawn")
+    ready, release = ctx.Event(), ctx.Event()
+    holder = ctx.Process(target=_hold_lock, args=(str(ws.root), ready, release))
+    holder.start()
+    try:
+        assert ready.wait(60)
+        # same config and seed: reported as skipped without waiting for the lock
+        again = execute_stage("ingest", ws, _ToyConfig(1), _toy_body, StageSettings(seed=3, device="cpu"), emitter)
+        assert again.manifest is None and events[-1].kind == "skipped"
+        # anything that has to run still needs the lock
+        with pytest.raises(StageError, match="in use"):
+            execute_stage("ingest", ws, _ToyConfig(2), _toy_body, StageSettings(seed=3, device="cpu"), emitter)
+        with pytest.raises(StageError, match="in use"):
+            execute_stage("ingest", ws, _ToyConfig(1), _toy_body, StageSettings(seed=3, device="cpu", force=True), emitter)
+    finally:
+        release.set()
+        holder.join(60)
+    assert (ws.stage_dir("ingest") / "out.txt").read_text() == "1"
+    # the files a manifest lists must exist for the stage to count as up to date
+    (ws.stage_dir("ingest") / "out.txt").unlink()
+    assert not stage_up_to_date(ws, "ingest", config_hash(_ToyConfig(1)), seed=3)

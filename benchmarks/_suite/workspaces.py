@@ -56,15 +56,16 @@ def copy_stages(src: Path, dst: Path, stages: tuple[str, ...]) -> list[str]:
 
     A stage whose manifest in ``dst`` already has the source's fingerprint and finish time is
     kept; any other is replaced as a whole (the old folder is moved aside first). Both workspaces
-    are locked meanwhile. Returns the stages copied. StageError when a source stage is not
-    complete and fresh.
+    is locked meanwhile; the source is not (it may be training a later stage): its stage folders are
+    only ever replaced whole, and a source stage whose manifest changed during the copy fails the
+    copy. Returns the stages copied. StageError when a source stage is not complete and fresh.
     """
     sw, dw = Workspace(src), Workspace(dst)
     for st in stages:
         sw.require(st, f"copying into {dw.root}")
     dw.root.mkdir(parents=True, exist_ok=True)
     copied: list[str] = []
-    with sw.lock, dw.lock:
+    with dw.lock:
         for st in stages:
             sm = sw.manifest(st) or {}
             dm = dw.manifest(st) or {}
@@ -76,6 +77,10 @@ def copy_stages(src: Path, dst: Path, stages: tuple[str, ...]) -> list[str]:
                 shutil.rmtree(tmp)
             tmp.parent.mkdir(parents=True, exist_ok=True)
             shutil.copytree(sw.stage_dir(st), tmp, copy_function=_link_or_copy)
+            after = sw.manifest(st) or {}
+            if (after.get("fingerprint"), after.get("finished_at")) != (sm.get("fingerprint"), sm.get("finished_at")):
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise StageError(f"{sw.root}: stage '{st}' was replaced while it was being copied into {dw.root}; run the suite again")
             if final.exists():
                 old = dw.root / ".work" / f".old-{STAGE_FOLDERS[st]}-{os.getpid()}"
                 if old.exists():

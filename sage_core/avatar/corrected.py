@@ -104,6 +104,9 @@ class CorrectedPosing:
         refresh_tolerance: a cached curvature is recomputed when its surfel's canonical centre moved
             farther than this (m); default the SDF's finest hash-grid cell size / 4.
         use_curvature: False applies only the stretch part (no rotation, no curvature damping).
+        mode: ``"curvature"`` (the paper's rotation towards the principal curvature directions) or
+            ``"affine"`` (each surfel's ellipse mapped exactly by the neighbourhood's stretch); see
+            :class:`~sage_core.avatar.correction.SurfelCorrection`.
     """
 
     def __init__(
@@ -121,6 +124,7 @@ class CorrectedPosing:
         stretch_range: tuple[float, float] = (0.25, 4.0),
         refresh_tolerance: float | None = None,
         use_curvature: bool = True,
+        mode: str = "curvature",
     ) -> None:
         self.avatar = avatar
         self.enabled = bool(enabled)
@@ -132,6 +136,7 @@ class CorrectedPosing:
         self.correction = SurfelCorrection.from_mesh(
             verts, avatar.faces, self.radius, max_neighbours, w_s=w_s, min_neighbours=min_neighbours,
             stretch_range=stretch_range, umbilic_tol=umbilic_tol, anisotropy_tol=anisotropy_tol, enabled=self.enabled,
+            mode=mode,
         )  # fmt: skip
         if refresh_tolerance is None:
             refresh_tolerance = 0.25 * float(avatar.sdf.default_fd_step())
@@ -243,7 +248,8 @@ class CorrectedPosing:
             kappa = geo.kappa if self.use_curvature else None
             dirs = geo.dirs if self.use_curvature else None
             return self.correction(
-                vertices.detach(), av.surfels.binding, canonical.quats.detach(), geo.normal, kappa, dirs, av.surfels.hair_mask()
+                vertices.detach(), av.surfels.binding, canonical.quats.detach(), geo.normal, kappa, dirs, av.surfels.hair_mask(),
+                canonical.scales.detach(),
             )  # fmt: skip
 
     def posed(

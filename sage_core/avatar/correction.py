@@ -46,6 +46,16 @@ sin φ/2), a rotation about the local z axis, applied as q' = q ⊗ dq (Hamilton
 keeps the third column (the normal) and turns the first onto cos φ·t1 + sin φ·t2. It is valid for
 the local, canonical or posed quaternion of the surfel alike, as those differ by a left factor.
 
+Affine mode. ``mode="affine"`` replaces the rotation and the axis-wise stretch by the exact image of
+the surfel's ellipse under G: with s = (s1, s2) its in-plane scales, the posed ellipse has the
+covariance C = G·diag(s)²·Gᵀ, whose eigenvectors and square-rooted eigenvalues are the new axes and
+scales. φ is the angle from e1 to the eigenvector nearest to it (|φ| ≤ 45°, the other eigenvector
+becomes the second axis) and the factors are the new scales over the old. It is the identity under
+any motion the binding reproduces (G = I), needs no curvature, and under anisotropic stretch an
+ellipse at any angle to the stretch deforms exactly as the surface under it does; the axis-wise
+update of the paper's mode is exact only for axes along the principal stretch directions. The
+curvature damping, when curvatures are given, applies along the new axes as below.
+
 Scale. With u1, u2 the corrected axes in the tangent basis, the curvature along u_i is Euler's
 κ(u_i) = κ1·cos²θ_i + κ2·sin²θ_i (θ_i the angle from d1), and the paper's update becomes
 
@@ -70,6 +80,7 @@ from sage_core.flame.frames import triangle_frames
 from sage_core.geometry.rotations import quat_multiply, quat_to_matrix
 
 _AREA_EPS = 1e-14
+CORRECTION_MODES = ("curvature", "affine")
 
 
 @dataclass
@@ -123,6 +134,29 @@ def principal_stretches(G: torch.Tensor, eps: float = 1e-20) -> tuple[torch.Tens
     return sigma, torch.stack([d1, d2], -1)
 
 
+def _affine_ellipse(G: torch.Tensor, scales: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ellipse of in-plane scales ``scales`` (N, 2) (axes e1, e2) mapped by G (..., N, 2, 2).
+
+    Returns φ (..., N), the angle from e1 to the new axis nearest to it (|φ| ≤ π/4), and the new
+    scales over the old along the new axes (..., N, 2): (first, second)."""
+    s = scales.clamp_min(1e-30)
+    M = G * s.unsqueeze(-2)  # G·diag(s): columns scaled
+    c00 = (M[..., 0, :] ** 2).sum(-1)
+    c11 = (M[..., 1, :] ** 2).sum(-1)
+    c01 = (M[..., 0, :] * M[..., 1, :]).sum(-1)
+    half_diff = 0.5 * (c00 - c11)
+    mean = 0.5 * (c00 + c11)
+    root = torch.sqrt(half_diff**2 + c01**2)
+    psi = 0.5 * torch.atan2(2 * c01, c00 - c11)  # eigenvector of the larger eigenvalue, (−π/2, π/2]
+    big = (mean + root).clamp_min(0).sqrt()
+    small = (mean - root).clamp_min(0).sqrt()
+    swap = psi.abs() > 0.25 * math.pi
+    phi = torch.where(swap, psi - torch.sign(psi) * 0.5 * math.pi, psi)
+    first = torch.where(swap, small, big)
+    second = torch.where(swap, big, small)
+    return phi, torch.stack([first, second], -1) / s
+
+
 def _principal_sigma(G: torch.Tensor, eps: float = 1e-20) -> tuple[torch.Tensor, torch.Tensor]:
     """The sigma of :func:`principal_stretches` alone, and C = GᵀG (..., 2, 2)."""
     C = G.transpose(-1, -2) @ G
@@ -160,6 +194,9 @@ class SurfelCorrection(torch.nn.Module):
             deformation, so that the correction keeps a surfel's fitted orientation at rest); 0
             always applies it in full.
         enabled: False makes every call return the identity correction (``--correction off``).
+        mode: ``"curvature"`` (the paper's: rotation towards the principal curvature directions,
+            stretch measured along the turned axes) or ``"affine"`` (the exact image of the surfel's
+            ellipse under the neighbourhood's stretch; needs the surfels' scales at call time).
     """
 
     def __init__(
@@ -174,10 +211,13 @@ class SurfelCorrection(torch.nn.Module):
         umbilic_tol: float = 1.0,
         enabled: bool = True,
         anisotropy_tol: float = 0.0,
+        mode: str = "curvature",
     ) -> None:
         super().__init__()
         if sigma <= 0:
             raise ValueError("sigma must be positive")
+        if mode not in CORRECTION_MODES:
+            raise ValueError(f"mode must be one of {CORRECTION_MODES}, got {mode!r}")
         device = canonical_vertices.device
         dtype = canonical_vertices.dtype
         faces = faces.to(device=device, dtype=torch.long)
@@ -213,6 +253,7 @@ class SurfelCorrection(torch.nn.Module):
         self.umbilic_tol = float(umbilic_tol)
         self.anisotropy_tol = float(anisotropy_tol)
         self.enabled = bool(enabled)
+        self.mode = mode
         self._bound_cache: tuple | None = None
 
     @classmethod
@@ -297,6 +338,7 @@ class SurfelCorrection(torch.nn.Module):
         curvatures: torch.Tensor | None = None,
         directions: torch.Tensor | None = None,
         hair: torch.Tensor | None = None,
+        scales: torch.Tensor | None = None,
     ) -> CorrectionResult:
         """Correction for N surfels.
 
@@ -304,8 +346,12 @@ class SurfelCorrection(torch.nn.Module):
         canonical world quaternions (wxyz) of the surfels, q(R_c[binding]) ⊗ q_loc; normals: (N, 3)
         canonical SDF normals (any length, any sign); curvatures: (N, 2) principal curvatures κ1, κ2
         (1/m) and directions: (N, 2, 3) their canonical directions — both None for stretch only (no
-        rotation, no damping); hair: (N,) bool, excluded surfels.
+        rotation, no damping; in affine mode, no damping); hair: (N,) bool, excluded surfels;
+        scales: (N, 2) or (N, 3) the surfels' in-plane scales (any common factor; required in affine
+        mode, unused otherwise).
         """
+        if self.mode == "affine" and scales is None:
+            raise ValueError("the affine correction needs the surfels' scales")
         binding = binding.to(device=self.idx.device, dtype=torch.long)
         N = binding.shape[0]
         dtype = rotations.dtype
@@ -340,7 +386,19 @@ class SurfelCorrection(torch.nn.Module):
         G = E.transpose(-1, -2) @ L @ E  # (..., N, 2, 2)
         sigma, _ = _principal_sigma(G)  # relative principal stretches, largest first
 
-        if curvatures is not None and directions is not None:
+        if self.mode == "affine":
+            phi, lam = _affine_ellipse(G, scales[..., :2].to(work))
+            lam = lam.clamp(*self.stretch_range)
+            if curvatures is not None and directions is not None:
+                d1 = directions[..., 0, :]
+                alpha = torch.atan2((d1 * e2).sum(-1), (d1 * e1).sum(-1))
+                theta = alpha - phi
+                c2, s2 = torch.cos(theta) ** 2, torch.sin(theta) ** 2
+                k1, k2 = curvatures[..., 0], curvatures[..., 1]
+                kappa = torch.stack([k1 * c2 + k2 * s2, k1 * s2 + k2 * c2], -1)
+            else:
+                kappa = torch.zeros_like(lam)
+        elif curvatures is not None and directions is not None:
             d1 = directions[..., 0, :]
             alpha = torch.atan2((d1 * e2).sum(-1), (d1 * e1).sum(-1))  # (N,)
             phi = torch.remainder(alpha + 0.25 * math.pi, 0.5 * math.pi) - 0.25 * math.pi
@@ -357,17 +415,18 @@ class SurfelCorrection(torch.nn.Module):
             phi = rotations.new_zeros(N)
             kappa = rotations.new_zeros(N, 2)
 
-        cp, sp = torch.cos(phi), torch.sin(phi)
-        U = torch.stack([torch.stack([cp, -sp], -1), torch.stack([sp, cp], -1)], -2)  # columns u1, u2
-        GU = G @ U
-        lam = (GU * GU).sum(-2).clamp_min(1e-30).sqrt()  # (..., N, 2), ‖G u_i‖
-        lam = lam.clamp(*self.stretch_range)
+        if self.mode != "affine":
+            cp, sp = torch.cos(phi), torch.sin(phi)
+            U = torch.stack([torch.stack([cp, -sp], -1), torch.stack([sp, cp], -1)], -2)  # columns u1, u2
+            GU = G @ U
+            lam = (GU * GU).sum(-2).clamp_min(1e-30).sqrt()  # (..., N, 2), ‖G u_i‖
+            lam = lam.clamp(*self.stretch_range)
         factor = lam / (1 + self.w_s * kappa.abs())
         sigma_abs = sigma * r.unsqueeze(-1)
 
         half = 0.5 * phi
         zero = torch.zeros_like(half)
-        dq = torch.stack([torch.cos(half), zero, zero, torch.sin(half)], -1)  # (N, 4)
+        dq = torch.stack([torch.cos(half), zero, zero, torch.sin(half)], -1)  # (..., N, 4)
         vq = valid.unsqueeze(-1)
         ident = dq.new_tensor([1.0, 0.0, 0.0, 0.0])
         dq = torch.where(vq, dq, ident).expand(*batch, N, 4)

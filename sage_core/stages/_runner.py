@@ -129,13 +129,23 @@ def execute_stage(
     """
     from ..config import config_hash, to_dict
     from ..runtime import apply_threads, resolve_render_backend
-    from ..workspace import begin_stage, resolve_device
+    from ..workspace import begin_stage, resolve_device, stage_up_to_date
 
     device = resolve_device(settings.device)
     threads = apply_threads(settings.threads)
     backend = resolve_render_backend(cfg.render_backend, device) if hasattr(cfg, "render_backend") else None
     if validate is not None:
         validate()
+    def skipped() -> Outcome:
+        m = ws.manifest(stage) or {}
+        emitter.emit("skipped", message=f"already complete with the same config and inputs (finished {m.get('finished_at', '?')}); "
+                                        "skipping. Use --force to redo it.")  # fmt: skip
+        return Outcome(None, device, threads, backend)
+
+    # an up-to-date stage is skipped without the lock, so another stage may be running meanwhile
+    if not settings.force and stage_up_to_date(ws, stage, config_hash(cfg), requires=list(requires), external_inputs=external_inputs,
+                                               seed=settings.seed):  # fmt: skip
+        return skipped()
     existed = ws.root.exists()
     ws.root.mkdir(parents=True, exist_ok=True)
     try:
@@ -143,10 +153,7 @@ def execute_stage(
             run = begin_stage(ws, stage, to_dict(cfg), config_hash(cfg), requires=list(requires), external_inputs=external_inputs,
                               seed=settings.seed, device=device, force=settings.force)  # fmt: skip
             if run is None:
-                m = ws.manifest(stage) or {}
-                emitter.emit("skipped", message=f"already complete with the same config and inputs (finished {m.get('finished_at', '?')}); "
-                                                "skipping. Use --force to redo it.")  # fmt: skip
-                return Outcome(None, device, threads, backend)
+                return skipped()
             run.metrics["threads"] = threads
             if backend is not None:
                 run.metrics["render_backend"] = backend

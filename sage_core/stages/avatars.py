@@ -64,6 +64,7 @@ CORRECTION_KEYS: dict[str, str] = {
     "correction_w_s": "w_s",
     "correction_umbilic_tol": "umbilic_tol",
     "correction_anisotropy_tol": "anisotropy_tol",
+    "correction_mode": "mode",
 }
 """Stage-config fields of the surfel correction -> ``CorrectedPosing`` keyword arguments."""
 

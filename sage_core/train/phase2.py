@@ -232,6 +232,7 @@ class Phase2Trainer:
         self.posing = CorrectedPosing(
             avatar, cfg.correction, radius_edges=cfg.correction_radius_edges, max_neighbours=cfg.correction_max_neighbours,
             w_s=cfg.correction_w_s, umbilic_tol=cfg.correction_umbilic_tol, anisotropy_tol=cfg.correction_anisotropy_tol,
+            mode=cfg.correction_mode,
         )  # fmt: skip
         self.hair_faces = hair_face_mask(avatar, init_dir)
         self.sampler = build_sampler(avatar, data, cfg)
