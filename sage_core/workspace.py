@@ -373,6 +373,13 @@ class Workspace:
             raise WorkspaceError(self.root, f"the workspace is not writable ({e.strerror or e}); check its permissions "
                                             "or choose another folder") from None
 
+    def needs_recovery(self, stage: str) -> bool:
+        """Whether :meth:`recover` has something to do for ``stage`` (read-only, no lock needed)."""
+        final = self.stage_dir(stage)
+        if (final / "RUN").is_file() or (self.work_dir(stage) / "manifest.json").is_file():
+            return True
+        return any((self.root / ".work").glob(f".old-{final.name}-*"))
+
     def recover(self, stage: str) -> bool:
         """Complete a promotion that was cut short: the work folder holds a finished run with its
         manifest (promote it), the promoted folder still holds the run's checkpoints and marker
@@ -571,8 +578,9 @@ def stage_up_to_date(
     so a reader sees the old or the new state of a stage, never a mix. A stage that is up to date
     can be reported as skipped while another process holds the lock to run a different stage
     (e.g. phase 1 training while a second process asks for ingest). False when anything is
-    missing, stale or unreadable; :func:`begin_stage` under the lock then decides."""
-    if not ws.root.is_dir():
+    missing, stale or unreadable, or when an interrupted promotion is left to recover;
+    :func:`begin_stage` under the lock then decides."""
+    if not ws.root.is_dir() or ws.needs_recovery(stage):
         return False
     try:
         _, fp = _stage_fingerprint(ws, stage, config_hash, requires, external_inputs)

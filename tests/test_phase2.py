@@ -664,3 +664,23 @@ def test_default_phase2_keeps_the_appearance_network_and_trains_the_shape_networ
     for k, v in av.appearance.state_dict().items():
         torch.testing.assert_close(v, app0[k], atol=0, rtol=0)
     assert any(not torch.equal(v, shape0[k]) for k, v in av.shape.state_dict().items())
+
+
+def test_render_settings_keep_the_correction_mode_an_avatar_was_trained_with(tmp_path):
+    import json
+
+    from sage_core.config import Phase2Config, to_dict
+    from sage_core.stages.avatars import stage_render_settings
+
+    cfg = to_dict(Phase2Config())
+    (tmp_path / "config.json").write_text(json.dumps(cfg))
+    s = stage_render_settings(tmp_path, None)
+    assert s.correction is not None and s.correction["mode"] == "affine" and s.correction["radius_edges"] == 1.0
+    # a phase-2 config from before the option: the curvature mode it was trained with
+    old = {k: v for k, v in cfg.items() if k != "correction_mode"}
+    old["correction_radius_edges"] = 2.0
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    s = stage_render_settings(tmp_path, None)
+    assert s.correction["mode"] == "curvature" and s.correction["radius_edges"] == 2.0
+    (tmp_path / "config.json").write_text(json.dumps({**cfg, "correction": False}))
+    assert stage_render_settings(tmp_path, None).correction is None

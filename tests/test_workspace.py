@@ -306,6 +306,11 @@ def test_an_up_to_date_stage_is_skipped_while_another_process_holds_the_lock(tmp
         release.set()
         holder.join(60)
     assert (ws.stage_dir("ingest") / "out.txt").read_text() == "1"
+    # a promotion cut short is left to the locked path, which recovers it
+    (ws.stage_dir("ingest") / "RUN").write_text("{}")
+    assert ws.needs_recovery("ingest")
+    assert not stage_up_to_date(ws, "ingest", config_hash(_ToyConfig(1)), seed=3)
+    (ws.stage_dir("ingest") / "RUN").unlink()
     # the files a manifest lists must exist for the stage to count as up to date
     (ws.stage_dir("ingest") / "out.txt").unlink()
     assert not stage_up_to_date(ws, "ingest", config_hash(_ToyConfig(1)), seed=3)

@@ -115,16 +115,16 @@ class CorrectedPosing:
         enabled: bool = True,
         *,
         radius: float | None = None,
-        radius_edges: float = 2.0,
+        radius_edges: float = 1.0,
         max_neighbours: int = 16,
-        w_s: float = 1e-3,
+        w_s: float = 0.0,
         min_neighbours: int = 1,
         umbilic_tol: float = 1.0,
         anisotropy_tol: float = 0.0,
         stretch_range: tuple[float, float] = (0.25, 4.0),
         refresh_tolerance: float | None = None,
         use_curvature: bool = True,
-        mode: str = "curvature",
+        mode: str = "affine",
     ) -> None:
         self.avatar = avatar
         self.enabled = bool(enabled)

@@ -84,6 +84,8 @@ def stage_render_settings(stage_dir: Path, data: IngestedData | None) -> RenderS
         far = float(cfg.get("far", far))
         if cfg.get("correction") is True:
             correction = {kw: cfg[key] for key, kw in CORRECTION_KEYS.items() if key in cfg}
+            # phase-2 avatars trained before the affine mode existed used the curvature mode
+            correction.setdefault("mode", "curvature")
     bg = 1.0
     if data is not None:
         bg = 0.0 if str(data.summary.get("background", "white")) == "black" else 1.0
