@@ -40,7 +40,7 @@ def _fmt_means(m: dict[str, Any] | None) -> str:
 
 def phase2(
     ws: Annotated[Path, typer.Argument(help="Workspace folder (after `sage phase1`).")],
-    correction: Annotated[Optional[str], typer.Option("--correction", help="Surfel correction from stretch and curvature: on or off.")] = None,
+    correction: Annotated[Optional[str], typer.Option("--correction", help="Surfel correction from the local stretch (correction_mode: affine or the paper's curvature): on or off.")] = None,
     iterations: Annotated[Optional[int], typer.Option("--iterations", help="Optimisation steps.")] = None,
     lpips_weights: Annotated[Optional[Path], typer.Option("--lpips-weights", help="LPIPS AlexNet v0.1 weights for the evaluation (default: $SAGE_LPIPS_WEIGHTS or the cache).")] = None,
     preset: PresetOpt = "default",
