@@ -55,10 +55,10 @@ def copy_stages(src: Path, dst: Path, stages: tuple[str, ...]) -> list[str]:
     """Copy the finished ``stages`` of workspace ``src`` into workspace ``dst``.
 
     A stage whose manifest in ``dst`` already has the source's fingerprint and finish time is
-    kept; any other is replaced as a whole (the old folder is moved aside first). Both workspaces
-    is locked meanwhile; the source is not (it may be training a later stage): its stage folders are
-    only ever replaced whole, and a source stage whose manifest changed during the copy fails the
-    copy. Returns the stages copied. StageError when a source stage is not complete and fresh.
+    kept; any other is replaced as a whole (the old folder is moved aside first). The destination
+    workspace is locked meanwhile; the source is not (it may be training a later stage): its stage
+    folders are only ever replaced whole, and a source stage whose manifest changed during the copy
+    fails the copy. Returns the stages copied. StageError when a source stage is not complete and fresh.
     """
     sw, dw = Workspace(src), Workspace(dst)
     for st in stages:

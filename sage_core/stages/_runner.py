@@ -136,6 +136,7 @@ def execute_stage(
     backend = resolve_render_backend(cfg.render_backend, device) if hasattr(cfg, "render_backend") else None
     if validate is not None:
         validate()
+
     def skipped() -> Outcome:
         m = ws.manifest(stage) or {}
         emitter.emit("skipped", message=f"already complete with the same config and inputs (finished {m.get('finished_at', '?')}); "
