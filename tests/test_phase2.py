@@ -684,3 +684,42 @@ def test_render_settings_keep_the_correction_mode_an_avatar_was_trained_with(tmp
     assert s.correction["mode"] == "curvature" and s.correction["radius_edges"] == 2.0
     (tmp_path / "config.json").write_text(json.dumps({**cfg, "correction": False}))
     assert stage_render_settings(tmp_path, None).correction is None
+
+
+def test_unseen_fill_gives_unseen_surfels_the_mean_colour_of_their_nearest_seen_neighbours(phase1_avatar_path, p2_data, p2_init_dir,
+                                                                                          monkeypatch):
+    from sage_core.train.phase2 import SEEN_MIN_WEIGHT
+
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
+    av = tr.avatar
+    N = len(av.surfels)
+    g = torch.Generator().manual_seed(1)
+    weights = torch.rand(N, generator=g, dtype=torch.float64) * 4.0
+    weights[torch.randperm(N, generator=g)[: N // 5]] = 0.0
+    taken = torch.zeros(N, dtype=torch.bool)
+    taken[:7] = True
+    weights[:7] = 0.0
+    k = 4
+    fill, rgb = tr.unseen_fill_colors(weights, taken, k)
+    seen = weights >= SEEN_MIN_WEIGHT
+    hair = av.surfels.hair_mask()
+    assert not bool((fill & (seen | taken | hair)).any())
+    assert bool(fill.any()) and rgb.shape == (int(fill.sum()), 3)
+    # the reference: brute force over the same region's seen surfels
+    with torch.no_grad():
+        colors = av.posed(av.frame_inputs(p2_data.canonical_timestep), None, shade=False).colors
+        means = av.canonical_state(with_sdf=False).means
+    region = av.surfels.region_id
+    for row, i in enumerate(fill.nonzero().squeeze(-1)[:25].tolist()):
+        src = (seen & (region == region[i])).nonzero().squeeze(-1)
+        d = (means[src] - means[i]).norm(dim=-1)
+        want = colors[src[d.argsort()[:k]]].mean(0)
+        torch.testing.assert_close(rgb[row], want, atol=1e-5, rtol=1e-5)
+    # through the trainer (with these weights): the filled surfels carry the colours as their prior
+    monkeypatch.setattr(Phase2Trainer, "surfel_view_weights", lambda self: weights.clone())
+    tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_neighbours=k)
+    prior = tr2.avatar.surfels.color_prior
+    assert prior is not None
+    fill2, rgb2 = tr2.unseen_fill_colors(weights, torch.zeros(N, dtype=torch.bool), k)
+    assert torch.equal(prior[:, 3] > 0, fill2)
+    torch.testing.assert_close(prior[fill2, :3], rgb2)

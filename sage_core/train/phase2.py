@@ -42,6 +42,11 @@ jaw opened to ``mouth_occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), 
 (:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
 of the appearance term.
 
+Unseen fill (``unseen_fill``, off by default): the other surfels that no training view sees at rest
+(less than ``SEEN_MIN_WEIGHT`` pixels of blending weight, hair excluded) get the mean albedo of
+their nearest seen surfels of the same region label as their colour prior
+(:meth:`Phase2Trainer.unseen_fill_colors`).
+
 Wrinkle shading (``wrinkle_shading``, on by default; :mod:`sage_core.avatar.wrinkles`): the
 per-pixel distortion of every deformed render is accumulated on the posed-mesh triangle each pixel
 sees; after the last step the triangles' mean distortion sets per-surfel darkening amplitudes
@@ -109,6 +114,10 @@ def hair_face_mask(avatar: Avatar, init_dir: str | Path | None = None) -> torch.
     s = avatar.surfels
     mask[s.binding[s.hair_mask()]] = True
     return mask
+
+
+SEEN_MIN_WEIGHT = 0.5
+"""Pixels of blending weight over the training views at rest below which a surfel counts as unseen."""
 
 
 def mouth_prior_table(avatar: Avatar, init_dir: str | Path | None, cavity: list[float], teeth: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -256,16 +265,25 @@ class Phase2Trainer:
         if not cfg.mouth_prior:
             mouth_faces = torch.zeros_like(mouth_faces)
         self.prior_faces = mouth_faces.clone()
+        b = avatar.surfels.binding
+        on = torch.zeros(len(avatar.surfels), dtype=torch.bool, device=avatar.device)
+        rgb = self.prior_colors[b].clone()
+        weights: torch.Tensor | None = None
         if bool(mouth_faces.any()):
             self.prior_faces &= ~self.seen_faces()
-            b = avatar.surfels.binding
             if cfg.mouth_prior_visibility == "faces":
                 on = self.prior_faces[b]
             else:
-                on = mouth_faces[b] & ~self.seen_surfels()
-            rgb = self.prior_colors[b].clone()
+                weights = self.surfel_view_weights()
+                on = mouth_faces[b] & ~(weights >= SEEN_MIN_WEIGHT)
             if cfg.mouth_occlusion_jaw > 0 and bool(on.any()):
                 rgb[on] *= self.prior_visibility(on, cfg.mouth_occlusion_jaw)[:, None].to(rgb)
+        if cfg.unseen_fill:
+            weights = self.surfel_view_weights() if weights is None else weights
+            fill, fill_rgb = self.unseen_fill_colors(weights, on, cfg.unseen_fill_neighbours)
+            rgb[fill] = fill_rgb.to(rgb)
+            on = on | fill
+        if bool(on.any()):
             avatar.surfels.set_color_prior(torch.cat([rgb, on.to(rgb)[:, None]], -1))
         self.rest_teacher: RestTeacher | None = None
         if cfg.teacher == "rest" and cfg.w_appearance > 0:
@@ -337,6 +355,45 @@ class Phase2Trainer:
         eps = 1e-4 * float(np.linalg.norm(V.max(0) - V.min(0)))
         vis = np.maximum(ambient_visibility(V, Fc, x, n, samples, eps), ambient_visibility(V, Fc, x, -n, samples, eps))
         return torch.as_tensor(vis, device=av.device)
+
+    @torch.no_grad()
+    def unseen_fill_colors(self, weights: torch.Tensor, taken: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Colours for the surfels no training view sees at rest.
+
+        weights: (N,) :meth:`surfel_view_weights`; taken: (N,) bool surfels that already have a prior.
+        A surfel with less than ``SEEN_MIN_WEIGHT`` pixels of weight, not hair and not taken, gets the
+        mean albedo of its ``k`` nearest seen surfels (canonical centres) of the same region label
+        (eyes, face, neck, ...), so that what an expression or a change of gaze reveals (the sclera
+        under the lids, skin in folds) continues what the views showed. Returns ((N,) bool surfels
+        filled, (M, 3) their colours)."""
+        av = self.avatar
+        s = av.surfels
+        seen = weights.to(av.device) >= SEEN_MIN_WEIGHT
+        fill = ~seen & ~taken & ~s.hair_mask()
+        out = torch.zeros(0, 3, device=av.device)
+        if not bool(fill.any()):
+            return fill, out
+        p = av.posed(self.inputs(self.data.canonical_timestep), None, shade=False)
+        canon = av.canonical_state(with_sdf=False).means
+        colors = p.colors.detach()
+        region = s.region_id
+        got = torch.zeros_like(fill)
+        parts: list[tuple[torch.Tensor, torch.Tensor]] = []
+        for r in torch.unique(region[fill]).tolist():
+            src = (seen & (region == r)).nonzero().squeeze(-1)
+            dst = (fill & (region == r)).nonzero().squeeze(-1)
+            if src.numel() == 0:
+                continue
+            kk = min(int(k), int(src.numel()))
+            near = torch.cdist(canon[dst], canon[src]).topk(kk, dim=1, largest=False).indices  # (M_r, kk)
+            parts.append((dst, colors[src[near]].mean(1)))
+            got[dst] = True
+        if not parts:
+            return got, out
+        idx = torch.cat([d for d, _ in parts])
+        col = torch.cat([c for _, c in parts])
+        order = torch.argsort(idx)
+        return got, col[order]
 
     def seen_surfels(self, min_weight: float = 0.5) -> torch.Tensor:
         """(N,) bool surfels that the training views at rest see: :meth:`surfel_view_weights` at least
