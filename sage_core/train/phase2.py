@@ -283,7 +283,7 @@ class Phase2Trainer:
             fill, fill_rgb = self.unseen_fill_colors(weights, on, cfg.unseen_fill_neighbours)
             rgb[fill] = fill_rgb.to(rgb)
             on = on | fill
-        if bool(on.any()):
+        if bool(mouth_faces.any()) or bool(on.any()):
             avatar.surfels.set_color_prior(torch.cat([rgb, on.to(rgb)[:, None]], -1))
         self.rest_teacher: RestTeacher | None = None
         if cfg.teacher == "rest" and cfg.w_appearance > 0:
