@@ -279,7 +279,7 @@ class Phase2Config:
 
     iterations: int = _f(5000, "Optimisation steps.", ge=1)
     correction: bool = _f(True, "Surfel correction from the local stretch while posing (SAGE §3; correction_mode says how).")
-    correction_radius_edges: float = _f(1.0, "Ball-query radius of the correction's triangle neighbours, in median canonical edge lengths (the Gaussian weight's width is half of it). With the affine mode 1.0 lowered held-out LPIPS against 2.0 on three small benchmark subjects; 0.5 leaves many triangles with too few neighbours to measure a stretch (docs/results.md).", gt=0)
+    correction_radius_edges: float | None = _f(None, "Ball-query radius of the correction's triangle neighbours, in median canonical edge lengths (the Gaussian weight's width is half of it). None (the default): 1.0 for attribute-network surfels, 2.0 for free surfels. On the small benchmark 1.0 lowered held-out LPIPS against 2.0 for the network avatar on three subjects, and cost the free-surfel avatar 0.5 dB; 0.5 leaves many triangles with too few neighbours to measure a stretch (docs/results.md).", gt=0)
     correction_max_neighbours: int = _f(16, "Neighbours kept per triangle.", ge=1)
     correction_w_s: float = _f(0.0, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|). 0 (the default) keeps the stretch alone: at 1e-3 the damping shrank surfels on curved skin at rest and smoothed the texture that phase 1's polish sharpens (docs/results.md).", ge=0)
     correction_umbilic_tol: float = _f(1.0, "Curvature mode: |k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.", ge=0)

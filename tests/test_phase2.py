@@ -675,7 +675,7 @@ def test_render_settings_keep_the_correction_mode_an_avatar_was_trained_with(tmp
     cfg = to_dict(Phase2Config())
     (tmp_path / "config.json").write_text(json.dumps(cfg))
     s = stage_render_settings(tmp_path, None)
-    assert s.correction is not None and s.correction["mode"] == "affine" and s.correction["radius_edges"] == 1.0
+    assert s.correction is not None and s.correction["mode"] == "affine" and s.correction["radius_edges"] is None
     # a phase-2 config from before the option: the curvature mode it was trained with
     old = {k: v for k, v in cfg.items() if k != "correction_mode"}
     old["correction_radius_edges"] = 2.0
@@ -723,3 +723,14 @@ def test_unseen_fill_gives_unseen_surfels_the_mean_colour_of_their_nearest_seen_
     fill2, rgb2 = tr2.unseen_fill_colors(weights, torch.zeros(N, dtype=torch.bool), k)
     assert torch.equal(prior[:, 3] > 0, fill2)
     torch.testing.assert_close(prior[fill2, :3], rgb2)
+
+
+def test_correction_radius_defaults_by_attributes(phase1_avatar_path):
+    from sage_core.avatar.corrected import default_radius_edges, median_edge_length
+
+    av = _avatar(phase1_avatar_path)
+    edge = median_edge_length(av.canonical_vertices.detach(), av.faces)
+    assert default_radius_edges("mlp") == 1.0 and default_radius_edges("free") == 2.0
+    posing = CorrectedPosing(av, True)
+    assert posing.radius == pytest.approx(default_radius_edges(av.attributes) * edge)
+    assert CorrectedPosing(av, True, radius_edges=1.5).radius == pytest.approx(1.5 * edge)

@@ -85,6 +85,14 @@ class FrozenCanonical:
     feature: torch.Tensor
 
 
+def default_radius_edges(attributes: str) -> float:
+    """The correction's neighbourhood radius in median edge lengths when none is set: 1.0 for
+    surfels whose shapes come from the attribute networks, 2.0 for free surfels, whose shapes vary
+    from surfel to surfel (on the small benchmark 1.0 cost the free-surfel avatar 0.5 dB against
+    2.0, and gained the network avatar 0.0005 of LPIPS; docs/results.md)."""
+    return 1.0 if attributes == "mlp" else 2.0
+
+
 class CorrectedPosing:
     """Surfel correction glue for an :class:`Avatar` (see the module doc).
 
@@ -93,7 +101,8 @@ class CorrectedPosing:
         enabled: False gives the uncorrected ``Avatar.posed``.
         radius: ball-query radius (m) of the triangle neighbour sets; default ``radius_edges`` times
             the canonical mesh's median edge length.
-        radius_edges: see ``radius``.
+        radius_edges: see ``radius``; None picks :func:`default_radius_edges` for the avatar's
+            attributes.
         max_neighbours: neighbours kept per triangle.
         w_s: curvature damping length (m).
         min_neighbours: triangles with fewer valid neighbours are not corrected.
@@ -115,7 +124,7 @@ class CorrectedPosing:
         enabled: bool = True,
         *,
         radius: float | None = None,
-        radius_edges: float = 1.0,
+        radius_edges: float | None = None,
         max_neighbours: int = 16,
         w_s: float = 0.0,
         min_neighbours: int = 1,
@@ -131,7 +140,8 @@ class CorrectedPosing:
         self.use_curvature = bool(use_curvature)
         verts = avatar.canonical_vertices.detach()
         if radius is None:
-            radius = radius_edges * median_edge_length(verts, avatar.faces)
+            edges = default_radius_edges(avatar.attributes) if radius_edges is None else float(radius_edges)
+            radius = edges * median_edge_length(verts, avatar.faces)
         self.radius = float(radius)
         self.correction = SurfelCorrection.from_mesh(
             verts, avatar.faces, self.radius, max_neighbours, w_s=w_s, min_neighbours=min_neighbours,
