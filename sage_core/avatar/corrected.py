@@ -87,9 +87,10 @@ class FrozenCanonical:
 
 def default_radius_edges(attributes: str) -> float:
     """The correction's neighbourhood radius in median edge lengths when none is set: 1.0 for
-    surfels whose shapes come from the attribute networks, 2.0 for free surfels, whose shapes vary
-    from surfel to surfel (on the small benchmark 1.0 cost the free-surfel avatar 0.5 dB against
-    2.0, and gained the network avatar 0.0005 of LPIPS; docs/results.md)."""
+    surfels whose shapes come from the attribute networks, 2.0 for free surfels, which grow about
+    twice as large, so that the neighbourhood covers their footprint (on the small benchmark 1.0
+    cost the free-surfel avatar 0.5 dB against 2.0, and gained the network avatar 0.0005 of LPIPS;
+    docs/results.md)."""
     return 1.0 if attributes == "mlp" else 2.0
 
 
