@@ -386,41 +386,34 @@ class SurfelCorrection(torch.nn.Module):
         G = E.transpose(-1, -2) @ L @ E  # (..., N, 2, 2)
         sigma, _ = _principal_sigma(G)  # relative principal stretches, largest first
 
+        curved = curvatures is not None and directions is not None
+        if curved:
+            d1 = directions[..., 0, :]
+            alpha = torch.atan2((d1 * e2).sum(-1), (d1 * e1).sum(-1))  # (N,) angle of d1 from e1
+            k1, k2 = curvatures[..., 0], curvatures[..., 1]
         if self.mode == "affine":
             phi, lam = _affine_ellipse(G, scales[..., :2].to(work))
-            lam = lam.clamp(*self.stretch_range)
-            if curvatures is not None and directions is not None:
-                d1 = directions[..., 0, :]
-                alpha = torch.atan2((d1 * e2).sum(-1), (d1 * e1).sum(-1))
-                theta = alpha - phi
-                c2, s2 = torch.cos(theta) ** 2, torch.sin(theta) ** 2
-                k1, k2 = curvatures[..., 0], curvatures[..., 1]
-                kappa = torch.stack([k1 * c2 + k2 * s2, k1 * s2 + k2 * c2], -1)
-            else:
-                kappa = torch.zeros_like(lam)
-        elif curvatures is not None and directions is not None:
-            d1 = directions[..., 0, :]
-            alpha = torch.atan2((d1 * e2).sum(-1), (d1 * e1).sum(-1))  # (N,)
-            phi = torch.remainder(alpha + 0.25 * math.pi, 0.5 * math.pi) - 0.25 * math.pi
-            k1, k2 = curvatures[..., 0], curvatures[..., 1]
-            if self.umbilic_tol > 0:
-                phi = phi * ((k1 - k2).abs() / self.umbilic_tol).clamp(max=1.0)
-            if self.anisotropy_tol > 0:
-                aniso = (sigma[..., 0] - sigma[..., 1]) / sigma[..., 1].clamp_min(1e-12)
-                phi = phi * (aniso / self.anisotropy_tol).clamp(max=1.0)
-            theta = alpha - phi
-            c2, s2 = torch.cos(theta) ** 2, torch.sin(theta) ** 2
-            kappa = torch.stack([k1 * c2 + k2 * s2, k1 * s2 + k2 * c2], -1)
         else:
-            phi = rotations.new_zeros(N)
-            kappa = rotations.new_zeros(N, 2)
-
-        if self.mode != "affine":
+            if curved:
+                phi = torch.remainder(alpha + 0.25 * math.pi, 0.5 * math.pi) - 0.25 * math.pi
+                if self.umbilic_tol > 0:
+                    phi = phi * ((k1 - k2).abs() / self.umbilic_tol).clamp(max=1.0)
+                if self.anisotropy_tol > 0:
+                    aniso = (sigma[..., 0] - sigma[..., 1]) / sigma[..., 1].clamp_min(1e-12)
+                    phi = phi * (aniso / self.anisotropy_tol).clamp(max=1.0)
+            else:
+                phi = rotations.new_zeros(N)
             cp, sp = torch.cos(phi), torch.sin(phi)
             U = torch.stack([torch.stack([cp, -sp], -1), torch.stack([sp, cp], -1)], -2)  # columns u1, u2
             GU = G @ U
             lam = (GU * GU).sum(-2).clamp_min(1e-30).sqrt()  # (..., N, 2), ‖G u_i‖
-            lam = lam.clamp(*self.stretch_range)
+        lam = lam.clamp(*self.stretch_range)
+        if curved:  # Euler's curvature along the corrected axes
+            theta = alpha - phi
+            c2, s2 = torch.cos(theta) ** 2, torch.sin(theta) ** 2
+            kappa = torch.stack([k1 * c2 + k2 * s2, k1 * s2 + k2 * c2], -1)
+        else:
+            kappa = torch.zeros_like(lam)
         factor = lam / (1 + self.w_s * kappa.abs())
         sigma_abs = sigma * r.unsqueeze(-1)
 

@@ -370,32 +370,23 @@ class Phase2Trainer:
         s = av.surfels
         seen = weights.to(av.device) >= SEEN_MIN_WEIGHT
         fill = ~seen & ~taken & ~s.hair_mask()
-        out = torch.zeros(0, 3, device=av.device)
         if not bool(fill.any()):
-            return fill, out
-        p = av.posed(self.inputs(self.data.canonical_timestep), None, shade=False)
-        canon = av.canonical_state(with_sdf=False).means
-        colors = p.colors.detach()
+            return fill, torch.zeros(0, 3, device=av.device)
+        canon = av.canonical_state(with_sdf=False)
+        colors = av.posed(self.inputs(self.data.canonical_timestep), None, canonical=canon, shade=False).colors
+        out = torch.zeros_like(colors)
         region = s.region_id
-        got = torch.zeros_like(fill)
-        parts: list[tuple[torch.Tensor, torch.Tensor]] = []
         for r in torch.unique(region[fill]).tolist():
             src = (seen & (region == r)).nonzero().squeeze(-1)
-            dst = (fill & (region == r)).nonzero().squeeze(-1)
-            if src.numel() == 0:
+            dst = fill & (region == r)
+            if src.numel() == 0:  # no seen surfel of that region: left as it is
+                fill &= region != r
                 continue
-            kk = min(int(k), int(src.numel()))
-            near = torch.cdist(canon[dst], canon[src]).topk(kk, dim=1, largest=False).indices  # (M_r, kk)
-            parts.append((dst, colors[src[near]].mean(1)))
-            got[dst] = True
-        if not parts:
-            return got, out
-        idx = torch.cat([d for d, _ in parts])
-        col = torch.cat([c for _, c in parts])
-        order = torch.argsort(idx)
-        return got, col[order]
+            near = torch.cdist(canon.means[dst], canon.means[src]).topk(min(int(k), int(src.numel())), dim=1, largest=False).indices
+            out[dst] = colors[src[near]].mean(1)
+        return fill, out[fill]
 
-    def seen_surfels(self, min_weight: float = 0.5) -> torch.Tensor:
+    def seen_surfels(self, min_weight: float = SEEN_MIN_WEIGHT) -> torch.Tensor:
         """(N,) bool surfels that the training views at rest see: :meth:`surfel_view_weights` at least
         ``min_weight`` (pixels)."""
         return self.surfel_view_weights() >= min_weight
