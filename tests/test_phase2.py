@@ -373,6 +373,64 @@ def test_wrinkle_shading_statistics_storage_and_rest_pose(phase1_avatar_path, p2
     assert bool((dark < p.colors - 1e-6).any()) and bool((dark <= p.colors + 1e-7).all())
 
 
+def test_wrinkle_basis_expression_ignores_skinning_but_not_expression_creases(phase1_avatar_path, p2_data, p2_init_dir, tmp_path):
+    from sage_core.avatar.model import AVATAR_FORMAT, AVATAR_KIND
+    from sage_core.avatar.wrinkles import surfel_compression
+    from sage_core.serialization import load_file, save_file
+
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, wrinkle_shading=True)
+    av = tr.avatar
+    assert av.wrinkle_basis == "expression" and tr.cfg.wrinkle_basis == "expression"
+    n = len(av.surfels)
+    w = torch.stack([torch.ones(n), torch.full((n,), 0.25)], -1)  # every surfel at full amplitude
+    base = av.frame_inputs(p2_data.canonical_timestep)
+    jaw = dict(base, jaw_pose=base["jaw_pose"] + torch.tensor([[0.35, 0.0, 0.0]]), neck_pose=base["neck_pose"] + torch.tensor([[0.3, 0.2, 0.0]]))
+    expr = dict(base, expr=base["expr"] + 2.0 * torch.randn(base["expr"].shape, generator=torch.Generator().manual_seed(5)))
+
+    def compression(inputs):
+        with torch.no_grad():
+            mesh = av.posed_mesh(inputs)
+            from sage_core.avatar.posing import wrinkle_meshes
+
+            deformed, rest = wrinkle_meshes(av, mesh.vertices, mesh.shaped)
+            return surfel_compression(deformed, rest, av.faces, av.surfels.binding, w[:, 1])
+
+    def albedo(inputs):
+        av.surfels.set_wrinkle(w)
+        with torch.no_grad():
+            dark = av.posed(inputs, None, shade=False).colors
+        av.surfels.set_wrinkle(None)
+        with torch.no_grad():
+            plain = av.posed(inputs, None, shade=False).colors
+        return dark, plain
+
+    # jaw and neck rotations are skinning: no compression on the expression-shaped mesh, no darkening
+    assert float(compression(jaw).abs().max()) == 0.0
+    dark, plain = albedo(jaw)
+    torch.testing.assert_close(dark, plain, atol=0, rtol=0)
+    # an expression compresses the expression-shaped mesh, and the colours darken there
+    c = compression(expr)
+    assert float(c.max()) > 0.1
+    dark, plain = albedo(expr)
+    torch.testing.assert_close(dark, plain * (1.0 - c)[:, None], atol=1e-6, rtol=0)
+    # the posed basis (the rule before the option) counts the skinning's compression under the chin
+    av.wrinkle_basis = "posed"
+    assert float(compression(jaw).max()) > 0.05
+    dark, plain = albedo(jaw)
+    assert bool((dark < plain - 1e-6).any())
+    # the basis is stored with the avatar; a file written before it loads with the posed basis
+    av.wrinkle_basis = "expression"
+    path = av.save(tmp_path / "avatar.pt")
+    assert Avatar.load(path).wrinkle_basis == "expression"
+    blob, _ = load_file(path, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
+    del blob["args"]["wrinkle_basis"]
+    save_file(tmp_path / "old.pt", blob, AVATAR_KIND, AVATAR_FORMAT)
+    assert Avatar.load(tmp_path / "old.pt").wrinkle_basis == "posed"
+    with pytest.raises(ValueError, match="wrinkle_basis"):
+        Avatar(av.model_data, av.params, av.canonical_timestep, av.surfels, av.sdf_args, av.attributes, av.app_args,
+               av.shape_args, wrinkle_basis="skinned")  # fmt: skip
+
+
 def test_mouth_prior_by_face_visibility_colours_surfels_of_unseen_mouth_faces(phase1_avatar_path, p2_data, p2_init_dir):
     from sage_core.flame.regions import Regions
 

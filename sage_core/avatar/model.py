@@ -35,7 +35,8 @@ surfel orientation from its own geometric terms. ``posed(..., shade=False)`` ret
 Phase-2 additions, applied to the attribute colour before the shading when the surfel set carries
 them: the colour prior of unobserved mouth-interior surfels (:meth:`SurfelSet.blend_color_prior`) and
 wrinkle shading, a darkening by the frame's surface compression
-(:func:`~sage_core.avatar.wrinkles.apply_wrinkles`).
+(:func:`~sage_core.avatar.wrinkles.apply_wrinkles`), measured on the mesh ``wrinkle_basis`` names
+(:data:`~sage_core.avatar.wrinkles.WRINKLE_BASES`).
 
 Exposure gains: phase 1 stores its per-training-frame gains with the avatar
 (:meth:`Avatar.set_exposure_gains`, plain data in the file); :meth:`Avatar.exposure_gain` gives the
@@ -102,6 +103,7 @@ from .build import rigid_world_from_canonical as _rigid_world_from_canonical
 from .correction import SurfelCorrection
 from .posing import CanonicalSurfels, PosedMesh, PosedSurfels, params_row_inputs
 from .shading import SHADING_MODES, SHIrradiance, world_normals
+from .wrinkles import WRINKLE_BASES
 from .storage import AVATAR_FORMAT, AVATAR_KIND, FLAME_REF_SEARCH_DEPTH, flame_model_sha256
 from .surfels import SurfelSet
 
@@ -140,6 +142,8 @@ class Avatar(nn.Module):
         neus_variance: initial NeuS s-variance (``variance`` module, inv_s per SDF box half extent).
         shading: "none" (colour fixed in head space) or "sh2" (albedo × world-space SH irradiance of
             the world normal; adds the ``light`` submodule), see the module doc.
+        wrinkle_basis: the mesh wrinkle shading measures compression on, "expression" (FLAME's
+            expression-shaped mesh, before skinning) or "posed"; see :mod:`sage_core.avatar.wrinkles`.
     """
 
     canonical_vertices: torch.Tensor
@@ -168,12 +172,15 @@ class Avatar(nn.Module):
         base_scale: torch.Tensor | None = None,
         neus_variance: float = 0.3,
         shading: str = "none",
+        wrinkle_basis: str = "expression",
     ) -> None:
         super().__init__()
         if attributes not in ("mlp", "free"):
             raise ValueError(f"attributes must be 'mlp' or 'free', got {attributes!r}")
         if shading not in SHADING_MODES:
             raise ValueError(f"shading must be one of {', '.join(SHADING_MODES)}, got {shading!r}")
+        if wrinkle_basis not in WRINKLE_BASES:
+            raise ValueError(f"wrinkle_basis must be one of {', '.join(WRINKLE_BASES)}, got {wrinkle_basis!r}")
         if surfels.attributes != attributes:
             raise ValueError(f"surfel set has attributes={surfels.attributes!r}, avatar {attributes!r}")
         self.model_data = model_data
@@ -192,6 +199,8 @@ class Avatar(nn.Module):
         self.variance = SVariance(neus_variance).to(device)
         self.shading = shading
         self.light: SHIrradiance | None = SHIrradiance().to(device) if shading != "none" else None
+        self.wrinkle_basis = wrinkle_basis
+        self._canonical_shaped: tuple[tuple[int, torch.device], torch.Tensor] | None = None
         self.exposure_gains: dict[tuple[int, int], torch.Tensor] = {}
         self.shape: ShapeNetwork | None = None
         if attributes == "mlp":
@@ -339,6 +348,17 @@ class Avatar(nn.Module):
         geometry feature at the centres; in mlp mode the hash encoding is shared with the shape network.
         """
         return _posing.canonical_state(self, with_sdf, create_graph)
+
+    def canonical_shaped_vertices(self) -> torch.Tensor:
+        """(V, 3) FLAME's expression-shaped mesh of the canonical frame (template + shape + the
+        canonical timestep's expression + offsets, before pose correctives and skinning), computed
+        once per parameter set and device; the rest state of the ``expression`` wrinkle basis."""
+        key = (id(self.params), self.device)
+        if self._canonical_shaped is None or self._canonical_shaped[0] != key:
+            with torch.no_grad():
+                out = self.flame(**canonical_inputs(self.params, self.canonical_timestep, self.device))
+            self._canonical_shaped = (key, out.v_shaped[0].detach())
+        return self._canonical_shaped[1]
 
     # ------------------------------------------------------------------ posing
     def pose_mesh(self, flame_inputs: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -193,7 +193,8 @@ class PosedMesh:
 
     vertices: (V, 3); R: (F, 3, 3), T: (F, 3), k: (F,) the triangles' surfel frames (R_p, T_p, k_p);
     ratio: (F,) k_p/k_c; quat: (F, 4) q(R_p) ⊗ q̄_c, the canonical → posed rotation R_p·R_cᵀ as a unit
-    quaternion (wxyz).
+    quaternion (wxyz); shaped: (V, 3) the frame's expression-shaped mesh (FLAME's ``v_shaped``, before
+    pose correctives and skinning) when the mesh came from FLAME inputs, else None.
     """
 
     vertices: torch.Tensor
@@ -202,6 +203,7 @@ class PosedMesh:
     k: torch.Tensor
     ratio: torch.Tensor
     quat: torch.Tensor
+    shaped: torch.Tensor | None = None
 
 
 def pose_mesh(avatar: Avatar, flame_inputs: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -214,15 +216,27 @@ def posed_mesh(
 ) -> PosedMesh:
     """The :class:`PosedMesh` of one frame's FLAME mesh (batch-1 kwargs), with ``vertex_transform``
     (V, 3) -> (V, 3) applied as in :func:`posed`."""
-    verts = pose_mesh(avatar, flame_inputs)
-    return mesh_map(avatar, verts if vertex_transform is None else vertex_transform(verts))
+    out = avatar.flame(**flame_inputs)
+    verts = out.vertices[0]
+    return mesh_map(avatar, verts if vertex_transform is None else vertex_transform(verts), out.v_shaped[0].detach())
 
 
-def mesh_map(avatar: Avatar, vertices: torch.Tensor) -> PosedMesh:
-    """The :class:`PosedMesh` of posed vertices (V, 3) of the avatar's mesh (differentiable in them)."""
+def mesh_map(avatar: Avatar, vertices: torch.Tensor, shaped: torch.Tensor | None = None) -> PosedMesh:
+    """The :class:`PosedMesh` of posed vertices (V, 3) of the avatar's mesh (differentiable in them);
+    shaped: the frame's expression-shaped mesh (V, 3) when known."""
     R_p, T_p, k_p = surfel_frames(vertices, avatar.faces)
     quat = quat_multiply(matrix_to_quat(R_p), quat_conjugate(avatar.q_c))
-    return PosedMesh(vertices, R_p, T_p, k_p, k_p / avatar.k_c, quat)
+    return PosedMesh(vertices, R_p, T_p, k_p, k_p / avatar.k_c, quat, shaped)
+
+
+def wrinkle_meshes(avatar: Avatar, vertices: torch.Tensor, shaped: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(deformed (V, 3), rest (V, 3)): the meshes wrinkle shading compares for a frame, by the
+    avatar's ``wrinkle_basis`` (:mod:`sage_core.avatar.wrinkles`): the frame's expression-shaped mesh
+    ``shaped`` against the canonical frame's, or the posed ``vertices`` against the canonical mesh for
+    ``posed`` and when ``shaped`` is None (a mesh given as vertices alone, without FLAME inputs)."""
+    if avatar.wrinkle_basis == "expression" and shaped is not None:
+        return shaped, avatar.canonical_shaped_vertices()
+    return vertices, avatar.canonical_vertices
 
 
 def posed(
@@ -280,7 +294,8 @@ def posed(
         colors, opac = avatar.appearance(cs.means, view_c, n, feat)
     colors = avatar.surfels.blend_color_prior(colors)
     if avatar.surfels.wrinkle is not None:
-        colors = apply_wrinkles(colors, avatar.surfels.wrinkle, verts, avatar.canonical_vertices, avatar.faces, b)
+        deformed, rest = wrinkle_meshes(avatar, verts, mesh.shaped)
+        colors = apply_wrinkles(colors, avatar.surfels.wrinkle, deformed, rest, avatar.faces, b)
     if shade_colors and avatar.light is not None:
         colors = shade(avatar.light, colors, quats, Rpb[..., 2], light_transform)
     return PosedSurfels(means, quats, scales, opac, colors, verts)

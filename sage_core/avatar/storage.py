@@ -53,6 +53,7 @@ def avatar_args(avatar: Avatar) -> dict[str, Any]:
         "n_surfels": len(avatar.surfels),
         "sh_degree": avatar.surfels.sh_degree,
         "shading": avatar.shading,
+        "wrinkle_basis": avatar.wrinkle_basis,
     }
 
 
@@ -139,7 +140,7 @@ def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.de
         obj = cls(
             model_data, params, args["canonical_timestep"], surfels, args["sdf_args"], args["attributes"],
             args["app_args"], args["shape_args"] or None, base_scale=state["base_scale"],
-            shading=args.get("shading", "none"),
+            shading=args.get("shading", "none"), wrinkle_basis=args.get("wrinkle_basis", "posed"),
         )  # fmt: skip
         missing, unexpected = obj.load_state_dict(state, strict=False)
         obj.set_exposure_gains({(e["timestep"], e["camera"]): e["gain"] for e in blob.get("exposure_gains", [])})

@@ -18,6 +18,16 @@ and expression wrinkles. Here this is split into a learned *where* and a geometr
 The colour of surfel i becomes colour_i · (1 − a_i · c_i) with a_i its amplitude. At rest (r = 1)
 and under stretching (r > 1) nothing changes, so the avatar's appearance at the captured expression is
 untouched. The per-surfel values live in :attr:`SurfelSet.wrinkle` as (N, 2) rows (a_i, full_i).
+
+Which mesh the compression is measured on is the avatar's ``wrinkle_basis`` (:data:`WRINKLE_BASES`):
+
+* ``expression`` (the default for avatars trained since it was added): FLAME's expression-shaped
+  mesh (template + shape + expression blendshapes + offsets, before pose correctives and skinning,
+  :attr:`~sage_core.flame.lbs.FlameOutput.v_shaped`) against the same mesh of the canonical frame.
+  Creases are what the expression blendshapes push together; the jaw, neck and eye rotations are
+  applied by linear blend skinning, whose blend zones (under the chin and along the neck when the
+  jaw opens, the neck when the head tilts) lose area as a skinning artefact, not as skin folding;
+* ``posed``: the posed mesh against the canonical mesh (avatars trained before the option).
 """
 
 from __future__ import annotations
@@ -25,6 +35,7 @@ from __future__ import annotations
 import torch
 
 __all__ = [
+    "WRINKLE_BASES",
     "FaceDistortionStats",
     "apply_wrinkles",
     "face_compression",
@@ -32,6 +43,10 @@ __all__ = [
     "vertex_area_ratio",
     "wrinkle_amplitude",
 ]
+
+
+WRINKLE_BASES: tuple[str, ...] = ("expression", "posed")
+"""Meshes the wrinkle compression can be measured on (see the module doc)."""
 
 
 def _face_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:

@@ -47,11 +47,13 @@ Unseen fill (``unseen_fill``, off by default): the other surfels that no trainin
 their nearest seen surfels of the same region label as their colour prior
 (:meth:`Phase2Trainer.unseen_fill_colors`).
 
-Wrinkle shading (``wrinkle_shading``, on by default; :mod:`sage_core.avatar.wrinkles`): the
-per-pixel distortion of every deformed render is accumulated on the posed-mesh triangle each pixel
-sees; after the last step the triangles' mean distortion sets per-surfel darkening amplitudes
-(``wrinkle_region`` ``distortion``; ``skin`` gives every skin triangle the full amplitude), stored in
-the avatar and applied at render time in proportion to the surface compression of the frame.
+Wrinkle shading (``wrinkle_shading``, on by default; :mod:`sage_core.avatar.wrinkles`): after the
+last step every surfel gets a darkening amplitude, stored in the avatar and applied at render time in
+proportion to the surface compression of the frame, measured on the mesh ``wrinkle_basis`` names (by
+default FLAME's expression-shaped mesh, before skinning), which the avatar keeps. Which triangles may
+darken is ``wrinkle_region``: ``skin`` (the default) gives every triangle outside hair and the mouth
+prior the full amplitude; ``distortion`` (SAGE's rule) ramps it by the mean per-pixel distortion of
+the deformed renders on the posed-mesh triangle each pixel sees, accumulated over the steps.
 
 Total: λ_n L_n + λ_d L_d + λ_a L_a (+ λ_rgb L_rgb). Every random draw uses the trainer's CPU
 generator; :meth:`Phase2Trainer.state_dict` holds the parameters, the teacher, the optimizer, the
@@ -72,6 +74,7 @@ import torch
 from ..avatar.corrected import CorrectedPosing
 from ..avatar.init import REGION_HAIR, face_region_labels
 from ..avatar.model import Avatar
+from ..avatar.posing import wrinkle_meshes
 from ..avatar.wrinkles import FaceDistortionStats, face_compression, wrinkle_amplitude
 from ..config import Phase2Config
 from ..data.dataset import IngestedData, IngestedFrame, sample_indices
@@ -290,6 +293,7 @@ class Phase2Trainer:
             self.rest_teacher = self._build_rest_teacher()
         self.wrinkle_stats: FaceDistortionStats | None = None
         if cfg.wrinkle_shading:
+            avatar.wrinkle_basis = cfg.wrinkle_basis
             self.wrinkle_stats = FaceDistortionStats(int(avatar.faces.shape[0]), self.device)
 
     # ------------------------------------------------------------------ setup
@@ -505,7 +509,8 @@ class Phase2Trainer:
                 verts = posed.vertices.detach()
                 raster = rasterize_mesh(verts, av.faces, cam.K, cam.w2c, cam.width, cam.height)
                 if self.wrinkle_stats is not None:
-                    comp = face_compression(verts, av.canonical_vertices, av.faces, c.wrinkle_full_compression)
+                    shaped = av.flame(**inputs).v_shaped[0] if av.wrinkle_basis == "expression" else None
+                    comp = face_compression(*wrinkle_meshes(av, verts, shaped), av.faces, c.wrinkle_full_compression)
                     self.wrinkle_stats.update(raster.face_id, render.distortion.detach(), comp)
         if appearance:
             with torch.no_grad():
