@@ -18,7 +18,9 @@ parameters, rasterizes them and combines:
 Shading (``shading``; :mod:`sage_core.avatar.shading`): with "sh2" the avatar's surfel colours are
 albedo × the irradiance of a world-fixed order-2 SH light at the surfels' outward world normals, the
 light (``lr_light``) being optimised with the rest under the weak prior
-``w_light_prior·mean_c (mean irradiance − 1)²`` that fixes the albedo/light brightness scale. The
+``w_light_prior·mean_c (mean irradiance − 1)²`` that fixes the albedo/light brightness scale and
+the smooth-albedo prior ``w_light_albedo`` (:mod:`sage_core.train.light_prior`; on real frames, its
+gradient reaching the light alone) that picks the light the images cannot tell apart. The
 NeuS colour is shaded the same way, so that the appearance network learns one albedo from both
 renders: each ray's composited colour is multiplied on its foreground by E(n_w), n_w the ray's
 expected canonical SDF normal (normalised, without gradient) mapped to the world by the transpose of
@@ -68,6 +70,7 @@ from ._groups import adam, surfel_param_groups
 from .densify import DensityControl, DensifySchedule, scene_extent
 from .canonical_warp import CanonicalWarp, make_warp
 from .exposure import ExposureGain
+from .light_prior import SmoothAlbedoLight
 from .symmetry import MirrorPlane, color_symmetry_loss, plane_from_pairs, sdf_symmetry_loss
 from .warp import pixel_rays
 
@@ -255,6 +258,9 @@ class Phase1Trainer:
         self.pose: PoseRefinement | None = None
         if cfg.pose_refine:
             self.pose = PoseRefinement(sorted({f.timestep for f in self.frames})).to(self.device)
+        self.light_albedo: SmoothAlbedoLight | None = None
+        if avatar.light is not None and cfg.w_light_albedo > 0 and cfg.lr_light > 0:
+            self.light_albedo = SmoothAlbedoLight(cfg.light_albedo_neighbours, cfg.light_albedo_chroma)
         self.sym_plane: MirrorPlane | None = None
         if cfg.w_sym_sdf > 0 or cfg.w_sym_color > 0:
             self.sym_plane = symmetry_plane(avatar)
@@ -482,6 +488,11 @@ class Phase1Trainer:
         if av.light is not None and c.w_light_prior > 0:
             terms["light_prior"] = av.light.mean_prior()
             total = total + c.w_light_prior * terms["light_prior"]
+        if self.light_albedo is not None and av.light is not None and weight is None:
+            normals = self.posed_mesh(timestep, inputs, transform).R[av.surfels.binding][..., 2]
+            terms["light_albedo"] = self.light_albedo.loss(av.light, posed.colors, normals, canon.means, av.surfels.region_id,
+                                                           c.light_albedo_pairs, self.generator)  # fmt: skip
+            total = total + c.w_light_albedo * terms["light_albedo"]
         if self.pose is not None and self._refining() and c.w_pose_prior > 0:
             terms["pose_prior"] = self.pose.prior(self.length_unit)
             total = total + c.w_pose_prior * terms["pose_prior"]
@@ -682,6 +693,8 @@ class Phase1Trainer:
             st["pose"] = {k: v.detach().clone() for k, v in self.pose.state_dict().items()}
         if self.density is not None:
             st["density"] = self.density.state_dict()
+        if self.light_albedo is not None:
+            st["light_albedo"] = self.light_albedo.state_dict()
         return st
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -696,6 +709,8 @@ class Phase1Trainer:
             self.exposure.load_state_dict(state["exposure"])
         if self.pose is not None and "pose" in state:
             self.pose.load_state_dict(state["pose"])
+        if self.light_albedo is not None and "light_albedo" in state:
+            self.light_albedo.load_state_dict(state["light_albedo"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         set_rng_state(state["rng"])
