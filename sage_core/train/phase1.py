@@ -61,6 +61,7 @@ from ..avatar.shading import shade_foreground
 from ..runtime import resolve_render_backend
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
+from ..flame.frames import surfel_frames
 from ..image_metrics import SSIMTarget, psnr, ssim, ssim_map, ssim_target
 from ..render import RenderCamera
 from ..render.volume import render_neus
@@ -489,7 +490,10 @@ class Phase1Trainer:
             terms["light_prior"] = av.light.mean_prior()
             total = total + c.w_light_prior * terms["light_prior"]
         if self.light_albedo is not None and av.light is not None and weight is None:
-            normals = self.posed_mesh(timestep, inputs, transform).R[av.surfels.binding][..., 2]
+            mesh = self.posed_mesh(timestep, inputs, transform)
+            with torch.no_grad():
+                frames = mesh.R if mesh is not None else surfel_frames(posed.vertices.detach(), av.faces)[0]
+            normals = frames[av.surfels.binding][..., 2]
             terms["light_albedo"] = self.light_albedo.loss(av.light, posed.colors, normals, canon.means, av.surfels.region_id,
                                                            c.light_albedo_pairs, self.generator)  # fmt: skip
             total = total + c.w_light_albedo * terms["light_albedo"]
