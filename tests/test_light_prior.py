@@ -143,3 +143,14 @@ def test_phase1_adds_the_term_and_only_the_light_takes_its_gradient(tiny_ws, tin
     # off by weight 0, and without a light
     assert "light_albedo" not in _phase1(tiny_ws, tiny_init_dir, w_light_albedo=0.0).step()
     assert _phase1(tiny_ws, tiny_init_dir, w_light_albedo=1.0, shading="none").light_albedo is None
+
+
+def test_nearest_indices_match_brute_force_across_chunks():
+    from sage_core.geometry.knn import nearest_indices
+
+    g = torch.Generator().manual_seed(3)
+    q, p = torch.rand(50, 3, generator=g), torch.rand(80, 3, generator=g)
+    got = nearest_indices(q, p, 4, chunk=7)
+    assert torch.equal(got, torch.cdist(q, p).topk(4, dim=1, largest=False).indices)
+    own = nearest_indices(p, p, 3, exclude=torch.arange(80), chunk=9)
+    assert not bool((own == torch.arange(80)[:, None]).any())

@@ -147,6 +147,9 @@ class Avatar(nn.Module):
     """
 
     canonical_vertices: torch.Tensor
+    canonical_shaped: torch.Tensor
+    """(V, 3) FLAME's expression-shaped mesh of the canonical frame (template + shape + its expression
+    + offsets, before pose correctives and skinning): the rest state of the ``expression`` wrinkle basis."""
     R_c: torch.Tensor
     T_c: torch.Tensor
     k_c: torch.Tensor
@@ -200,7 +203,6 @@ class Avatar(nn.Module):
         self.shading = shading
         self.light: SHIrradiance | None = SHIrradiance().to(device) if shading != "none" else None
         self.wrinkle_basis = wrinkle_basis
-        self._canonical_shaped: tuple[tuple[int, torch.device], torch.Tensor] | None = None
         self.exposure_gains: dict[tuple[int, int], torch.Tensor] = {}
         self.shape: ShapeNetwork | None = None
         if attributes == "mlp":
@@ -215,6 +217,8 @@ class Avatar(nn.Module):
             verts = out.vertices[0]
             R, T, k = surfel_frames(verts, self.flame.faces)
         self.register_buffer("canonical_vertices", verts.clone())
+        # the rest state of the expression wrinkle basis; derived, so not stored in avatar files
+        self.register_buffer("canonical_shaped", out.v_shaped[0].detach().clone(), persistent=False)
         self.register_buffer("root_joint", out.joints[0, 0].clone())
         self.register_buffer("R_c", R.clone())
         self.register_buffer("T_c", T.clone())
@@ -348,17 +352,6 @@ class Avatar(nn.Module):
         geometry feature at the centres; in mlp mode the hash encoding is shared with the shape network.
         """
         return _posing.canonical_state(self, with_sdf, create_graph)
-
-    def canonical_shaped_vertices(self) -> torch.Tensor:
-        """(V, 3) FLAME's expression-shaped mesh of the canonical frame (template + shape + the
-        canonical timestep's expression + offsets, before pose correctives and skinning), computed
-        once per parameter set and device; the rest state of the ``expression`` wrinkle basis."""
-        key = (id(self.params), self.device)
-        if self._canonical_shaped is None or self._canonical_shaped[0] != key:
-            with torch.no_grad():
-                out = self.flame(**canonical_inputs(self.params, self.canonical_timestep, self.device))
-            self._canonical_shaped = (key, out.v_shaped[0].detach())
-        return self._canonical_shaped[1]
 
     # ------------------------------------------------------------------ posing
     def pose_mesh(self, flame_inputs: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -235,7 +235,7 @@ def wrinkle_meshes(avatar: Avatar, vertices: torch.Tensor, shaped: torch.Tensor 
     ``shaped`` against the canonical frame's, or the posed ``vertices`` against the canonical mesh for
     ``posed`` and when ``shaped`` is None (a mesh given as vertices alone, without FLAME inputs)."""
     if avatar.wrinkle_basis == "expression" and shaped is not None:
-        return shaped, avatar.canonical_shaped_vertices()
+        return shaped, avatar.canonical_shaped
     return vertices, avatar.canonical_vertices
 
 

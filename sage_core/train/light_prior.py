@@ -28,30 +28,22 @@ import torch
 
 from ..avatar.init import REGION_FACE, REGION_NECK
 from ..avatar.shading import SHIrradiance
+from ..geometry.knn import nearest_indices
 
 __all__ = ["SmoothAlbedoLight", "neighbour_pairs"]
-
-_CHUNK = 2048
-
 
 def neighbour_pairs(points: torch.Tensor, k: int) -> torch.Tensor:
     """(M·k', 2) int64 pairs (i, j) of every point i and its k' = min(k, M − 1) nearest other points.
 
-    points: (M, 3). Exact (chunked distance matrix), ties broken by index order of ``topk``.
+    points: (M, 3). Exact (:func:`sage_core.geometry.knn.nearest_indices`).
     """
     M = int(points.shape[0])
     k = min(int(k), M - 1)
     if k <= 0:
         return torch.zeros(0, 2, dtype=torch.long, device=points.device)
-    out = []
-    with torch.no_grad():
-        for s in range(0, M, _CHUNK):
-            d = torch.cdist(points[s : s + _CHUNK], points)
-            rows = torch.arange(d.shape[0], device=points.device)
-            d[rows, rows + s] = float("inf")
-            nn = d.topk(k, largest=False).indices
-            out.append(torch.stack([(rows + s)[:, None].expand(-1, k), nn], -1).reshape(-1, 2))
-    return torch.cat(out)
+    rows = torch.arange(M, device=points.device)
+    nn = nearest_indices(points, points, k, exclude=rows)
+    return torch.stack([rows[:, None].expand(-1, k), nn], -1).reshape(-1, 2)
 
 
 class SmoothAlbedoLight:
@@ -69,7 +61,7 @@ class SmoothAlbedoLight:
             raise ValueError(f"chroma_sigma must be positive, got {chroma_sigma}")
         self.neighbours = int(neighbours)
         self.chroma_sigma = float(chroma_sigma)
-        self._built: tuple[int, torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        self._built: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._points: torch.Tensor | None = None
         self._eligible: torch.Tensor | None = None
 
@@ -81,15 +73,15 @@ class SmoothAlbedoLight:
     def pairs(self, canonical_means: torch.Tensor, region_id: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(used (U,) surfel indices, i (P,), j (P,) pair ends as positions in ``used``), rebuilt when
         the number of surfels changes. canonical_means: (N, 3); region_id: (N,)."""
-        n = int(canonical_means.shape[0])
-        if self._built is None or self._built[0] != n:
-            if self._points is None or self._eligible is None or int(self._points.shape[0]) != n:
-                self._points = canonical_means.detach().clone()
-                self._eligible = self.eligible(region_id).detach().clone()
+        if self._points is None or self._eligible is None or self._points.shape[0] != canonical_means.shape[0]:
+            self._points = canonical_means.detach().clone()
+            self._eligible = self.eligible(region_id).detach().clone()
+            self._built = None
+        if self._built is None:
             used = self._eligible.to(canonical_means.device).nonzero().squeeze(-1)
             local = neighbour_pairs(self._points.to(canonical_means)[used], self.neighbours)
-            self._built = (n, used, local[:, 0].contiguous(), local[:, 1].contiguous())
-        return self._built[1], self._built[2], self._built[3]
+            self._built = (used, local[:, 0].contiguous(), local[:, 1].contiguous())
+        return self._built
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """The canonical centres and the eligible surfels the pairs were built from (empty before the

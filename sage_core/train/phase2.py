@@ -80,6 +80,7 @@ from ..config import Phase2Config
 from ..data.dataset import IngestedData, IngestedFrame, sample_indices
 from ..errors import InputError
 from ..flame.frames import surfel_frames
+from ..geometry.knn import nearest_indices
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..render import RenderCamera, rasterize_surfels
 from ..render.mesh_raster import rasterize_mesh
@@ -386,7 +387,7 @@ class Phase2Trainer:
             if src.numel() == 0:  # no seen surfel of that region: left as it is
                 fill &= region != r
                 continue
-            near = torch.cdist(canon.means[dst], canon.means[src]).topk(min(int(k), int(src.numel())), dim=1, largest=False).indices
+            near = nearest_indices(canon.means[dst], canon.means[src], min(int(k), int(src.numel())))
             out[dst] = colors[src[near]].mean(1)
         return fill, out[fill]
 
