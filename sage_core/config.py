@@ -77,6 +77,7 @@ class IngestConfig:
     height: int | None = _f(None, "Resize images to this height (width keeps the aspect). Exclusive with downsample.", ge=8)
     downsample: float | None = _f(None, "Divide the image size by this factor. Exclusive with height.", gt=0)
     background: str = _f("white", "Background of the stored images: white (as exported) or black (recomposited with the mask).", choices=("white", "black"))
+    follow_symlinks: bool = _f(False, "Read capture files through symbolic links whose target lies outside the capture folder (refused by default, like paths that climb out of it).")
 
 
 @dataclass
@@ -600,11 +601,10 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def load_config_file(path: str | Path) -> dict[str, Any]:
     """Read a YAML or JSON config file into a mapping; errors name the file."""
-    from .errors import InputError
+    from .errors import InputError, require_file
 
     p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "config file not found")
+    require_file(p, "config file")
     text = p.read_text()
     try:
         if p.suffix.lower() == ".json":

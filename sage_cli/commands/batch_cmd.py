@@ -173,7 +173,9 @@ def batch(
         from sage_core.workspace import atomic_write_json
 
         from sage_core.batch import subject_spec
-        from sage_core.stages import split_sets
+        from sage_core.stages import StageSettings, pipeline_configs, split_sets
+
+        from .run_cmd import stage_flags
 
         if engine not in ("local", "ray"):
             raise ConfigError(f"--engine {engine}: choose local or ray")
@@ -186,6 +188,11 @@ def batch(
                 "lpips_weights": lpips_weights, "preset": preset, "config": config, "seed": seed, "force": force}  # fmt: skip
         root = root.resolve()
         specs = [subject_spec(s, root, opts, subjects) for s in subs]
+        StageSettings(seed=seed)  # checks the seed
+        for spec in specs:  # every subject's stage configs are resolved and checked before anything runs
+            flags = stage_flags(spec["sets"])
+            flags["ingest"] = {**spec["ingest_flags"], **flags.get("ingest", {})}
+            pipeline_configs(spec["preset"], spec["config"], flags, spec["skip_phase2"])
         root.mkdir(parents=True, exist_ok=True)
         runner = _BatchRun(root, specs, verbose)
         jobs = []

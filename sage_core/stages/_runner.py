@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..errors import ConfigError
 from ..workspace import StageRun, Workspace
 from .events import Emitter
 
@@ -28,6 +29,12 @@ class StageSettings:
     device: str = "auto"
     force: bool = False
     threads: int | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
+            raise ConfigError(f"--seed must be an integer in 0..{2**32 - 1}, got {self.seed!r}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1):
+            raise ConfigError(f"--threads must be a positive integer, got {self.threads!r}")
 
 
 @dataclass
@@ -172,6 +179,13 @@ def execute_stage(
                                                                    "render_backend": backend})  # fmt: skip
             try:
                 body(run, emitter)
+            except KeyboardInterrupt:
+                log.warning("stage %s interrupted", stage)
+                if discard_work_on_failure:
+                    shutil.rmtree(run.work_dir, ignore_errors=True)
+                else:
+                    run.interrupted()
+                raise
             except BaseException as e:
                 log.exception("stage %s failed", stage)
                 if discard_work_on_failure:

@@ -32,15 +32,15 @@ def phase2_stage(
     lpips_weights: LPIPS AlexNet weights for the evaluation (None: ``$SAGE_LPIPS_WEIGHTS`` or the
     cache; InputError when a given file is missing). Resumes an interrupted run.
     """
-    from ..errors import InputError
+    from ..errors import require_file
 
     t0 = time.time()
     emitter = Emitter("phase2", on_event, "phase 2")
     emitter.emit("started")
     w = as_workspace(ws)
     lp = None if lpips_weights is None else Path(lpips_weights)
-    if lp is not None and not lp.is_file():
-        raise InputError(lp, "LPIPS weights file not found")
+    if lp is not None:
+        require_file(lp, "LPIPS weights file")
     external = None
     if lp is not None:
         from ..workspace import file_fingerprint

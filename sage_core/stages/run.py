@@ -69,6 +69,39 @@ class PipelineResult:
     wall_time_s: float = 0.0
 
 
+def pipeline_configs(
+    preset: str = "default",
+    config_file: str | Path | None = None,
+    flags: dict[str, dict[str, Any]] | None = None,
+    skip_phase2: bool = False,
+    render_backend: str | None = None,
+) -> dict[str, Any]:
+    """Every stage config :func:`run_pipeline` will run with, resolved and checked (ConfigError
+    before anything runs). Phase 1 takes the defaults of the regime ingest will record; eval and
+    export take the avatar stage (phase 2, or phase 1 with ``skip_phase2``)."""
+    from ..config import load_config_file, resolve_config
+
+    per_stage = {s: dict((flags or {}).get(s) or {}) for s in PIPELINE_STAGES}
+    if render_backend is not None:
+        for s in RENDER_STAGES:
+            per_stage[s]["render_backend"] = render_backend
+    cfg_path = None if config_file is None else Path(config_file)
+    data = load_config_file(cfg_path) if cfg_path is not None else None
+    label = str(cfg_path) if cfg_path is not None else "config file"
+
+    def config(stage: str, extra: dict[str, Any] | None = None, regime: str | None = None) -> Any:
+        return resolve_config(stage, preset, data, {**(extra or {}), **per_stage[stage]}, file_label=label, regime=regime)
+
+    av_stage = "phase1" if skip_phase2 else "phase2"
+    cfgs = {"ingest": config("ingest"), "init-mesh": config("init-mesh")}
+    cfgs["phase1"] = config("phase1", regime=cfgs["ingest"].regime)
+    if not skip_phase2:
+        cfgs["phase2"] = config("phase2")
+    cfgs["eval"] = config("eval", {"split": "all", "stage": av_stage})
+    cfgs["export"] = config("export", {"stage": av_stage})
+    return cfgs
+
+
 def run_pipeline(
     dataset: str | Path,
     ws: str | Path,
@@ -94,27 +127,18 @@ def run_pipeline(
     """
     import os
 
-    from ..config import load_config_file, resolve_config
     from ..runtime import THREADS_ENV, apply_threads
     from .eval import eval_stage
     from .export import export_stage
     from .ingest import ingest_stage
     from .init_mesh import init_mesh_stage
-    from .phase1 import phase1_stage, workspace_regime
+    from .phase1 import phase1_stage
     from .phase2 import phase2_stage
 
-    per_stage = {s: dict((flags or {}).get(s) or {}) for s in PIPELINE_STAGES}
-    if render_backend is not None:
-        for s in RENDER_STAGES:
-            per_stage[s]["render_backend"] = render_backend
     if settings.threads is not None:
         os.environ[THREADS_ENV] = str(apply_threads(settings.threads))
-    cfg_path = None if config_file is None else Path(config_file)
-    label = str(cfg_path) if cfg_path is not None else "config file"
-
-    def config(stage: str, extra: dict[str, Any] | None = None, regime: str | None = None) -> Any:
-        data = load_config_file(cfg_path) if cfg_path is not None else None
-        return resolve_config(stage, preset, data, {**(extra or {}), **per_stage[stage]}, file_label=label, regime=regime)
+    cfgs = pipeline_configs(preset, config_file, flags, skip_phase2, render_backend)
+    av_stage = "phase1" if skip_phase2 else "phase2"
 
     t0 = time.time()
     ws = Path(ws)
@@ -124,17 +148,16 @@ def run_pipeline(
         res.results[r.stage] = r
         res.stages.append((r.stage, "skipped (already complete)" if r.skipped else f"done in {r.duration_s:.1f} s"))
 
-    record(ingest_stage(dataset, ws, config("ingest"), flame_model, flame_masks, settings, on_event))
-    record(init_mesh_stage(ws, config("init-mesh"), settings, on_event))
-    record(phase1_stage(ws, config("phase1", regime=workspace_regime(ws)), settings, on_event))
+    record(ingest_stage(dataset, ws, cfgs["ingest"], flame_model, flame_masks, settings, on_event))
+    record(init_mesh_stage(ws, cfgs["init-mesh"], settings, on_event))
+    record(phase1_stage(ws, cfgs["phase1"], settings, on_event))
     if skip_phase2:
         res.stages.append(("phase2", "left out (--skip-phase2)"))
     else:
-        record(phase2_stage(ws, config("phase2"), lpips_weights, settings, on_event))
-    av_stage = "phase1" if skip_phase2 else "phase2"
+        record(phase2_stage(ws, cfgs["phase2"], lpips_weights, settings, on_event))
     res.avatar_stage = av_stage
-    record(eval_stage(ws, config("eval", {"split": "all", "stage": av_stage}), lpips_weights, settings, on_event))
-    record(export_stage(ws, config("export", {"stage": av_stage}), viewer=["ply"], bundle=True, settings=settings, on_event=on_event))
+    record(eval_stage(ws, cfgs["eval"], lpips_weights, settings, on_event))
+    record(export_stage(ws, cfgs["export"], viewer=["ply"], bundle=True, settings=settings, on_event=on_event))
     res.wall_time_s = time.time() - t0
     return res
 
