@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -799,15 +800,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
             return bool(value)
         raise ConfigError(f"{key}: expected true/false, got {value!r}")
     if tp is int:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        try:
-            f = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}") from None
-        if not f.is_integer():
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        return int(f)
+        return _coerce_int(value, key)
     if tp is float:
         if isinstance(value, bool):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
@@ -820,6 +813,38 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
             raise ConfigError(f"{key}: expected a string, got {value!r}")
         return str(value)
     return value
+
+
+EXACT_INT_LIMIT = 2**53
+"""Magnitude up to which a number written as a float (``1e4``, ``2.0``) is taken as an integer: the
+floats beyond it are not all whole numbers, and ``1e23`` would become 99999999999999991611392."""
+
+INT_MAX = 2**31 - 1
+"""Upper bound of every integer field that declares none (:func:`validate_config`): counts and step
+numbers beyond it are mistakes, not settings."""
+
+
+def _coerce_int(value: Any, key: str) -> int:
+    """An integer from an int, an integer string (``"500"``) or a whole number written as a float
+    (``1e4``, ``"2.0"``) of magnitude at most :data:`EXACT_INT_LIMIT`; ConfigError otherwise."""
+    if isinstance(value, bool):
+        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    if isinstance(value, int):
+        return value
+    if isinstance(value, str):
+        try:
+            return int(value.strip().replace("_", ""))
+        except ValueError:
+            pass
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key}: expected an integer, got {value!r}") from None
+    if not math.isfinite(f) or not f.is_integer():
+        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    if abs(f) > EXACT_INT_LIMIT:
+        raise ConfigError(f"{key}: {value!r} is too large for an integer setting (at most {INT_MAX} for most fields)")
+    return int(f)
 
 
 def _apply(cfg: Any, key: str, value: Any, where: str) -> None:
@@ -962,7 +987,7 @@ def allowed_text(meta: Any) -> str:
 
 
 def _num(v: float) -> str:
-    return f"{v:g}"
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else f"{v:g}"
 
 
 def _check_value(value: Any, meta: Any, key: str) -> None:
@@ -992,17 +1017,27 @@ def validate_config(cfg: Any, where: str = "", prefix: str = "") -> None:
     (``init-mesh config: pretrain.steps = 0 is out of range (allowed: >= 1)``).
     :func:`resolve_config` calls it once, after all sources are merged.
     """
+    types = _field_types(type(cfg))
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         key = f"{prefix}{f.name}"
         if dataclasses.is_dataclass(value):
             validate_config(value, where, prefix=f"{key}.")
             continue
-        _check_value(value, f.metadata, f"{where}: {key}" if where else key)
+        name = f"{where}: {key}" if where else key
+        _check_value(value, f.metadata, name)
+        if _is_int(types[f.name]) and "le" not in f.metadata and "lt" not in f.metadata and value is not None and value > INT_MAX:
+            raise ConfigError(f"{name} = {value!r} is out of range (allowed: at most {INT_MAX})")
     for check, names, problem in CONFIG_RULES.get(type(cfg), ()):
         if not check(cfg):
             got = ", ".join(f"{prefix}{n} = {get_field(cfg, n)!r}" for n in names)
             raise ConfigError(f"{where + ': ' if where else ''}{problem} (got {got})")
+
+
+def _is_int(tp: Any) -> bool:
+    """Whether a field's annotation is ``int`` or ``int | None``."""
+    args = [a for a in typing.get_args(tp) if a is not type(None)] if typing.get_origin(tp) in (typing.Union, getattr(__import__("types"), "UnionType", None)) else [tp]
+    return args == [int]
 
 
 def from_dict(cls: type[T], data: dict[str, Any]) -> T:
