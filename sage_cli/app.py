@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from sage_core import __version__
+from sage_core._version import __version__
 
 app = typer.Typer(
     name="sage",

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from . import __version__
+from ._version import __version__
 from .atomic import atomic_write_bytes, atomic_write_text
 from .errors import InputError, StageError, UnsafeFileError, WorkspaceError
 from .serialization import CHECKPOINT_FORMAT, CHECKPOINT_KIND

@@ -49,7 +49,7 @@ def test_svhr_end_to_end(tmp_path, one_thread):
     _ok(res)
     assert "head coverage (sv-hr): yaw" in res.output and "test PSNR" in res.output
     cfg = json.loads((ws / "phase1" / "config.json").read_text())
-    assert cfg["app_sh_degree"] == 0 and cfg["exposure"] == "gain" and cfg["w_sym_sdf"] > 0 and cfg["w_sym_color"] > 0
+    assert cfg["appearance"]["sh_degree"] == 0 and cfg["exposure"] == "gain" and cfg["loss"]["sym_sdf"] > 0 and cfg["loss"]["sym_color"] > 0
     metrics = json.loads((ws / "phase1" / "metrics.json").read_text())
     assert _finite(metrics["final_losses"]) and "sym_sdf" in metrics["final_losses"]
     gains = metrics["exposure_gains"]
@@ -89,7 +89,7 @@ def test_one_shot_end_to_end(tmp_path, one_thread):
     res = r.invoke(app, ["phase1", str(ws), *_P1, "--set", "pseudo_view_prob=0.7", "--set", "exposure=rgb", "--quiet"])
     _ok(res)
     cfg = json.loads((ws / "phase1" / "config.json").read_text())
-    assert cfg["app_sh_degree"] == 0 and cfg["exposure"] == "rgb" and cfg["w_sym_sdf"] > 0 and cfg["pseudo_view_prob"] == 0.7
+    assert cfg["appearance"]["sh_degree"] == 0 and cfg["exposure"] == "rgb" and cfg["loss"]["sym_sdf"] > 0 and cfg["pseudo"]["prob"] == 0.7
     metrics = json.loads((ws / "phase1" / "metrics.json").read_text())
     assert _finite(metrics["final_losses"])
     assert len(metrics["exposure_gains"]) == 1 and len(next(iter(metrics["exposure_gains"].values()))) == 3

@@ -101,7 +101,7 @@ def flame_reference(avatar: Avatar, path: Path) -> dict[str, Any] | None:
 
 def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = None) -> Path:
     """Write the avatar file atomically (the arguments of :meth:`Avatar.save`); returns its path."""
-    from .. import __version__
+    from .._version import __version__
     from ..serialization import save_file
 
     p = Path(path)

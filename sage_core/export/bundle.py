@@ -105,7 +105,7 @@ def bundle_metadata(
     primitive (2D surfels), attribute mode and SH degree, the up axis, the canonical timestep, the
     row → dataset-timestep map, the render settings, a reference camera and the head centre.
     """
-    from .. import __version__
+    from .._version import __version__
 
     md = avatar.model_data
     params = avatar.params

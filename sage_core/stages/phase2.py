@@ -108,7 +108,7 @@ def run_phase2(
     test_frames, val_frames = evenly_spaced_frames(list(data.test), cfg.eval_frames), evenly_spaced_frames(list(data.val), cfg.eval_frames)
 
     backend = resolve_render_backend(cfg.render_backend, str(device))
-    metrics: dict[str, Any] = {"correction": cfg.correction, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
+    metrics: dict[str, Any] = {"correction": cfg.correction.enabled, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
                                "iterations": cfg.iterations, "render_backend": backend}  # fmt: skip
     ck = latest_checkpoint(checkpoint_dir) if checkpoint_dir is not None else None
     resumed = ck is not None
@@ -137,7 +137,7 @@ def run_phase2(
 
     total = cfg.iterations
     loop = run_steps(trainer, total, label="phase 2", progress=progress, checkpoint_dir=checkpoint_dir,
-                     checkpoint_every=cfg.checkpoint_every, state_key="trainer", resume_from=ck, map_location=device,
+                     checkpoint_every=cfg.schedule.checkpoint_every, state_key="trainer", resume_from=ck, map_location=device,
                      stats=step_stats)  # fmt: skip
     last = dict(loop.last)
     train_time = loop.train_time_s
@@ -155,7 +155,7 @@ def run_phase2(
         metrics["val"] = _report_dict(rep)
     avatar.save(out_dir / "avatar.pt")
     curve = trainer.distortion_curve
-    atomic_write_json(out_dir / "distortion_curve.json", {"correction": cfg.correction, "steps": list(range(1, len(curve) + 1)),
+    atomic_write_json(out_dir / "distortion_curve.json", {"correction": cfg.correction.enabled, "steps": list(range(1, len(curve) + 1)),
                                                            "distortion": curve})  # fmt: skip
     metrics.update({
         "distortion_first100_mean": float(np.mean(curve)) if curve else float("nan"),
