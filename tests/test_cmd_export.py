@@ -43,7 +43,7 @@ def test_canonical_ply_round_trip_and_header(ws):
 
     res = invoke(["export", ws, "--ply", "--orientation", "flame", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    path = ws / "export" / "ply" / "canonical.ply"
+    path = ws / "export" / "ply" / "canonical-flame.ply"  # the orientation is in the name
     props, comments = _header(path)
     assert props == property_names(0)  # INRIA order, SH degree 0, no binding_0
     assert any("Vertical Axis: y" in c for c in comments)
@@ -55,7 +55,8 @@ def test_canonical_ply_round_trip_and_header(ws):
     ply = read_ply(path)
     n = int(keep.sum())
     assert ply["means"].shape == (n, 3)
-    entry = json.loads((ws / "export" / "results.json").read_text())["ply:canonical"]
+    entry = json.loads((ws / "export" / "results.json").read_text())["ply:canonical-flame"]
+    assert entry["orientation"] == "flame" and entry["avatar_stage"] == "phase1" and entry["files"] == ["ply/canonical-flame.ply"]
     assert entry["rows"] == n and entry["rows_dropped"] == len(keep) - n
     assert np.allclose(ply["means"], posed.means.numpy()[keep], atol=1e-6)
     q_ref = posed.quats.numpy()[keep]
@@ -81,7 +82,7 @@ def test_ply_rendered_back_matches_the_avatar_render(ws):
     fr = data.val[0]
     res = invoke(["export", ws, "--ply", "--frame", fr.timestep, "--color-camera", fr.camera_index, "--up", "y", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    ply = read_ply(ws / "export" / "ply" / f"frame_{fr.timestep:05d}.ply")
+    ply = read_ply(ws / "export" / "ply" / f"frame_{fr.timestep:05d}-flame.ply")
     cam = RenderCamera.from_camera(fr.camera)
     s = loaded.render
     with torch.no_grad():
@@ -188,9 +189,71 @@ def test_export_sequence_writes_one_ply_per_frame(ws, tiny_capture):
 
     res = invoke(["export", ws, "--ply", "--flame-seq", tiny_capture, "--max-frames", "3", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    files = sorted((ws / "export" / "ply").glob("0*.ply"))
+    folder = ws / "export" / "ply" / f"seq_{tiny_capture.name}"
+    files = sorted(folder.glob("*.ply"))
     assert [f.name for f in files] == ["00000.ply", "00001.ply", "00002.ply"]
     a, b = read_ply(files[0]), read_ply(files[2])
     assert a["means"].shape[1] == 3 and not np.allclose(a["means"][:10], b["means"][:10])
+    entry = json.loads((ws / "export" / "results.json").read_text())[f"ply:seq_{tiny_capture.name}"]
+    assert entry["frames"] == 3 and entry["orientation"] == "viewer" and entry["avatar_stage"] == "phase1"
+    # a .splat of the same motion joins the folder; a shorter cut of it replaces every format there
+    res = invoke(["export", ws, "--splat", "--flame-seq", tiny_capture, "--max-frames", "3", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert len(list(folder.glob("*.splat"))) == 3 and len(list(folder.glob("*.ply"))) == 3
+    res = invoke(["export", ws, "--ply", "--flame-seq", tiny_capture, "--max-frames", "2", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert sorted(f.name for f in folder.iterdir()) == ["00000.ply", "00001.ply"]  # no stale .splat of the 3-frame cut
+    doc = json.loads((ws / "export" / "results.json").read_text())
+    assert f"splat:seq_{tiny_capture.name}" not in doc and doc[f"ply:seq_{tiny_capture.name}"]["frames"] == 2
     res = invoke(["export", ws, "--frame", 999, "--quiet"])
     assert res.exit_code == 2 and "999" in res.output
+
+
+def test_a_later_export_keeps_every_file_of_the_web_player(ws):
+    """--web then --mesh: the web player's three files survive, the record lists them, and a file
+    deleted afterwards makes the stage incomplete and the web player redone."""
+    from sage_core.workspace import Workspace
+
+    res = invoke(["export", ws, "--web", "--max-frames", "2", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    res = invoke(["export", ws, "--mesh", "--mc-resolution", "16", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    web = ws / "export" / "web"
+    assert sorted(p.name for p in web.iterdir()) == ["avatar.js", "index.html", "player.js"]
+    doc = json.loads((ws / "export" / "results.json").read_text())
+    assert doc["web"]["files"] == ["web/index.html", "web/player.js", "web/avatar.js"]
+    m = json.loads((ws / "export" / "manifest.json").read_text())
+    assert {"web/avatar.js", "web/player.js", "mesh/sdf_mesh.ply"} <= set(m["files"])
+    assert all(not str(v).startswith("/") for v in m["outputs"].values())  # outputs are workspace-relative
+    (web / "avatar.js").unlink()
+    st = Workspace(ws).status("export")
+    assert st.status == "incomplete" and "avatar.js" in st.reason
+    res = invoke(["export", ws, "--web", "--max-frames", "2", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0 and "skipping" not in res.output, res.output
+    assert (web / "avatar.js").is_file() and (ws / "export" / "mesh" / "sdf_mesh.obj").is_file()
+    assert Workspace(ws).status("export").status == "complete"
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--web", "--frame", "0", "--max-frames", "2"], "--max-frames"),
+    (["--ply", "--max-frames", "2"], "--max-frames"),
+    (["--bundle", "--frame", "0"], "--frame"),
+    (["--mesh", "--flame-seq", "."], "--flame-seq"),
+])  # fmt: skip
+def test_options_that_would_be_ignored_are_refused(ws, args, needle):
+    res = invoke(["export", ws, *args, "--device", "cpu", "--quiet"])
+    assert res.exit_code == 3 and needle in res.output, res.output
+    assert not (ws / "export").exists()
+
+
+def test_web_at_a_frame_plays_that_timestep_and_the_preset_is_the_workspaces(ws):
+    from sage_core.stages.export import workspace_preset
+
+    assert workspace_preset(ws) == "tiny"  # the avatar workspace was built with the tiny preset
+    res = invoke(["export", ws, "--web", "--mesh", "--frame", "0", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((ws / "export" / "results.json").read_text())
+    assert doc["web"]["frames"] == 1 and doc["web"]["sequence"] == "timestep 0"
+    assert doc["mesh:sdf"]["mc_resolution"] == 128  # the tiny preset's, not the default 256
+    js = (ws / "export" / "web" / "avatar.js").read_text()
+    assert '"timesteps":[0]' in js
