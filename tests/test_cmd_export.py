@@ -182,6 +182,12 @@ def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture
     assert np.abs(a - b).max() > 0.1  # the camera moved
     rec = json.loads((out / "reenact.json").read_text())
     assert rec["report"]["n_frames"] == 3 and "orbit" in rec["cameras"]
+    # its reference camera is the bundle's, not a camera of "this capture"
+    res = invoke(["reenact", "--bundle", moved, "--flame-seq", tiny_capture, "--max-frames", "1", "--no-video",
+                  "--out", tmp_path / "ref", "--device", "cpu", "--quiet"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    cams = json.loads((tmp_path / "ref" / "reenact.json").read_text())["cameras"]
+    assert cams.startswith("the bundle's reference camera") and "this capture" not in res.output
 
 
 def test_export_sequence_writes_one_ply_per_frame(ws, tiny_capture):
