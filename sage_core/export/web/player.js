@@ -1,7 +1,8 @@
 // sage web player: plays a surfel avatar posed on the GPU from per-frame FLAME mesh vertices.
 // Data: window.SAGE_AVATAR (avatar.js, written by `sage export --web`; layout in sage_core/export/web.py).
 // URL query: frame=i (show frame i, paused), camera=ref (the capture's reference camera at its pixel
-// size; default: an orbit camera starting there), ui=0 (hide the controls).
+// size; default: an orbit camera starting there), ui=0 (hide the controls), speed=x (playback speed).
+// Keys: space play / pause, R reset the view.
 "use strict";
 (function () {
   const doc = window.SAGE_AVATAR;
@@ -12,7 +13,11 @@
   const playBtn = document.getElementById("play");
   const slider = document.getElementById("slider");
   const label = document.getElementById("label");
+  const speedSel = document.getElementById("speed");
+  const resetBtn = document.getElementById("reset");
+  const fpsLabel = document.getElementById("fps");
   window.sageReady = false;
+  window.sageFps = 0;
 
   function fail(text) {
     msg.textContent = text;
@@ -34,6 +39,12 @@
   const scl = new Float32Array(buf, 40 * N, N * 2);
   const rgba = new Uint8Array(buf, 48 * N, N * 4);
   const qverts = new Int16Array(buf, 52 * N, T * V * 3);
+  let off = 52 * N + 6 * T * V;
+  const frameCols = doc.frame_colors ? new Uint8Array(buf, off, T * N * 3) : null;
+  if (doc.frame_colors) off += T * N * 3;
+  const frameDq = doc.frame_correction ? new Int8Array(buf, off, T * N * 4) : null;
+  if (doc.frame_correction) off += T * N * 4;
+  const frameLf = doc.frame_correction ? new Int8Array(buf, off, T * N * 2) : null;
   const vs = doc.vert_scale, vo = doc.vert_offset;
 
   const TW = 1024;
@@ -67,11 +78,16 @@
   const texCol = makeTexture(gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, colData, N);
   const vertData = new Float32Array(TW * texHeight(V) * 4);
   const texVert = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, vertData, V);
+  // phase 2's surfel correction of the frame: local rotation dq (wxyz) and log scale factors
+  const dqData = new Float32Array(padN * 4), lfData = new Float32Array(padN * 4);
+  for (let i = 0; i < N; i++) dqData[4 * i] = 1;
+  const texDq = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, dqData, N);
+  const texLf = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, lfData, N);
 
   // ------------------------------------------------------------------ shaders
   const VS = `#version 300 es
   precision highp float; precision highp int; precision highp usampler2D;
-  uniform highp sampler2D uVert, uMu, uRot, uCol; uniform usampler2D uTri;
+  uniform highp sampler2D uVert, uMu, uRot, uCol, uDq, uLf; uniform usampler2D uTri;
   uniform mat4 uView, uProj; uniform vec2 uSize;
   in uint aId;
   out vec2 vUV; out vec4 vColor; flat out vec2 vCentre;
@@ -96,9 +112,9 @@
     float k = 0.5 * (length(e1) + abs(dot(a2, e2)));
     mat3 R = mat3(a0, a1, a2);
     vec4 m = texelFetch(uMu, px(aId), 0);
-    mat3 Rs = R * quatMat(texelFetch(uRot, px(aId), 0));
+    mat3 Rs = R * quatMat(texelFetch(uRot, px(aId), 0)) * quatMat(texelFetch(uDq, px(aId), 0));
     vec3 centre = k * (R * m.xyz) + (v0 + v1 + v2) / 3.0;
-    vec2 s = k * vec2(m.w, uintBitsToFloat(t.w));
+    vec2 s = k * vec2(m.w, uintBitsToFloat(t.w)) * exp(texelFetch(uLf, px(aId), 0).xy);
     vec2 c = corners[gl_VertexID] * 3.0;
     vec3 world = centre + c.x * s.x * Rs[0] + c.y * s.y * Rs[1];
     gl_Position = uProj * uView * vec4(world, 1.0);
@@ -138,8 +154,9 @@
   } catch (e) { fail("shader error: " + e.message); return; }
   gl.useProgram(prog);
   const U = {};
-  for (const name of ["uVert", "uMu", "uRot", "uCol", "uTri", "uView", "uProj", "uSize"]) U[name] = gl.getUniformLocation(prog, name);
-  [[texVert, "uVert"], [texMu, "uMu"], [texRot, "uRot"], [texCol, "uCol"], [texTri, "uTri"]].forEach(([tex, name], unit) => {
+  for (const name of ["uVert", "uMu", "uRot", "uCol", "uTri", "uDq", "uLf", "uView", "uProj", "uSize"]) U[name] = gl.getUniformLocation(prog, name);
+  const UNITS = [[texVert, "uVert"], [texMu, "uMu"], [texRot, "uRot"], [texCol, "uCol"], [texTri, "uTri"], [texDq, "uDq"], [texLf, "uLf"]];
+  UNITS.forEach(([tex, name], unit) => {
     gl.activeTexture(gl.TEXTURE0 + unit);
     gl.bindTexture(gl.TEXTURE_2D, tex);
     gl.uniform1i(U[name], unit);
@@ -170,6 +187,26 @@
     gl.activeTexture(gl.TEXTURE0);  // texVert's unit
     gl.bindTexture(gl.TEXTURE_2D, texVert);
     gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(V), gl.RGBA, gl.FLOAT, vertData);
+    if (frameCols) {  // this frame's colours (wrinkles, shading at the pose)
+      const b = f * N * 3;
+      for (let i = 0; i < N; i++) for (let c = 0; c < 3; c++) colData[4 * i + c] = frameCols[b + 3 * i + c];
+      gl.activeTexture(gl.TEXTURE3);  // texCol's unit
+      gl.bindTexture(gl.TEXTURE_2D, texCol);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(N), gl.RGBA, gl.UNSIGNED_BYTE, colData);
+    }
+    if (frameDq) {  // this frame's surfel correction
+      const b4 = f * N * 4, b2 = f * N * 2, lfs = doc.log_factor_scale;
+      for (let i = 0; i < N; i++) {
+        for (let c = 0; c < 4; c++) dqData[4 * i + c] = frameDq[b4 + 4 * i + c] / 127;
+        lfData[4 * i] = frameLf[b2 + 2 * i] / lfs; lfData[4 * i + 1] = frameLf[b2 + 2 * i + 1] / lfs;
+      }
+      gl.activeTexture(gl.TEXTURE5);
+      gl.bindTexture(gl.TEXTURE_2D, texDq);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(N), gl.RGBA, gl.FLOAT, dqData);
+      gl.activeTexture(gl.TEXTURE6);
+      gl.bindTexture(gl.TEXTURE_2D, texLf);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(N), gl.RGBA, gl.FLOAT, lfData);
+    }
     // surfel centres on the CPU, only to sort them (the GPU poses everything it draws)
     for (let i = 0; i < N; i++) {
       const i0 = 3 * tri[3 * i], i1 = 3 * tri[3 * i + 1], i2 = 3 * tri[3 * i + 2];
@@ -221,6 +258,8 @@
   const up = [-R0[1][0], -R0[1][1], -R0[1][2]];  // the reference camera's up (OpenCV y points down)
   let axes = [R0[0].slice(), R0[1].slice(), R0[2].slice()];  // camera x, y, z in world (rows)
   let dist = Math.hypot(camCentre[0] - target[0], camCentre[1] - target[1], camCentre[2] - target[2]);
+  const home = { axes: axes.map(a => a.slice()), dist };
+  function resetView() { axes = home.axes.map(a => a.slice()); dist = home.dist; dirty = true; }
   function rotateAbout(v, axis, ang) {  // Rodrigues
     const c = Math.cos(ang), s = Math.sin(ang);
     const d = axis[0] * v[0] + axis[1] * v[1] + axis[2] * v[2];
@@ -283,7 +322,17 @@
   function setPlaying(p) { playing = p && T > 1; playBtn.textContent = playing ? "pause" : "play"; }
   setPlaying(playing);
   playBtn.onclick = () => setPlaying(!playing);
-  window.addEventListener("keydown", e => { if (e.code === "Space") { setPlaying(!playing); e.preventDefault(); } });
+  window.addEventListener("keydown", e => {
+    if (e.code === "Space") { setPlaying(!playing); e.preventDefault(); }
+    if (e.code === "KeyR") resetView();
+  });
+  resetBtn.onclick = resetView;
+  let speed = parseFloat(query.get("speed") || "1");
+  if (!(speed > 0)) speed = 1;
+  if (![...speedSel.options].some(o => parseFloat(o.value) === speed)) speedSel.add(new Option(speed + "x", String(speed)));
+  speedSel.value = String(speed);
+  speedSel.onchange = () => { speed = parseFloat(speedSel.value); start = performance.now(); startFrame = frame; };
+  window.sageSpeed = () => speed;
   slider.oninput = () => { frame = parseInt(slider.value, 10); setPlaying(false); dirty = true; };
   let drag = null;
   canvas.addEventListener("pointerdown", e => { drag = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); });
@@ -301,6 +350,7 @@
 
   const bg = doc.background;
   let start = performance.now(), startFrame = frame;
+  let drawn = 0, fpsSince = performance.now();
   function draw() {
     if (frame !== loadedFrame) loadFrame(frame);
     const s = cameraState();
@@ -324,17 +374,23 @@
   }
   function tick(now) {
     if (playing) {
-      const f = (startFrame + Math.floor((now - start) / 1000 * doc.fps)) % T;
+      const f = (startFrame + Math.floor((now - start) / 1000 * doc.fps * speed)) % T;
       if (f !== frame) { frame = f; dirty = true; }
     } else {
       start = now; startFrame = frame;
     }
     if (dirty) {
       draw();
+      drawn++;
       dirty = false;
       if (!window.sageReady && (requested < 0 || frame === requested)) {
         requestAnimationFrame(() => { window.sageReady = true; });
       }
+    }
+    if (now - fpsSince >= 500) {  // frames drawn per second over the last half second
+      window.sageFps = drawn * 1000 / (now - fpsSince);
+      fpsLabel.textContent = drawn ? `${window.sageFps.toFixed(1)} fps` : "idle";
+      drawn = 0; fpsSince = now;
     }
     requestAnimationFrame(tick);
   }
