@@ -51,3 +51,15 @@ class WorkspaceError(InputError):
     writable."""
 
     exit_code = 2
+
+
+def require_file(path: str | Path, what: str) -> None:
+    """InputError unless ``path`` is an existing regular file: a folder, a device or a pipe is named
+    as such, a missing path as "<what> not found"."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(p, f"is a folder, expected a {what}")
+    if p.exists() and not p.is_file():
+        raise InputError(p, f"is not a regular file (a device or pipe), expected a {what}")
+    if not p.is_file():
+        raise InputError(p, f"{what} not found")

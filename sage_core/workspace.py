@@ -116,7 +116,8 @@ def file_fingerprint(path: str | Path, content: bool = True) -> str:
     return h.hexdigest()[:16]
 
 
-def _sha256_file(path: Path) -> str:
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
@@ -152,7 +153,7 @@ def content_hashes(paths: list[Path], cache_file: str | Path | None = None) -> d
         if isinstance(hit, list) and len(hit) == 3 and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
             out[key] = str(hit[2])
             continue
-        digest = _sha256_file(Path(key))
+        digest = file_sha256(Path(key))
         out[key] = digest
         cache[key] = [st.st_size, st.st_mtime_ns, digest]
         changed = True

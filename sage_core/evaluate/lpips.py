@@ -10,7 +10,6 @@ report ``None`` (:func:`load_lpips_or_none`, :func:`lpips_or_none`), never a num
 
 from __future__ import annotations
 
-import hashlib
 import os
 import pickle
 import zipfile
@@ -20,6 +19,7 @@ import torch
 import torch.nn as nn
 
 from ..errors import InputError
+from ..workspace import file_sha256
 
 ENV_VAR = "SAGE_LPIPS_WEIGHTS"
 DEFAULT_CACHE_PATH = Path("~/.cache/sage/lpips_alex_v0.1.pth")
@@ -71,15 +71,6 @@ def find_lpips_weights(explicit: str | Path | None = None) -> Path | None:
         return p
     p = default_weights_path()
     return p if p.is_file() else None
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex sha256 of a file, read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def load_lpips_state_dict(path: str | Path, check_sha256: bool = False) -> dict[str, torch.Tensor]:
