@@ -129,39 +129,66 @@ def test_export_meshes(ws):
     assert res.exit_code == 0 and "skipping" in res.output
 
 
-def test_bundle_loads_without_the_workspace_and_renders_the_same(ws, tmp_path):
+def test_bundle_loads_without_the_workspace_and_renders_the_same(ws, tmp_path, tiny_capture):
+    from sage_core.errors import InputError
     from sage_core.export.bundle import FRAME_CONVENTION, load_bundle
+    from sage_core.stages.avatars import AvatarRenderer
+    from sage_core.workspace import file_sha256
 
     res = invoke(["export", ws, "--bundle", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
+    assert "--flame-model" in res.output  # the panel says what loading it needs
     data, loaded, renderer = load_phase1_renderer(ws)
     fr = data.val[0]
     inputs = loaded.avatar.frame_inputs(fr.timestep)
     ref = renderer.render(fr.camera, inputs)
     moved = tmp_path / "elsewhere" / "bundle"
     shutil.copytree(ws / "export" / "bundle", moved)
+    res = invoke(["export", ws, "--bundle", "--include-flame-model", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    with_model = tmp_path / "elsewhere" / "with_model"
+    shutil.copytree(ws / "export" / "bundle", with_model)
     shutil.rmtree(ws)  # nothing of the workspace is left
     meta = json.loads((moved / "bundle.json").read_text())
+    assert meta["format"] == 3 and meta["source"]["workspace"] == "../.."  # no absolute path of this machine
     assert meta["surfels"]["frame_convention"] == FRAME_CONVENTION == "surfel-flat [a0,-a2,a1]"
     assert meta["surfels"]["dimensions"] == 2 and meta["up_axis"] == "y"
     assert meta["flame"]["n_vertices"] == loaded.avatar.model_data.v_template.shape[0]
     assert meta["flame"]["n_faces"] == loaded.avatar.faces.shape[0]
+    # the model is referenced by its file name and SHA-256, not carried
+    model = meta["flame"]["model"]
+    assert model["included"] is False and model["file"] == tiny_capture.model_path.name
+    assert model["file_sha256"] == file_sha256(tiny_capture.model_path) and model["mouth_interior"]["cavity"] is True
+    arrays = meta["arrays"]["avatar.safetensors"]
+    assert not any(k.startswith("flame/") for k in arrays) and "state/canonical_vertices" in arrays
+    assert any(k.startswith("flame/") for k in json.loads((with_model / "bundle.json").read_text())["arrays"]["avatar.safetensors"])
+    size = sum(f.stat().st_size for f in moved.iterdir())
+    assert size < 0.8 * sum(f.stat().st_size for f in with_model.iterdir())
     assert [e["timestep"] for e in meta["timestep_map"]] == [int(t) for t in loaded.avatar.params.timesteps]
     with np.load(moved / "flame_param.npz") as z:
         assert z["shape"].ndim == 1 and z["expr"].shape[0] == len(meta["timestep_map"])
-    b = load_bundle(moved)
-    assert b.reference_camera is not None and b.reference_camera.index == fr.camera_index
-    from sage_core.stages.avatars import AvatarRenderer
-
-    img = AvatarRenderer(b.avatar, b.render).render(b.reference_camera, b.avatar.frame_inputs(fr.timestep))
-    assert torch.equal(img, ref)
+    with pytest.raises(InputError, match="--flame-model"):
+        load_bundle(moved)
+    other = tmp_path / "other.npz"
+    other.write_bytes(tiny_capture.model_path.read_bytes() + b"\0")
+    with pytest.raises(InputError, match="SHA-256"):  # refused by its hash, before it is read
+        load_bundle(moved, flame_model=other)
+    for folder, model_file in ((moved, tiny_capture.model_path), (with_model, None)):
+        b = load_bundle(folder, flame_model=model_file)
+        assert b.reference_camera is not None and b.reference_camera.index == fr.camera_index
+        img = AvatarRenderer(b.avatar, b.render).render(b.reference_camera, b.avatar.frame_inputs(fr.timestep))
+        assert torch.equal(img, ref)
+    # a format-2 bundle (the model inside, no model section) still loads
+    meta2 = json.loads((with_model / "bundle.json").read_text())
+    meta2["format"] = 2
+    del meta2["flame"]["model"]
+    (with_model / "bundle.json").write_text(json.dumps(meta2))
+    assert load_bundle(with_model).avatar.surfels.n == loaded.avatar.surfels.n
     # a tampered face table is refused
     meta["flame"]["faces_sha256"] = "0" * 64
     (moved / "bundle.json").write_text(json.dumps(meta))
-    from sage_core.errors import InputError
-
     with pytest.raises(InputError, match="faces_sha256"):
-        load_bundle(moved)
+        load_bundle(moved, flame_model=tiny_capture.model_path)
 
 
 def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture):
@@ -173,6 +200,9 @@ def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture
     out = tmp_path / "orbit"
     res = invoke(["reenact", "--bundle", moved, "--flame-seq", tiny_capture, "--orbit", "--max-frames", "3",
                   "--out", out, "--device", "cpu", "--quiet"])  # fmt: skip
+    assert res.exit_code == 2 and "--flame-model" in res.output  # the bundle names the model it needs
+    res = invoke(["reenact", "--bundle", moved, "--flame-model", tiny_capture.model_path, "--flame-seq", tiny_capture,
+                  "--orbit", "--max-frames", "3", "--out", out, "--device", "cpu", "--quiet"])  # fmt: skip
     assert res.exit_code == 0, res.output
     frames = sorted((out / "frames").glob("*.png"))
     assert len(frames) == 3 and (out / "video.mp4").stat().st_size > 0
@@ -183,8 +213,8 @@ def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture
     rec = json.loads((out / "reenact.json").read_text())
     assert rec["report"]["n_frames"] == 3 and "orbit" in rec["cameras"]
     # its reference camera is the bundle's, not a camera of "this capture"
-    res = invoke(["reenact", "--bundle", moved, "--flame-seq", tiny_capture, "--max-frames", "1", "--no-video",
-                  "--out", tmp_path / "ref", "--device", "cpu", "--quiet"])  # fmt: skip
+    res = invoke(["reenact", "--bundle", moved, "--flame-model", tiny_capture.model_path, "--flame-seq", tiny_capture,
+                  "--max-frames", "1", "--no-video", "--out", tmp_path / "ref", "--device", "cpu", "--quiet"])  # fmt: skip
     assert res.exit_code == 0, res.output
     cams = json.loads((tmp_path / "ref" / "reenact.json").read_text())["cameras"]
     assert cams.startswith("the bundle's reference camera") and "this capture" not in res.output

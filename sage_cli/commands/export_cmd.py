@@ -66,7 +66,8 @@ def export(
     flame_seq: Annotated[Optional[Path], typer.Option("--flame-seq", help="Motion (npz, flame_param folder or capture): one viewer file per frame into export/ply/seq_<motion>/, and the sequence of --gaussian-avatars and --web (default: the avatar's own).")] = None,
     max_frames: Annotated[Optional[int], typer.Option("--max-frames", help="Only the first N frames of the sequence: --flame-seq's, or the avatar's own played by --web / --gaussian-avatars.")] = None,
     mesh: Annotated[bool, typer.Option("--mesh", help="Meshes: the SDF zero level set (marching cubes) and the posed FLAME mesh, as PLY and OBJ.")] = False,
-    bundle: Annotated[bool, typer.Option("--bundle", help="Self-contained avatar bundle (avatar.safetensors, flame_param.npz, bundle.json).")] = False,
+    bundle: Annotated[bool, typer.Option("--bundle", help="Avatar bundle (avatar.safetensors, flame_param.npz, bundle.json); it names the FLAME model file it needs instead of carrying it.")] = False,
+    include_flame_model: Annotated[bool, typer.Option("--include-flame-model", help="Put the (licensed) FLAME model into the bundle, so that it loads without the model file; only for bundles you do not share.")] = False,
     stage: Annotated[Optional[str], typer.Option("--stage", help="Avatar: auto (latest finished of phase2, phase1), phase1 or phase2.")] = None,
     mc_resolution: Annotated[Optional[int], typer.Option("--mc-resolution", help="Marching-cubes resolution of the SDF mesh.")] = None,
     color_camera: Annotated[Optional[int], typer.Option("--color-camera", help="Bake view-dependent colours as seen from this capture camera (default: each surfel seen along its normal).")] = None,
@@ -119,7 +120,8 @@ def export(
 
         with StageDisplay(verbose, preset) as display:
             r = export_stage(ws, cfg, viewer=viewer, mesh=mesh, bundle=bundle, gaussian_avatars=gaussian_avatars, web=web, frame=frame,
-                             flame_seq=flame_seq, max_frames=max_frames, settings=StageSettings(seed, device, force, threads),
+                             flame_seq=flame_seq, max_frames=max_frames, include_flame_model=include_flame_model,
+                             settings=StageSettings(seed, device, force, threads),
                              on_event=display)  # fmt: skip
         show(r)
 
@@ -154,7 +156,9 @@ def show(r: ExportResult) -> None:
         for rel in files:
             paths.append((name, out_dir / rel))
     if "bundle" in r.items:
-        rows.append(("bundle", "drive it with `sage reenact --bundle " + str(out_dir / "bundle") + " --flame-seq SEQ --orbit`"))
+        e = r.items["bundle"]
+        need = "" if e.get("flame_model", "included") == "included" else f" --flame-model {e['flame_model'].split(': ', 1)[-1]}"
+        rows.append(("bundle", f"{e.get('flame_model', '')}; drive it with `sage reenact --bundle {out_dir / 'bundle'}{need} --flame-seq SEQ --orbit`"))
     if not r.skipped:
         rows.append(("wall time", f"{r.wall_time_s:.1f} s"))
     summary_panel("sage export", rows, paths)

@@ -38,6 +38,7 @@ def reenact(
     fps: Annotated[Optional[float], typer.Option("--fps", help="Video frame rate (default: the motion's, else 25).")] = None,
     max_frames: Annotated[Optional[int], typer.Option("--max-frames", help="Render only the first N frames of the motion.")] = None,
     bundle: Annotated[Optional[Path], typer.Option("--bundle", help="Avatar bundle folder from `sage export --bundle` (no workspace needed).")] = None,
+    flame_model: Annotated[Optional[Path], typer.Option("--flame-model", help="With --bundle: the FLAME model file the bundle names (a bundle does not carry the licensed model unless exported with --include-flame-model); checked by SHA-256 before it is read.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Output folder (default: WS/reenact/<name>, or <bundle>/reenact/<name>).")] = None,
     size: Annotated[Optional[str], typer.Option("--size", help="Output size: WIDTHxHEIGHT, or a HEIGHT (the width follows the camera's aspect ratio); the camera's intrinsics are rescaled (default: the camera's own size).")] = None,
     device: DeviceOpt = "auto",
@@ -58,7 +59,7 @@ def reenact(
         with StageDisplay(verbose) as display:
             r = reenact_stage(ws=ws, flame_seq=flame_seq, camera=camera, cameras_from=cameras_from, orbit=orbit, orbit_arc=orbit_arc,
                               orbit_elevation=orbit_elevation, frame_format=frame_format, video=video, name=name, stage=stage, fps=fps,
-                              max_frames=max_frames, bundle=bundle, out=out, device=device, size=size, threads=threads,
+                              max_frames=max_frames, bundle=bundle, out=out, device=device, size=size, threads=threads, flame_model=flame_model,
                               on_event=display)  # fmt: skip
         show(r)
 

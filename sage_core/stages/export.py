@@ -130,6 +130,34 @@ def workspace_preset(ws: str | Path | Workspace) -> str | None:
     return [p for p in PRESETS if scores[p] == best][-1]
 
 
+def workspace_flame_source(ws: Workspace, data: Any, avatar: Any) -> Any:
+    """The :class:`~sage_core.export.bundle.FlameSource` of a workspace's avatar: the user's model
+    file named by ingest (its full SHA-256 when the file is still there with the content ingest
+    hashed, else the hash prefix ingest recorded), the ingested model, and the lip vertex ids the
+    mouth interior was placed from (when init-mesh appended one)."""
+    from ..export.bundle import FlameSource
+    from ..flame.regions import Regions
+    from ..workspace import file_sha256
+
+    prefix = str(((ws.manifest("ingest") or {}).get("inputs") or {}).get("files", {}).get("flame_model", ""))
+    src = Path(str(data.summary.get("model_source") or "flame_model"))
+    full = None
+    if src.is_file():
+        digest = file_sha256(src)
+        full = digest if digest.startswith(prefix) else None
+    base = data.load_model()
+    lips = None
+    if int(avatar.model_data.v_template.shape[0]) > base.n_vertices:
+        masks = data.load_masks_json()
+        if masks:
+            regions = Regions(masks, base.faces, base.n_vertices, base.vertex_groups)
+            if regions.has("lips"):
+                ids = regions.vertex_ids("lips")
+                lips = sorted({int(i) for i in ids if 0 <= int(i) < base.n_base_vertices})
+    cavity = "mouth_upper" in avatar.model_data.vertex_groups
+    return FlameSource(src.name, full, prefix, base, lips, cavity)
+
+
 def check_export_options(*, viewer: list[str], mesh: bool, bundle: bool, gaussian_avatars: bool, web: bool,
                          frame: int | None, flame_seq: Any, max_frames: int | None) -> None:  # fmt: skip
     """ConfigError for options that would be ignored or contradict each other (before anything is
@@ -170,6 +198,7 @@ def export_stage(
     frame: int | None = None,
     flame_seq: str | Path | None = None,
     max_frames: int | None = None,
+    include_flame_model: bool = False,
     settings: StageSettings = StageSettings(),
     on_event: EventFn | None = None,
 ) -> ExportResult:
@@ -180,7 +209,9 @@ def export_stage(
     gaussian_avatars, web: the other outputs. gaussian_avatars and web play a sequence: ``flame_seq``,
     else the single timestep ``frame``, else the avatar's own tracked sequence (its first
     ``max_frames``). Items already exported from the same avatar with the same settings are not
-    redone (all of them: a ``skipped`` event); ``settings.force`` redoes them. ConfigError for
+    redone (all of them: a ``skipped`` event); ``settings.force`` redoes them. The bundle references
+    the user's FLAME model (its file name and SHA-256) instead of carrying it, unless
+    ``include_flame_model``. ConfigError for
     options that would be ignored (:func:`check_export_options`), InputError for a missing
     timestep, camera or motion.
     """
@@ -236,7 +267,7 @@ def export_stage(
         wanted["mesh:sdf"] = result_key(item="mesh:sdf", **base, mc_resolution=cfg.mc_resolution)
         wanted[f"mesh:flame-{pose}"] = result_key(item=f"mesh:flame-{pose}", **base)
     if bundle:
-        wanted["bundle"] = result_key(item="bundle", **base, up_axis=cfg.up_axis)
+        wanted["bundle"] = result_key(item="bundle", **base, up_axis=cfg.up_axis, flame_model=include_flame_model, layout=3)
     existing = fresh_results(ws, "export")
     for name, entry in list(existing.items()):
         files = entry_files(name, entry)
@@ -375,10 +406,18 @@ def export_stage(
                     write_mesh(run.work_dir / rel, v, f)
                 extra = {"vertices": int(v.shape[0]), "faces": int(f.shape[0])}
             else:
-                write_bundle(av, run.work_dir / "bundle", loaded.render, reference_camera=reference_camera(data),
-                             head_center=head_center(data), up_axis=cfg.up_axis,
-                             source={"workspace": "../..", "stage": av_stage, "fingerprint": loaded.fingerprint})  # fmt: skip
+                flame_src = None if include_flame_model else workspace_flame_source(run.ws, data, av)
+                try:
+                    write_bundle(av, run.work_dir / "bundle", loaded.render, reference_camera=reference_camera(data),
+                                 head_center=head_center(data), up_axis=cfg.up_axis, flame_source=flame_src,
+                                 source={"workspace": "../..", "stage": av_stage, "fingerprint": loaded.fingerprint})  # fmt: skip
+                except ValueError as e:
+                    from ..errors import StageError
+
+                    raise StageError(f"bundle: {e}") from None
                 files = _folder_files(run.work_dir, "bundle")
+                extra = {"flame_model": "included" if flame_src is None else f"referenced: {flame_src.file_name}",
+                         "bytes": sum((run.work_dir / rel).stat().st_size for rel in files)}  # fmt: skip
             missing = [rel for rel in files if not (run.work_dir / rel).is_file()]
             assert not missing, f"{name}: {missing} not written"
             results[name] = {"key": wanted[name], "avatar_stage": av_stage, "avatar_fingerprint": loaded.fingerprint,

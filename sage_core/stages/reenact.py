@@ -155,13 +155,15 @@ def reenact_stage(
     device: str = "auto",
     size: str | None = None,
     threads: int | None = None,
+    flame_model: str | Path | None = None,
     on_event: EventFn | None = None,
 ) -> ReenactResult:
     """Render the avatar of ``ws`` (``stage``: auto, phase1, phase2) or of ``bundle`` driven by
     ``flame_seq`` into ``out`` (default ``WS/reenact/<name>`` or ``<bundle>/reenact/<name>``).
 
     size: the output size, "WxH" or a height (:func:`parse_size`; default the camera's own).
-    threads: CPU threads (None: ``$SAGE_THREADS``, else the idle cores).
+    threads: CPU threads (None: ``$SAGE_THREADS``, else the idle cores). flame_model: the FLAME
+    model file a bundle that does not carry its model was built with (checked by SHA-256 first).
     Options as :func:`check_reenact_options` describes (ConfigError); the motion is validated
     against the avatar before anything renders (InputError naming the source).
     """
@@ -191,7 +193,7 @@ def reenact_stage(
     if bundle is not None:
         from ..export.bundle import load_bundle
 
-        b = load_bundle(bundle, dev)
+        b = load_bundle(bundle, dev, flame_model=flame_model)
         avatar, settings, ref_cam, centre = b.avatar, b.render, b.reference_camera, b.head_center
         avatar_label = "bundle"
         avatar_path = Path(b.root)
