@@ -152,13 +152,14 @@ def show(r: ExportResult) -> None:
             rows.append((name, f"{e.get('rows', '?')} surfels written{orient}, {e.get('rows_dropped', '?')} rows dropped (non-finite or opacity < 1/255)"))
         elif name.startswith("mesh:"):
             rows.append((name, f"{e.get('vertices', '?')} vertices, {e.get('faces', '?')} faces" + (" (canonical space)" if name == "mesh:sdf" else "")))
-        files = e["files"] if name not in ("bundle", "gaussian-avatars", "web") else [str(Path(e["files"][0]).parent)] if e["files"] else []
+        files = e["files"] if name not in ("bundle", "gaussian-avatars", "web") else [e["files"][0].split("/", 1)[0]] if e["files"] else []
         for rel in files:
             paths.append((name, out_dir / rel))
     if "bundle" in r.items:
         e = r.items["bundle"]
         need = "" if e.get("flame_model", "included") == "included" else f" --flame-model {e['flame_model'].split(': ', 1)[-1]}"
-        rows.append(("bundle", f"{e.get('flame_model', '')}; drive it with `sage reenact --bundle {out_dir / 'bundle'}{need} --flame-seq SEQ --orbit`"))
+        what = f"FLAME model {e['flame_model']}; " if e.get("flame_model") else ""
+        rows.append(("bundle", f"{what}drive it with `sage reenact --bundle {out_dir / 'bundle'}{need} --flame-seq SEQ --orbit`"))
     if not r.skipped:
         rows.append(("wall time", f"{r.wall_time_s:.1f} s"))
     summary_panel("sage export", rows, paths)
