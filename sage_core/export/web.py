@@ -11,11 +11,13 @@ The surfels are posed on the GPU: the vertex shader reads the frame's mesh verti
 builds GaussianAvatars' face frame (R = [a0 | a1 | a2], centroid T, scale k; formats.md §6) of each
 surfel's bound triangle and applies ``μ = k·R·μ_loc + T``, ``R(q) = R·R(q_loc)``, ``s = k·s_loc``
 to the local attributes of :func:`~sage_core.export.gaussian_avatars.ga_local_gaussians` — the same
-posing as ``sage``'s uncorrected surfels. Only the mesh vertices change per frame, so the file
-stays small. Each surfel is drawn as a quad over ±3σ of its plane; the fragment shader evaluates
-the Gaussian at the ray–plane intersection (the interpolated local coordinates) with the rasterizer's
-screen-space low-pass bound (ρ = min(u² + v², 2·|x − c|²), α = min(0.99, o·e^{−ρ/2})), and the
-surfels are blended back to front, sorted by centre depth whenever the frame or camera changes.
+posing as ``sage``'s uncorrected surfels. Only the mesh vertices change per frame. Each surfel is
+drawn with the surfel rasterizer's own per-pixel maths (:mod:`sage_core.render`): the splat-to-pixel
+matrix M in OpenCV pixel coordinates, each pixel's ray–surfel intersection (u, v), the screen-space
+low-pass bound ρ = min(u² + v², 2·|x − c|²) around the exact 3σ box centre c, α = min(0.99, o·e^{−ρ/2})
+(skipped below 1/255 or before the near plane), over the pixels of the surfel's 16×16 tiles where α
+can reach 1/255; the surfels are blended back to front by centre depth (the rasterizer's per-tile
+order), sorted whenever the frame or camera changes.
 
 Colours and the phase-2 state: the colours of every frame are sage's own for that frame (the
 renderer's posed surfels: expression wrinkle shading, the albedo × world-light shading at the pose,
@@ -170,6 +172,7 @@ def web_player_data(
         "frame_correction": corrected,
         "log_factor_scale": LOG_FACTOR_SCALE,
         "background": [float(background)] * 3,
+        "near": float(getattr(getattr(renderer, "settings", None), "near", 0.2)),
         "head_center": centre.tolist(),
         "camera": _camera_doc(camera),
         "data": base64.b64encode(blob).decode("ascii"),

@@ -85,12 +85,16 @@
   const texLf = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, lfData, N);
 
   // ------------------------------------------------------------------ shaders
+  // The surfel rasterizer's maths per pixel (sage_core/render/_project.py): the splat->pixel matrix M
+  // (rows Tu, Tv, Tw) in OpenCV pixel coordinates, the ray-splat intersection (u, v) of each pixel,
+  // rho = min(u^2 + v^2, 2 |c - x|^2) with the low-pass centre c the exact 3-sigma box centre, and the
+  // pixels drawn those of the surfel's 16x16 tiles where alpha can reach 1/255.
   const VS = `#version 300 es
   precision highp float; precision highp int; precision highp usampler2D;
   uniform highp sampler2D uVert, uMu, uRot, uCol, uDq, uLf; uniform usampler2D uTri;
-  uniform mat4 uView, uProj; uniform vec2 uSize;
+  uniform mat4 uView; uniform vec2 uSize; uniform vec4 uK; uniform float uNear;
   in uint aId;
-  out vec2 vUV; out vec4 vColor; flat out vec2 vCentre;
+  flat out vec3 vTu, vTv, vTw; flat out vec2 vCentre; out vec4 vColor;
   ivec2 px(uint i) { return ivec2(int(i % ${TW}u), int(i / ${TW}u)); }
   vec3 vert(uint i) { return texelFetch(uVert, px(i), 0).xyz; }
   mat3 quatMat(vec4 q) {
@@ -100,7 +104,8 @@
                 2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
                 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
   }
-  const vec2 corners[4] = vec2[4](vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(-1.0, 1.0), vec2(1.0, 1.0));
+  const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
+  void cull() { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); }
   void main() {
     uvec4 t = texelFetch(uTri, px(aId), 0);
     vec3 v0 = vert(t.x), v1 = vert(t.y), v2 = vert(t.z);
@@ -115,25 +120,61 @@
     mat3 Rs = R * quatMat(texelFetch(uRot, px(aId), 0)) * quatMat(texelFetch(uDq, px(aId), 0));
     vec3 centre = k * (R * m.xyz) + (v0 + v1 + v2) / 3.0;
     vec2 s = k * vec2(m.w, uintBitsToFloat(t.w)) * exp(texelFetch(uLf, px(aId), 0).xy);
-    vec2 c = corners[gl_VertexID] * 3.0;
-    vec3 world = centre + c.x * s.x * Rs[0] + c.y * s.y * Rs[1];
-    gl_Position = uProj * uView * vec4(world, 1.0);
-    vec4 cc = uProj * uView * vec4(centre, 1.0);
-    vCentre = vec2((cc.x / cc.w + 1.0) * 0.5 * uSize.x, (1.0 - cc.y / cc.w) * 0.5 * uSize.y);
-    vUV = c;
     vColor = texelFetch(uCol, px(aId), 0);
-    if (cc.w <= 0.0) gl_Position = vec4(0.0, 0.0, 2.0, 1.0);
+    // OpenCV camera frame: the GL view matrix is diag(1, -1, -1) * w2c
+    mat3 V = mat3(uView);
+    vec3 flip = vec3(1.0, -1.0, -1.0);
+    vec3 pc = flip * (uView * vec4(centre, 1.0)).xyz;
+    vec3 ta = flip * (V * (Rs[0] * s.x)), tb = flip * (V * (Rs[1] * s.y)), nc = flip * (V * Rs[2]);
+    mat3 K = mat3(uK.x, 0.0, 0.0, 0.0, uK.y, 0.0, uK.z, uK.w, 1.0);
+    vec3 ca = K * ta, cb = K * tb, cc = K * pc;  // columns of M
+    vec3 Tu = vec3(ca.x, cb.x, cc.x), Tv = vec3(ca.y, cb.y, cc.y), Tw = vec3(ca.z, cb.z, cc.z);
+    float c2 = 9.0;
+    float d = c2 * (Tw.x * Tw.x + Tw.y * Tw.y) - Tw.z * Tw.z;
+    if (pc.z <= uNear || d >= 0.0 || dot(pc, nc) == 0.0) { cull(); return; }
+    float cx = (c2 * (Tu.x * Tw.x + Tu.y * Tw.y) - Tu.z * Tw.z) / d;
+    float cy = (c2 * (Tv.x * Tw.x + Tv.y * Tw.y) - Tv.z * Tw.z) / d;
+    float uu = (c2 * (Tu.x * Tu.x + Tu.y * Tu.y) - Tu.z * Tu.z) / d;
+    float vv = (c2 * (Tv.x * Tv.x + Tv.y * Tv.y) - Tv.z * Tv.z) / d;
+    float r = ceil(max(max(sqrt(max(cx * cx - uu, 1e-4)), sqrt(max(cy * cy - vv, 1e-4))), 3.0 * 0.70710678));
+    vec2 gridN = ceil(uSize / 16.0);
+    vec2 c0 = vec2(cx, cy) - 0.5;  // pixel-index coordinates
+    vec2 tile0 = clamp(floor((c0 - r) / 16.0), vec2(0.0), gridN);
+    vec2 tile1 = clamp(floor((c0 + r + 15.0) / 16.0), vec2(0.0), gridN);
+    if (tile1.x <= tile0.x || tile1.y <= tile0.y) { cull(); return; }
+    // where alpha can reach 1/255: rho <= B, the projected disc of radius sqrt(B) and a square around c
+    float B = max(0.0, 2.0 * log(max(255.0 * vColor.a, 1e-30)));
+    vec2 lo = tile0 * 16.0, hi = tile1 * 16.0;
+    vec2 blo = lo, bhi = hi;
+    float dB = B * (Tw.x * Tw.x + Tw.y * Tw.y) - Tw.z * Tw.z;
+    if (dB < 0.0) {
+      float bx = (B * (Tu.x * Tw.x + Tu.y * Tw.y) - Tu.z * Tw.z) / dB;
+      float by = (B * (Tv.x * Tw.x + Tv.y * Tw.y) - Tv.z * Tw.z) / dB;
+      float hx = sqrt(max(bx * bx - (B * (Tu.x * Tu.x + Tu.y * Tu.y) - Tu.z * Tu.z) / dB, 0.0));
+      float hy = sqrt(max(by * by - (B * (Tv.x * Tv.x + Tv.y * Tv.y) - Tv.z * Tv.z) / dB, 0.0));
+      float q = sqrt(B / 2.0);
+      blo = min(vec2(bx - hx, by - hy), vec2(cx, cy) - q) - 1.0;
+      bhi = max(vec2(bx + hx, by + hy), vec2(cx, cy) + q) + 1.0;
+    }
+    lo = max(lo, blo); hi = min(hi, bhi);
+    if (hi.x <= lo.x || hi.y <= lo.y) { cull(); return; }
+    vec2 p = mix(lo, hi, corners[gl_VertexID]);
+    gl_Position = vec4(2.0 * p.x / uSize.x - 1.0, 1.0 - 2.0 * p.y / uSize.y, 0.0, 1.0);
+    vTu = Tu; vTv = Tv; vTw = Tw; vCentre = vec2(cx, cy);
   }`;
   const FS = `#version 300 es
   precision highp float;
-  uniform vec2 uSize;
-  in vec2 vUV; in vec4 vColor; flat in vec2 vCentre;
+  uniform vec2 uSize; uniform float uNear;
+  flat in vec3 vTu, vTv, vTw; flat in vec2 vCentre; in vec4 vColor;
   out vec4 outColor;
   void main() {
-    vec2 p = vec2(gl_FragCoord.x, uSize.y - gl_FragCoord.y);
-    vec2 d = p - vCentre;
-    float rho = min(dot(vUV, vUV), 2.0 * dot(d, d));
-    if (rho > 9.0) discard;
+    vec2 p = vec2(gl_FragCoord.x, uSize.y - gl_FragCoord.y);  // OpenCV pixel coordinates, centres at +0.5
+    vec3 h = cross(p.x * vTw - vTu, p.y * vTw - vTv);
+    if (h.z == 0.0) discard;
+    vec2 uv = h.xy / h.z;
+    if (dot(vTw, vec3(uv, 1.0)) < uNear) discard;  // the intersection lies before the near plane
+    vec2 d = vCentre - p;
+    float rho = min(dot(uv, uv), 2.0 * dot(d, d));
     float a = min(0.99, vColor.a * exp(-0.5 * rho));
     if (a < 1.0 / 255.0) discard;
     outColor = vec4(vColor.rgb * a, a);
@@ -154,7 +195,7 @@
   } catch (e) { fail("shader error: " + e.message); return; }
   gl.useProgram(prog);
   const U = {};
-  for (const name of ["uVert", "uMu", "uRot", "uCol", "uTri", "uDq", "uLf", "uView", "uProj", "uSize"]) U[name] = gl.getUniformLocation(prog, name);
+  for (const name of ["uVert", "uMu", "uRot", "uCol", "uTri", "uDq", "uLf", "uView", "uSize", "uK", "uNear"]) U[name] = gl.getUniformLocation(prog, name);
   const UNITS = [[texVert, "uVert"], [texMu, "uMu"], [texRot, "uRot"], [texCol, "uCol"], [texTri, "uTri"], [texDq, "uDq"], [texLf, "uLf"]];
   UNITS.forEach(([tex, name], unit) => {
     gl.activeTexture(gl.TEXTURE0 + unit);
@@ -287,17 +328,7 @@
     view[15] = 1;
     return { view, fx, fy, cx, cy, width, height };
   }
-  function projection(s, near, far) {  // OpenCV intrinsics -> GL clip (pixel centres at i + 0.5)
-    const P = new Float32Array(16);
-    P[0] = 2 * s.fx / s.width;
-    P[5] = 2 * s.fy / s.height;
-    P[8] = 1 - 2 * s.cx / s.width;
-    P[9] = 2 * s.cy / s.height - 1;
-    P[10] = -(far + near) / (far - near);
-    P[11] = -1;
-    P[14] = -2 * far * near / (far - near);
-    return P;
-  }
+
 
   // ------------------------------------------------------------------ drawing and controls
   let frame = Math.max(0, Math.min(T - 1, parseInt(query.get("frame") || "0", 10) || 0));
@@ -364,8 +395,9 @@
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
     gl.useProgram(prog);
     gl.uniformMatrix4fv(U.uView, false, s.view);
-    gl.uniformMatrix4fv(U.uProj, false, projection(s, 0.01, 100.0));
     gl.uniform2f(U.uSize, s.width, s.height);
+    gl.uniform4f(U.uK, s.fx, s.fy, s.cx, s.cy);
+    gl.uniform1f(U.uNear, doc.near || 0.2);
     gl.bindVertexArray(vao);
     gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, N);
     slider.value = String(frame);
