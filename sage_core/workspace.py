@@ -586,13 +586,27 @@ class StageRun:
             "wall_time_s": round(time.time() - self._t0, 3),
             "resumed": self.resumed,
             "metrics": self.metrics,
-            "outputs": self.outputs,
+            "outputs": {k: self._relative(v) for k, v in self.outputs.items()},
             "files": files,
             "hashes": {rel: file_sha256(self.work_dir / rel) for rel in files},
         }
         atomic_write_json(self.work_dir / "manifest.json", manifest)
         _promote(self.ws, self.stage, self.work_dir, keep_checkpoints)
         return manifest
+
+    def _relative(self, path: str) -> str:
+        """An output path as written into the manifest: relative to the workspace root (POSIX) when
+        it lies in the workspace or the run's work folder, so that a copied or moved workspace
+        still finds it; other paths (and empty ones) as given."""
+        if not path:
+            return path
+        p = Path(path)
+        for base, to in ((self.work_dir, self.ws.stage_dir(self.stage)), (self.ws.root, self.ws.root)):
+            try:
+                return (to / p.relative_to(base)).relative_to(self.ws.root).as_posix()
+            except ValueError:
+                continue
+        return path
 
     def fail(self, message: str) -> None:
         """Mark the work folder as failed (its checkpoints stay for a resume)."""

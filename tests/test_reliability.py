@@ -483,7 +483,7 @@ def test_bundle_is_pickle_free_documented_and_ga_compatible(phase1_reference, tm
         assert z["dynamic_offset"].shape[1:] == z["static_offset"].shape[1:]
         np.testing.assert_array_equal(z["expr"], np.asarray(av.params.expr, np.float32))
     meta = json.loads((out / "bundle.json").read_text())
-    assert meta["format"] == 2 and meta["files"]["avatar"] == "avatar.safetensors"
+    assert meta["format"] == 3 and meta["flame"]["model"] == {"included": True} and meta["files"]["avatar"] == "avatar.safetensors"
     with safe_open(str(out / "avatar.safetensors"), "pt") as f:
         names = set(f.keys())
         described = meta["arrays"]["avatar.safetensors"]

@@ -336,7 +336,7 @@ def _edit_avatar_tree(path: Path, edit: Callable[[dict], None], fix_digest: bool
 def bundle_dir(cmd_avatar_ws, tmp_path_factory):
     ws = tmp_path_factory.mktemp("sec_bundle") / "ws"
     shutil.copytree(cmd_avatar_ws, ws)
-    res = _invoke("export", ws, "--bundle", "--quiet")
+    res = _invoke("export", ws, "--bundle", "--include-flame-model", "--quiet")
     assert res.exit_code == 0, _text(res)
     return ws / "export" / "bundle"
 

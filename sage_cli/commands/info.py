@@ -88,7 +88,8 @@ def _reenact_table(root: Path) -> object | None:
         try:
             doc = json.loads(path.read_text())
             rep = doc.get("report") or {}
-            outputs = [p for p in (rep.get("video_path"), rep.get("frames_dir")) if p]
+            # paths in the record are relative to its folder (absolute in records of older versions)
+            outputs = [str(path.parent / p) for p in (rep.get("video_path"), rep.get("frames_dir")) if p]
             fps = rep.get("render_fps")
             t.add_row(path.parent.name, _age(doc.get("finished_at")), str(rep.get("n_frames", "")), str(doc.get("cameras", "")),
                       f"{fps:.2f}" if isinstance(fps, (int, float)) else "", "\n".join(outputs))  # fmt: skip

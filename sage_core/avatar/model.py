@@ -276,10 +276,11 @@ class Avatar(nn.Module):
         return _storage.save_avatar(self, path, embed_flame=embed_flame)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Avatar:
+    def load(cls, path: str | Path, device: str | torch.device = "cpu", flame_model: FlameModelData | None = None) -> Avatar:
         """Read a file written by :meth:`save`; InputError when it is not a readable avatar
-        (UnsafeFileError for an old pickle avatar file, which is refused without being loaded)."""
-        return _storage.load_avatar_file(cls, path, device)
+        (UnsafeFileError for an old pickle avatar file, which is refused without being loaded).
+        flame_model: the model of a file that does not carry it (an avatar bundle's)."""
+        return _storage.load_avatar_file(cls, path, device, flame_model)
 
     # ------------------------------------------------------------------ FLAME inputs
     def frame_inputs(self, timestep: int) -> dict[str, torch.Tensor]:

@@ -99,8 +99,14 @@ def flame_reference(avatar: Avatar, path: Path) -> dict[str, Any] | None:
 
 
 
-def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = None) -> Path:
-    """Write the avatar file atomically (the arguments of :meth:`Avatar.save`); returns its path."""
+def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = None,
+                external_flame: dict[str, Any] | None = None) -> Path:
+    """Write the avatar file atomically (the arguments of :meth:`Avatar.save`); returns its path.
+
+    external_flame: store this plain-data description of the FLAME model (``flame_external``,
+    holding at least ``sha256`` = :func:`flame_model_sha256` of the avatar's model) instead of the
+    model: the file then loads only with the model given (an avatar bundle that does not hand out
+    the licensed model, :mod:`sage_core.export.bundle`)."""
     from .._version import __version__
     from ..serialization import save_file
 
@@ -114,8 +120,10 @@ def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = 
         "params": plain(avatar.params),
         "state": state,
     }
-    ref = None if embed_flame else flame_reference(avatar, p)
-    if ref is None:
+    ref = None if embed_flame or external_flame is not None else flame_reference(avatar, p)
+    if external_flame is not None:
+        blob["flame_external"] = {**external_flame, "sha256": flame_model_sha256(avatar.model_data)}
+    elif ref is None:
         blob["flame"] = plain(avatar.model_data)
     else:
         blob["flame_ref"] = ref
@@ -124,9 +132,11 @@ def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = 
     return save_file(p, blob, AVATAR_KIND, AVATAR_FORMAT)
 
 
-def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.device = "cpu") -> Avatar:
+def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.device = "cpu",
+                     flame_model: FlameModelData | None = None) -> Avatar:
     """Read a file written by :func:`save_avatar` into a new ``cls`` (the arguments of
-    :meth:`Avatar.load`)."""
+    :meth:`Avatar.load`). flame_model: the model of a file written with ``external_flame`` (its
+    content hash must be the recorded one; InputError without it or on a mismatch)."""
     from ..serialization import load_file
 
     p = Path(path)
@@ -136,7 +146,13 @@ def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.de
     source: Path | None = None
     try:
         args = blob["args"]
-        if "flame_ref" in blob:
+        if "flame_external" in blob:
+            if flame_model is None:
+                raise InputError(p, "does not carry its FLAME model; give the model it was built with")
+            if flame_model_sha256(flame_model) != blob["flame_external"].get("sha256"):
+                raise InputError(p, "the FLAME model given is not the one this avatar was built with")
+            model_data = flame_model
+        elif "flame_ref" in blob:
             model_data, source = resolve_flame_ref(p, blob["flame_ref"])
         else:
             model_data = FlameModelData(**blob["flame"])

@@ -44,7 +44,7 @@ class StageResult:
     skipped: already complete with the same config and inputs (nothing was run). resumed: the run
     continued an interrupted one from its checkpoint. manifest: the stage's manifest (on a skip, the
     one already there). metrics: the manifest's key numbers. outputs: the files written (name ->
-    path). device / render_backend / threads: where it ran. duration_s: wall time of this call.
+    path; relative to the workspace in the manifest). device / render_backend / threads: where it ran. duration_s: wall time of this call.
     """
 
     stage: str
@@ -69,7 +69,8 @@ class StageResult:
         self.manifest = manifest
         if manifest is not None:
             self.metrics = dict(manifest.get("metrics") or {})
-            self.outputs = {k: Path(v) for k, v in (manifest.get("outputs") or {}).items() if v}
+            # manifests written since outputs became workspace-relative hold relative paths
+            self.outputs = {k: self.workspace / v for k, v in (manifest.get("outputs") or {}).items() if v}
             self.device = manifest.get("device", self.device)
         self.duration_s = time.time() - t0
 
