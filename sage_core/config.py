@@ -45,6 +45,7 @@ def _f(
     lt: float | None = None,
     length: int | None = None,
     alias: str | None = None,
+    added: bool = False,
     **kw: Any,
 ) -> Any:
     """A dataclass field with its help text and its allowed values.
@@ -54,9 +55,13 @@ def _f(
     number of elements of a list field. ``None`` passes the checks of an optional field. The
     checks run once, in :func:`resolve_config` (:func:`validate_config`). alias: the field's flat
     key name in the stage config of earlier versions (accepted in files, flags and saved configs,
-    and the key of the field in the config hash; see :func:`legacy_aliases`).
+    and the key of the field in the config hash; see :func:`legacy_aliases`). added: a field added
+    after workspaces were written whose default keeps the earlier behaviour; at its default it is
+    left out of the config hash, so stages finished before it existed stay up to date.
     """
     meta: dict[str, Any] = {"help": help}
+    if added:
+        meta["added"] = True
     for key, val in (("choices", choices), ("ge", ge), ("gt", gt), ("le", le), ("lt", lt), ("length", length), ("alias", alias)):
         if val is not None:
             meta[key] = tuple(val) if key == "choices" else val
@@ -86,7 +91,7 @@ class IngestConfig:
     height: int | None = _f(None, "Resize images to this height (width keeps the aspect). Exclusive with downsample.", ge=8)
     downsample: float | None = _f(None, "Divide the image size by this factor. Exclusive with height.", gt=0)
     background: str = _f("white", "Background of the stored images: white (as exported) or black (recomposited with the mask).", choices=("white", "black"))
-    follow_symlinks: bool = _f(False, "Read capture files through symbolic links whose target lies outside the capture folder (refused by default, like paths that climb out of it).")
+    follow_symlinks: bool = _f(False, "Read capture files through symbolic links whose target lies outside the capture folder (refused by default, like paths that climb out of it).", added=True)
 
 
 @dataclass
@@ -729,7 +734,8 @@ _ALIAS_CACHE: dict[type, tuple[tuple[str, str], ...]] = {}
 def canonical_form(cfg: Any) -> dict[str, Any]:
     """The form of a config that :func:`config_hash` hashes: the nested plain dict, except that a
     field with a legacy flat name (:func:`legacy_aliases`) sits at the top level under that name,
-    and sections left empty by this are dropped. A config whose values did not change since its
+    fields added later (``added``) are left out at their default, and sections left empty by this
+    are dropped. A config whose values did not change since its
     stage's fields were nested therefore keeps its hash, and stages a workspace finished before stay
     up to date."""
     flat: dict[str, Any] = {}
@@ -742,6 +748,8 @@ def canonical_form(cfg: Any) -> dict[str, Any]:
                 sub = walk(value)
                 if sub:
                     out[f.name] = sub
+            elif f.metadata.get("added") and value == f.default:
+                continue
             elif "alias" in f.metadata:
                 flat[f.metadata["alias"]] = json.loads(json.dumps(value))
             else:
