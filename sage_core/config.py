@@ -235,13 +235,15 @@ class DensifyConfig:
     """Phase 1: adaptive density control of free surfels (the GaussianAvatars baseline)."""
 
     enabled: bool = _f(False, "Adaptive density control of free surfels (3DGS clone/split/prune with GaussianAvatars' binding inheritance; sage_core.train.densify). SAGE never densifies; the benchmark's GaussianAvatars rows do.", alias="densify")
-    start: int = _f(500, "First step of the density control.", ge=0, alias="densify_from")
-    until: int = _f(15000, "Densification and opacity resets stop at this step.", ge=0, alias="densify_until")
-    every: int = _f(100, "Steps between densifications.", ge=1, alias="densify_every")
-    grad_threshold: float = _f(2e-4, "Clone or split surfels whose mean gradient norm w.r.t. their projected centre (NDC units) reaches this (3DGS: 0.0002).", gt=0, alias="densify_grad_threshold")
-    percent_dense: float = _f(0.01, "Surfels larger than this fraction of the scene extent are split, smaller ones cloned (3DGS: 0.01).", gt=0, alias="densify_percent_dense")
-    prune_opacity: float = _f(0.005, "Densification prunes surfels whose opacity is below this.", ge=0, lt=1, alias="prune_opacity")
-    opacity_reset_every: int = _f(3000, "Steps between opacity resets while densifying (0: never).", ge=0, alias="opacity_reset_every")
+    start: int = _f(500, "Densification starts after this step (GaussianAvatars: 1/60 of the run, 10,000 of 600,000 steps).", ge=0, alias="densify_from")
+    until: int = _f(30000, "Densification and opacity resets stop at this step (GaussianAvatars: the end of the run; 3DGS: half of it).", ge=0, alias="densify_until")
+    every: int = _f(100, "Steps between densifications (GaussianAvatars: 1/300 of the run).", ge=1, alias="densify_every")
+    grad_threshold: float = _f(2e-4, "Clone or split surfels whose mean gradient norm w.r.t. their projected centre (NDC units) reaches this (3DGS and GaussianAvatars: 0.0002).", gt=0, alias="densify_grad_threshold")
+    percent_dense: float = _f(0.01, "Surfels larger than this fraction of the scene extent are split, smaller ones cloned (3DGS and GaussianAvatars: 0.01).", gt=0, alias="densify_percent_dense")
+    prune_opacity: float = _f(0.005, "Densification prunes surfels whose opacity is below this (3DGS and GaussianAvatars: 0.005).", ge=0, lt=1, alias="prune_opacity")
+    opacity_reset_every: int = _f(3000, "Steps between opacity resets while densifying (GaussianAvatars: 1/10 of the run; 0: never). Surfels larger than 0.1 x the scene extent are pruned once the step is past this.", ge=0, alias="opacity_reset_every")
+    reset_at_start: bool = _f(True, "Also reset the opacities at densify.start (GaussianAvatars does on a white background, as the ingested captures are).", alias="opacity_reset_at_start")
+    position_lr_extent: bool = _f(True, "Multiply lr.position and lr.position_final by the scene extent (1.1 x the largest distance of a training camera from their mean), as 3DGS and GaussianAvatars scale their position rate.", alias="densify_position_lr_extent")
 
 
 @dataclass

@@ -60,8 +60,8 @@ def test_rows_map_to_the_expected_cli_arguments(tmp_path):
     # init-mesh with teeth and no cavity; the free-surfel row keeps SAGE's layout and init-mesh
     for rid in ("ga_mvsf", "ga_mvmf"):
         sets = set(_sets(by_key[f"{rid}:phase1"].argv))
-        assert {"init_layout=per_face", "densify=true", "rebind_every=0", "w_local_position=0.01", "w_local_scale=1",
-                "densify_from=100", "densify_every=50", "densify_until=1000", "opacity_reset_every=500"} <= sets
+        assert {"init_layout=per_face", "init_opacity=0.1", "densify=true", "rebind_every=0", "w_local_position=0.01", "w_local_scale=1",
+                "densify_from=25", "densify_every=100", "densify_until=1500", "opacity_reset_every=500"} <= sets
         assert "mouth_cavity=false" in _sets(by_key[f"{rid}:init-mesh"].argv)
     assert by_key["ga_mvsf:copy"].stages == ("ingest",) and by_key["free_mvsf:copy"].stages == ("ingest", "init-mesh")
     assert not any("densify" in kv or "init_layout" in kv for kv in _sets(by_key["free_mvsf:phase1"].argv))
@@ -93,6 +93,23 @@ def test_rows_map_to_the_expected_cli_arguments(tmp_path):
     assert "sage:phase1" in needs["no_phase2"] and "sage:phase2" not in needs["no_phase2"]
     # phase 2's own evaluation is cut: the suite evaluates with `sage eval`
     assert "eval_phase1=false" in _sets(by_key["sage:phase2"].argv)
+
+
+def test_ga_schedule_is_gaussian_avatars_scaled_to_each_preset():
+    """GA's fractions of its 600,000 steps (start 1/60, interval 1/300, resets 1/10, to the end); at
+    the full size exactly, at the short ones with the intervals floored."""
+    from _suite.rows import MIN_DENSIFY_EVERY, MIN_RESET_EVERY, ga_schedule, preset_iterations
+
+    def parsed(items):
+        return {k: int(v) for k, v in (kv.split("=") for kv in items)}
+
+    assert parsed(ga_schedule(600_000)) == {"densify_from": 10_000, "densify_every": 2_000, "densify_until": 600_000,
+                                            "opacity_reset_every": 60_000}
+    assert parsed(SIZES["full"].densify) == {"densify_from": 500, "densify_every": 100, "densify_until": 30_000, "opacity_reset_every": 3_000}
+    for name, preset in (("tiny", "tiny"), ("small", "small"), ("full", "default")):
+        d, n = parsed(SIZES[name].densify), preset_iterations(preset)
+        assert d["densify_until"] == n and d["densify_from"] == round(n / 60)
+        assert d["densify_every"] == max(MIN_DENSIFY_EVERY, round(n / 300)) and d["opacity_reset_every"] == max(MIN_RESET_EVERY, round(n / 10))
 
 
 def test_the_ceiling_row_trains_nothing_and_renders_the_tracked_truth(tmp_path):

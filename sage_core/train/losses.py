@@ -207,11 +207,12 @@ def alpha_mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 def local_position_loss(mu_loc: torch.Tensor, threshold: float = 1.0) -> torch.Tensor:
     """GaussianAvatars' position term: mean relu(‖μ_loc‖ − threshold) of the local offsets (N, 3),
-    in units of the bound triangle's scale k (free surfels may stray that far before it acts)."""
-    return torch.relu(mu_loc.norm(dim=-1) - threshold).mean()
+    in units of the bound triangle's scale k (free surfels may stray that far before it acts); 0
+    for N = 0."""
+    return torch.relu(mu_loc.norm(dim=-1) - threshold).sum() / max(1, mu_loc.shape[0])
 
 
 def local_scale_loss(s_loc: torch.Tensor, threshold: float = 0.6) -> torch.Tensor:
     """GaussianAvatars' scale term: mean ‖relu(exp(s_loc) − threshold)‖ of the log local scales
-    (N, 2), relative to k (keeps surfels from growing far beyond their triangle)."""
-    return torch.relu(torch.exp(s_loc) - threshold).norm(dim=-1).mean()
+    (N, 2), relative to k (keeps surfels from growing far beyond their triangle); 0 for N = 0."""
+    return torch.relu(torch.exp(s_loc) - threshold).norm(dim=-1).sum() / max(1, s_loc.shape[0])

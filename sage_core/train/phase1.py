@@ -276,11 +276,14 @@ class Phase1Trainer:
         self.optimizer = adam(self._param_groups())
         self._not_mouth = avatar.surfels.region_id != REGION_MOUTH
         self.density: DensityControl | None = None
+        self.position_lr_scale = 1.0
         if cfg.densify.enabled:
-            d = cfg.densify
-            schedule = DensifySchedule(d.start, d.until, d.every, d.grad_threshold, d.percent_dense, d.prune_opacity, d.opacity_reset_every)
             centres = torch.stack([torch.as_tensor(f.camera.center, dtype=torch.float64) for f in self.frames])
-            self.density = DensityControl(avatar, schedule, scene_extent(centres), self.generator)
+            self.density = DensityControl(avatar, DensifySchedule.from_config(cfg.densify), scene_extent(centres), self.generator)
+            if cfg.densify.position_lr_extent:
+                self.position_lr_scale = self.density.extent
+        # per-surfel visibility of the step's view: the density statistics and GA's local terms use it
+        self._statistics = self.density is not None or cfg.loss.local_position > 0 or cfg.loss.local_scale > 0
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
@@ -328,7 +331,7 @@ class Phase1Trainer:
     def _set_lrs(self) -> None:
         c = self.cfg
         t = min(1.0, self.step_count / max(1, c.iterations))
-        lr = math.exp((1 - t) * math.log(c.lr.position) + t * math.log(c.lr.position_final))
+        lr = math.exp((1 - t) * math.log(c.lr.position) + t * math.log(c.lr.position_final)) * self.position_lr_scale
         for g in self.optimizer.param_groups:
             if g["name"] == "mu_loc":
                 g["lr"] = lr
@@ -452,7 +455,7 @@ class Phase1Trainer:
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
         mesh = self.posed_mesh(timestep, inputs, transform)
-        render, posed = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
+        render, posed = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=self._statistics,
                                   vertex_transform=transform, light_transform=light_transform, backend=self.render_backend,
                                   mesh=mesh)  # fmt: skip
         if self.density is not None:
@@ -471,7 +474,8 @@ class Phase1Trainer:
         else:  # every term off at this step: nothing to optimise
             total = color.new_zeros(())
         if self.density is not None:
-            self.density.accumulate(posed.means, cam)
+            assert render.visible is not None
+            self.density.accumulate(posed.means, cam, render.visible)
         self.optimizer.step()
         self.step_count += 1
         if self.density is not None:
@@ -496,7 +500,7 @@ class Phase1Trainer:
         out: dict[str, torch.Tensor] = {}
         sched = self.density.schedule
         if sched.densify_now(self.step_count):
-            counts = self.density.densify_and_prune(self.optimizer)
+            counts = self.density.densify_and_prune(self.optimizer, self.step_count)
             out = {f"densify_{k}": torch.tensor(float(v)) for k, v in counts.items()}
             self._not_mouth = self.avatar.surfels.region_id != REGION_MOUTH
         if sched.reset_now(self.step_count):
@@ -666,6 +670,12 @@ class Phase1Step:
     def has_mask(self) -> bool:
         """Whether the step trains on a training frame that has a foreground mask."""
         return self.frame is not None and self.trainer.frames[self.frame].mask is not None
+
+    def visible_rows(self, x: torch.Tensor) -> torch.Tensor:
+        """The rows of a per-surfel tensor x (N, ...) that the rasterizer kept for this view (all rows
+        when the render has no visibility), as GaussianAvatars' local terms average over them."""
+        vis = self.render.visible
+        return x if vis is None else x[vis.to(x.device)]
 
     def neus(self) -> NeuSRays | None:
         """The NeuS rays of this step (drawn and rendered on the first call), or None on a pseudo
@@ -858,8 +868,8 @@ PHASE1_TERMS: tuple[L.LossTerm[Phase1Step], ...] = (
                when=lambda s: s.real and s.trainer.light_albedo is not None and s.trainer.avatar.light is not None),
     L.LossTerm("pose_prior", "pose_prior", lambda s: s.trainer.pose.prior(s.trainer.length_unit), start="pose_refine_from",
                when=lambda s: s.trainer.pose is not None),
-    L.LossTerm("local_position", "local_position", lambda s: L.local_position_loss(s.trainer.avatar.surfels.mu_loc, s.trainer.cfg.free.position_threshold)),
-    L.LossTerm("local_scale", "local_scale", lambda s: L.local_scale_loss(s.trainer.avatar.surfels.s_loc, s.trainer.cfg.free.scale_threshold)),
+    L.LossTerm("local_position", "local_position", lambda s: L.local_position_loss(s.visible_rows(s.trainer.avatar.surfels.mu_loc), s.trainer.cfg.free.position_threshold)),
+    L.LossTerm("local_scale", "local_scale", lambda s: L.local_scale_loss(s.visible_rows(s.trainer.avatar.surfels.s_loc), s.trainer.cfg.free.scale_threshold)),
 )  # fmt: skip
 """Phase 1's objective, in the order its terms are summed (:func:`sage_core.train.losses.add_terms`):
 the photometric loss (weight 1 on a training frame, the view's weight on a pseudo view), the mask and
