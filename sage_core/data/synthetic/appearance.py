@@ -11,13 +11,18 @@ Expression creases darken the skin where the surface is compressed relative to t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..cameras import Camera
 from ._fields import fbm, gauss, smoothstep, value_noise
+from .detail import DetailStyle
 from .head import PART_LEFT_EYE, PART_MOUTH, PART_RIGHT_EYE, HeadModel, hair_weight
 from .mesh_render import downsample, rasterize, vertex_normals
+
+if TYPE_CHECKING:
+    from .hair import PosedHair
 
 LIGHT_DIR = np.array([0.35, 0.55, 0.75]) / np.linalg.norm([0.35, 0.55, 0.75])
 AMBIENT, DIFFUSE = 0.42, 0.62
@@ -31,16 +36,21 @@ _IRIS = np.array([[0.25, 0.40, 0.60], [0.35, 0.22, 0.10], [0.30, 0.45, 0.25], [0
 
 @dataclass(frozen=True)
 class Appearance:
-    """Colours (linear RGB in [0, 1]) and noise seed of one synthetic subject."""
+    """Colours (linear RGB in [0, 1]) and noise seed of one synthetic subject; ``detail`` is the
+    pixel-scale detail of a detailed subject (:mod:`.detail`), None for the smooth head."""
 
     skin: tuple[float, float, float]
     hair: tuple[float, float, float]
     iris: tuple[float, float, float]
     lips: tuple[float, float, float]
     noise_seed: int
+    detail: DetailStyle | None = None
 
     def to_dict(self) -> dict:
-        return {"skin": list(self.skin), "hair": list(self.hair), "iris": list(self.iris), "lips": list(self.lips), "noise_seed": self.noise_seed}
+        d = {"skin": list(self.skin), "hair": list(self.hair), "iris": list(self.iris), "lips": list(self.lips), "noise_seed": self.noise_seed}
+        if self.detail is not None:
+            d["detail"] = self.detail.to_dict()
+        return d
 
 
 def sample_appearance(rng: np.random.Generator) -> Appearance:
@@ -157,16 +167,20 @@ class Specular:
     Attributes:
         skin, skin_shininess: strength and exponent on skin (none on scalp hair or in the mouth).
         eye, eye_shininess: strength and exponent on the eyeballs.
+        hair, hair_shininess: strength and exponent of the anisotropic sheen of hair strands
+            (detailed subjects only: it needs the strand direction).
     """
 
     skin: float = 0.08
     skin_shininess: float = 18.0
     eye: float = 0.45
     eye_shininess: float = 90.0
+    hair: float = 0.3
+    hair_shininess: float = 12.0
 
     def scaled(self, k: float) -> "Specular":
-        """The same highlights with both strengths multiplied by ``k``."""
-        return Specular(self.skin * k, self.skin_shininess, self.eye * k, self.eye_shininess)
+        """The same highlights with every strength multiplied by ``k``."""
+        return Specular(self.skin * k, self.skin_shininess, self.eye * k, self.eye_shininess, self.hair * k, self.hair_shininess)
 
 
 def highlights(spec: Specular, template_pos: np.ndarray, part_w: np.ndarray, normal: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
@@ -203,14 +217,21 @@ class Render:
 
 def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appearance,
                 crease: np.ndarray | None = None, background: tuple[float, float, float] = (1.0, 1.0, 1.0),
-                supersample: int = 1, geometry: bool = False, specular: Specular | None = None) -> Render:
+                supersample: int = 1, geometry: bool = False, specular: Specular | None = None,
+                hair: PosedHair | None = None) -> Render:
     """Render the posed head.
 
     vertices: (V, 3) posed world vertices of ``head``'s topology; crease: (V,) from
     :func:`crease_weights` (None = none); supersample: per-axis factor for anti-aliasing;
     geometry: also return depth and normals (rasterized once more at the native resolution);
-    specular: view-dependent highlights (None = Lambert + ambient only).
+    specular: view-dependent highlights (None = Lambert + ambient only). A detailed appearance
+    (``app.detail``) renders through :func:`.detail_render.render_detailed`, with the posed hair
+    volume ``hair`` when given.
     """
+    if app.detail is not None:
+        from .detail_render import render_detailed
+
+        return render_detailed(head, vertices, camera, app, crease, background, supersample, geometry, specular, hair)
     faces = head.faces
     V = head.n_vertices
     crease = np.zeros(V) if crease is None else crease
