@@ -225,9 +225,11 @@ def _tracked_params(subject: _Subject, frames: list[Frame], truth: np.ndarray, c
 
 def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras: list[Camera],
                     splits: dict[str, list[tuple[int, int]]], cfg: SynthConfig, tick: Callable[[str], None],
-                    noise_rng: np.random.Generator | None = None) -> _Sequence:
+                    noise_rng: np.random.Generator | None = None, uncut: frozenset[int] = frozenset()) -> _Sequence:
     """Render and write images, masks, FLAME params and transforms; returns the ground truth
-    (and, for tracked subjects, the tracking error of the written parameters)."""
+    (and, for tracked subjects, the tracking error of the written parameters). Cameras in ``uncut``
+    (views around the head) are not cut at the neck line: seen from the side or the back that image
+    line would cut through the head, and the mesh itself ends at the neck base."""
     posed = _pose(subject, frames)
     seq = _Sequence(posed.vertices)
     written = frames
@@ -242,7 +244,7 @@ def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras:
         cam = by_index[ci]
         v = posed.vertices[ti]
         r = subject.render(v, cam, posed.crease[ti], cfg.supersample)
-        neck = neck_line_mask(subject.head, v, cam)
+        neck = np.ones((cam.height, cam.width), np.float32) if ci in uncut else neck_line_mask(subject.head, v, cam)
         img = r.rgb * neck[..., None] + (1.0 - neck[..., None])
         write_image(root / "images" / f"{ti:05d}_{ci:02d}.png", img)
         write_image(root / "fg_masks" / f"{ti:05d}_{ci:02d}.png", r.alpha * neck)
@@ -436,7 +438,8 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
             "val": [(0, c.index) for c in novel_cams + around],
             "test": [(t, c.index) for t in range(1, len(novel)) for c in novel_cams],
         }
-        nseq = _write_sequence(nroot, subject, novel, novel_cams + around, nsplits, cfg, tick, np.random.default_rng([cfg.seed, 5]))
+        nseq = _write_sequence(nroot, subject, novel, novel_cams + around, nsplits, cfg, tick, np.random.default_rng([cfg.seed, 5]),
+                               uncut=frozenset(c.index for c in around))
         _write_meshes(nroot / "meshes", head, nseq.vertices)
         if subject.hair is not None:
             _write_hair(nroot / "hair", subject, nseq.vertices, canonical=False)
@@ -455,7 +458,8 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
             info["novel"]["view_groups"] = view_groups(novel_cams + around)
             info["novel"]["view_group_definition"] = (
                 "azimuth of the camera about the head's vertical axis, 0 = facing the face: front up to 75 deg, "
-                "side 75-135 deg, back beyond 135 deg")
+                "side 75-135 deg, back beyond 135 deg; the views around the head (cameras "
+                f"{around[0].index}-{around[-1].index}) are not cut at the neck line")
     if subject.hair is not None:
         assert subject.app.detail is not None
         info["hair"] = {"folder": "gt/hair", "style": subject.app.detail.hair_style,

@@ -254,7 +254,22 @@ def _spots(q: np.ndarray, seed: int, fp: np.ndarray, cell: float, prob: np.ndarr
     """Darkness (M,) of Gaussian spots on a jittered 3D grid of ``cell`` metres, at most one per cell
     and never crossing its cell. q: (M, 3) positions (metres); prob: (M,) chance of a spot in the
     sample's cell; radii uniform in [r_lo, r_hi]. Each spot keeps its integral when widened by the
-    footprint (2D Gaussian: peak × σ²/σ'²)."""
+    footprint (2D Gaussian: peak × σ²/σ'²); as the widened spots outgrow their cells the result
+    fades to the spots' mean darkness (prob × the mean of a grid full of spots)."""
+    val = _spot_field(q, seed, fp, cell, prob, r_lo, r_hi)
+    g = np.exp(-np.square(fp / (0.25 * cell)))
+    return g * val + (1.0 - g) * prob * _spot_mean(cell, r_lo, r_hi)
+
+
+@cache
+def _spot_mean(cell: float, r_lo: float, r_hi: float) -> float:
+    """Mean darkness of sharp spots with one spot in every cell, over a fixed sample of points."""
+    pts = np.random.default_rng(4321).uniform(-0.2, 0.2, (40000, 3))
+    return float(_spot_field(pts, 1, np.zeros(len(pts)), cell, np.ones(len(pts)), r_lo, r_hi).mean())
+
+
+def _spot_field(q: np.ndarray, seed: int, fp: np.ndarray, cell: float, prob: np.ndarray, r_lo: float, r_hi: float) -> np.ndarray:
+    """The spots of :func:`_spots` widened by the footprint, without the fade."""
     g = q / cell
     ic = np.floor(g).astype(np.int64)
     h = lambda k: _cell_values(ic, seed + k)  # noqa: E731
