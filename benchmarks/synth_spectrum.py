@@ -26,7 +26,6 @@ same scale, enlarged 3×).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import sys

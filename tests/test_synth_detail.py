@@ -15,7 +15,11 @@ from sage_core.data.cameras import Camera, look_at
 from sage_core.data.imageio import read_image
 from sage_core.data.synthetic import make_capture, preset, write_capture
 from sage_core.data.synthetic.capture import canonical_vertices, make_subject
-from sage_core.data.synthetic.config import NOVEL_AROUND_DEFAULT, SynthConfig, parse_sets
+from sage_core.data.synthetic.config import (
+    NOVEL_AROUND_DEFAULT,
+    SynthConfig,
+    parse_sets,
+)
 from sage_core.data.synthetic.detail import _dots, _spots, attenuation
 from sage_core.errors import ConfigError
 
@@ -134,11 +138,11 @@ def test_same_seed_same_bytes_and_seeds_vary_the_subject(tmp_path: Path) -> None
     assert (smooth.app.skin, smooth.app.hair) == (det.app.skin, det.app.hair) and smooth.app.detail is None
 
 
-def _frontal(width: int, px_per_mm: float, shift: np.ndarray = np.zeros(3)) -> Camera:
+def _frontal(width: int, px_per_mm: float) -> Camera:
     height = width * 11 // 8
     fl = px_per_mm * 1000.0 * 0.92
     K = np.array([[fl, 0.0, width / 2], [0.0, fl, height / 2], [0.0, 0.0, 1.0]])
-    target = np.array([0.0, 0.02, 0.0]) + shift
+    target = np.array([0.0, 0.02, 0.0])
     return Camera(K, look_at(target + np.array([0.0, 0.0, 1.0]), target), width, height)
 
 

@@ -20,12 +20,10 @@ from ._fields import fbm, gauss, smoothstep, value_noise
 from .detail import DetailStyle
 from .head import PART_LEFT_EYE, PART_MOUTH, PART_RIGHT_EYE, HeadModel, hair_weight
 from .mesh_render import downsample, rasterize, vertex_normals
+from .shading import AMBIENT, DIFFUSE, LIGHT_DIR, Render, Specular, _eye_albedo, _mix, _pixel_dirs
 
 if TYPE_CHECKING:
     from .hair import PosedHair
-
-LIGHT_DIR = np.array([0.35, 0.55, 0.75]) / np.linalg.norm([0.35, 0.55, 0.75])
-AMBIENT, DIFFUSE = 0.42, 0.62
 
 _SKIN_TONES = np.array(
     [[0.93, 0.76, 0.66], [0.85, 0.64, 0.52], [0.72, 0.52, 0.40], [0.55, 0.38, 0.28], [0.95, 0.80, 0.72], [0.80, 0.60, 0.47]]
@@ -80,10 +78,6 @@ def crease_weights(deformed: np.ndarray, neutral: np.ndarray, faces: np.ndarray)
     """
     ratio = vertex_areas(deformed, faces) / np.maximum(vertex_areas(neutral, faces), 1e-20)
     return np.clip((1.0 - ratio) / 0.25, 0.0, 1.0)
-
-
-def _mix(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
-    return a * (1.0 - t[:, None]) + b * t[:, None]
 
 
 def albedo(template_pos: np.ndarray, eye_dir: np.ndarray, part_w: np.ndarray, mouth_depth: np.ndarray,
@@ -148,41 +142,6 @@ def _skin_albedo(p: np.ndarray, crease: np.ndarray, app: Appearance, mouth_y: fl
     return col * (1.0 - 0.5 * np.clip(crease_shade, 0.0, 1.0))[:, None]
 
 
-def _eye_albedo(eye_dir: np.ndarray, app: Appearance) -> np.ndarray:
-    """Sclera, iris and pupil from directions out of the eyeball centre: (M, 3) -> (M, 3)."""
-    ed = eye_dir / np.maximum(np.linalg.norm(eye_dir, axis=1, keepdims=True), 1e-12)
-    ang = np.arccos(np.clip(ed[:, 2], -1.0, 1.0))
-    rad = np.arctan2(ed[:, 1], ed[:, 0])
-    sclera = np.array([0.93, 0.9, 0.86])[None] * (1.0 - 0.08 * smoothstep(ang, 0.9, 1.4))[:, None]
-    iris_c = np.asarray(app.iris)[None] * (0.75 + 0.25 * np.sin(rad * 23.0 + 4.0 * value_noise(ed, 8.0, app.noise_seed + 5)))[:, None]
-    iris_c *= (1.0 - 0.5 * smoothstep(ang, 0.40, 0.5))[:, None]
-    eye = _mix(sclera, iris_c, smoothstep(ang, 0.52, 0.47))
-    return _mix(eye, np.full_like(eye, 0.03), smoothstep(ang, 0.21, 0.18))
-
-
-@dataclass(frozen=True)
-class Specular:
-    """Blinn-Phong highlights under the world light (added on top of the shaded albedo).
-
-    Attributes:
-        skin, skin_shininess: strength and exponent on skin (none on scalp hair or in the mouth).
-        eye, eye_shininess: strength and exponent on the eyeballs.
-        hair, hair_shininess: strength and exponent of the anisotropic sheen of hair strands
-            (detailed subjects only: it needs the strand direction).
-    """
-
-    skin: float = 0.08
-    skin_shininess: float = 18.0
-    eye: float = 0.45
-    eye_shininess: float = 90.0
-    hair: float = 0.3
-    hair_shininess: float = 12.0
-
-    def scaled(self, k: float) -> "Specular":
-        """The same highlights with every strength multiplied by ``k``."""
-        return Specular(self.skin * k, self.skin_shininess, self.eye * k, self.eye_shininess, self.hair * k, self.hair_shininess)
-
-
 def highlights(spec: Specular, template_pos: np.ndarray, part_w: np.ndarray, normal: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
     """Specular intensity (M,) at M surface points.
 
@@ -196,23 +155,6 @@ def highlights(spec: Specular, template_pos: np.ndarray, part_w: np.ndarray, nor
     skin = spec.skin * part_w[:, 2] * (1.0 - hair_weight(template_pos)) * nh**spec.skin_shininess
     eye = spec.eye * part_w[:, 0] * nh**spec.eye_shininess
     return (skin + eye) * lit
-
-
-@dataclass
-class Render:
-    """A shaded view.
-
-    Attributes:
-        rgb: (H, W, 3) float32 composited on the background.
-        alpha: (H, W) float32 coverage in [0, 1] (fractional at edges when supersampled).
-        depth: (H, W) float32 camera-space z at pixel centres (+inf background), or None.
-        normal: (H, W, 3) float32 world-space unit normals facing the camera (0 background), or None.
-    """
-
-    rgb: np.ndarray
-    alpha: np.ndarray
-    depth: np.ndarray | None = None
-    normal: np.ndarray | None = None
 
 
 def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appearance,
@@ -279,14 +221,3 @@ def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appe
             normal[g.mask] = n
         out.normal = normal.astype(np.float32)
     return out
-
-
-def _pixel_dirs(camera: Camera, scale: int, ys: np.ndarray, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World ray origin and unit directions (M, 3) through the given pixel centres."""
-    K = camera.K.astype(np.float64).copy()
-    K[:2] *= scale
-    yc = (ys + 0.5 - K[1, 2]) / K[1, 1]
-    xc = (xs + 0.5 - K[0, 2] - K[0, 1] * yc) / K[0, 0]
-    d = np.stack([xc, yc, np.ones_like(xc)], -1) @ camera.w2c[:3, :3]
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return camera.center, d

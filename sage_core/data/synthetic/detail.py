@@ -36,6 +36,8 @@ HAIR_STYLES = ("short", "fringe", "bob", "bun")
 """Scalp hair styles: short (hair on the scalp only), fringe (a fringe over the forehead), bob
 (hair hanging to the jaw at the sides and back) and bun (a bun at the back of the crown)."""
 
+_STYLE_WEIGHTS = (0.2, 0.3, 0.25, 0.25)
+"""Chances of the :data:`HAIR_STYLES` (most subjects have hair off the scalp beyond its shell)."""
 _SKULL_CENTRE = np.array([0.0, 0.01, -0.005])
 _TWO_PI2 = 2.0 * math.pi * math.pi
 
@@ -130,7 +132,7 @@ def sample_detail(rng: np.random.Generator, skin_points: np.ndarray) -> DetailSt
         for i in range(n_moles)
     )
     stubble = float(rng.uniform(0.5, 1.0)) if rng.random() < 0.4 else 0.0
-    style = HAIR_STYLES[int(rng.integers(len(HAIR_STYLES)))]
+    style = HAIR_STYLES[int(np.searchsorted(np.cumsum(_STYLE_WEIGHTS), rng.random() * sum(_STYLE_WEIGHTS), side="right"))]
     parting = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.2, 0.6)) if rng.random() < 0.6 else None
     return DetailStyle(
         seed=int(rng.integers(0, 2**31 - 1)),

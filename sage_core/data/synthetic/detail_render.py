@@ -13,14 +13,35 @@ follows ``sqrt(1 - (t·h)²)`` for the strand tangent t and the half vector h).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..cameras import Camera
-from .appearance import AMBIENT, DIFFUSE, LIGHT_DIR, Appearance, Render, Specular, _eye_albedo, _pixel_dirs
+from ._fields import smoothstep
 from .detail import FaceAnchors, hair_strands, skin_detail
 from .hair import PosedHair
-from .head import _EYE_R, PART_LEFT_EYE, PART_MOUTH, PART_RIGHT_EYE, PART_SKIN, HeadModel
+from .head import (
+    _EYE_R,
+    PART_LEFT_EYE,
+    PART_MOUTH,
+    PART_RIGHT_EYE,
+    PART_SKIN,
+    HeadModel,
+)
 from .mesh_render import downsample, rasterize, vertex_normals
+from .shading import (
+    AMBIENT,
+    DIFFUSE,
+    LIGHT_DIR,
+    Render,
+    Specular,
+    _eye_albedo,
+    _pixel_dirs,
+)
+
+if TYPE_CHECKING:
+    from .appearance import Appearance
 
 # part columns of the rasterized attributes
 _EYE, _MOUTH, _SKIN, _HAIR = 0, 1, 2, 3
@@ -133,7 +154,8 @@ def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, h
         f = force[forced]
         alb[forced] = alb[forced] * (1.0 - f[:, None]) + hcol * f[:, None]
         cov[forced] = np.maximum(cov[forced], f)
-        tan[forced] = _along(a[forced, 17:20], htan)
+        # hanging hair (fringe, bob) shines along the sheet; the scalp part along the whorl's strands
+        tan[forced] = tan[forced] * (1.0 - f[:, None]) + _along(a[forced, 17:20], htan) * f[:, None]
     if bun.any() and bun_frame is not None:
         hcol, htan = hair_strands(tex[bun], fp[bun], hair_rgb, st, bun_frame)
         alb[bun], cov[bun], tan[bun] = hcol, 1.0, _along(a[bun, 17:20], htan)
@@ -161,4 +183,5 @@ def _highlights(spec: Specular, which: np.ndarray, cov: np.ndarray, tangent: np.
     t = tangent / np.maximum(gloss, 1e-12)[:, None]
     th = np.einsum("ij,ij->i", t, h)
     sheen = spec.hair * cov * gloss * np.sqrt(np.clip(1.0 - th * th, 0.0, 1.0)) ** spec.hair_shininess
-    return (skin + eye + sheen) * lit
+    sheen *= smoothstep(normal @ LIGHT_DIR, 0.0, 0.3)  # fades out towards the shadow side
+    return (skin + eye) * lit + sheen

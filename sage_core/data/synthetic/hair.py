@@ -220,7 +220,7 @@ def build_hair(head: HeadModel, st: DetailStyle) -> HairVolume:
         parts = _bun(head, st, n)
         bsrc, bextra, bfaces, btex, bun_frame = parts
         nb = len(bsrc)
-        o, w, e1, e2 = bun_frame
+        o, w = bun_frame[0], bun_frame[1]
         q = btex - o
         meridian = np.cross(np.cross(w, q), q)  # along the bun's meridians, away from its outer pole
         meridian = -meridian / np.maximum(np.linalg.norm(meridian, axis=1, keepdims=True), 1e-12)
@@ -248,7 +248,7 @@ def _bun(head: HeadModel, st: DetailStyle, normals: np.ndarray):
     k = skin[int(np.argmax(rel @ d / np.maximum(np.linalg.norm(rel, axis=1), 1e-12)))]
     radius = 0.026 + 0.0012 * (st.hair_volume_mm - 5.0)
     centre = v[k] + normals[k] * (1e-3 * st.hair_volume_mm + 0.55 * radius)
-    bv, bf, dirs = _uv_sphere(np.zeros(3), 1.0, 9, 16)
+    _, bf, dirs = _uv_sphere(np.zeros(3), 1.0, 9, 16)
     o, w, e1, e2 = _frame(centre, normals[k], np.array([0.0, 1.0, 0.0]))
     local = dirs @ np.stack([e1, e2, w], 0)  # sphere directions in the bun frame (pole along w)
     squash = local - 0.25 * (local @ w)[:, None] * w[None]
