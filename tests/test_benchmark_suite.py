@@ -157,6 +157,56 @@ def test_overrides_and_smoke_size_reach_the_commands(tmp_path):
     assert SIZES["full"].preset == "default" and SIZES["tiny"].preset == "tiny" and SIZES["small"].preset == "small"
 
 
+def test_every_row_runs_on_each_subject_with_the_chosen_head(tmp_path):
+    by_key, needs, steps = _steps(tmp_path, rows=("sage", "one_shot"))
+    # subject 0 keeps the plain keys and paths, subject 1 (capture seed 1) is prefixed and suffixed
+    a, b = by_key["synth:multiview"].argv, by_key["seed1/synth:multiview"].argv
+    assert _flag(a, "--seed") == "0" and _flag(b, "--seed") == "1"
+    assert _flag(a, "--appearance") == _flag(b, "--appearance") == "detailed"
+    assert b[1] == str(tmp_path / "out/captures/multiview_seed1")
+    p1 = by_key["seed1/sage:phase1"].argv
+    assert p1[1] == str(tmp_path / "out/ws/sage_seed1") and _flag(p1, "--seed") == "0"  # stages keep the suite's seed
+    assert "/captures/multiview_seed1/" in _flag(by_key["seed1/sage:ingest"].argv, "--flame-model")
+    assert by_key["seed1/sage:phase1"].deps == ["seed1/sage:init-mesh"] and by_key["seed1/sage:phase1"].subject == 1
+    assert by_key["seed1/one_shot:eval:novel"].argv[1] == str(tmp_path / "out/ws/one_shot_seed1")
+    assert by_key["seed1/motion:multiview"].out == tmp_path / "out/motions/multiview_seed1_test.npz"
+    assert {"sage:phase2", "seed1/sage:phase2"} <= set(needs["sage"]) and "seed1/sage:phase2" not in needs["one_shot"]
+    keys = [s.key for s in steps]
+    assert keys.index("one_shot:eval:novel") < keys.index("seed1/synth:multiview")  # the first subject's rows first
+    # the smooth head of earlier versions, one subject: the plan of earlier versions plus --appearance smooth
+    smooth, _, _ = _steps(tmp_path, rows=("sage",), head="smooth", subjects=1)
+    assert not any(k.startswith("seed") for k in smooth) and _flag(smooth["synth:multiview"].argv, "--appearance") == "smooth"
+
+
+def test_capture_check_follows_the_appearance(tmp_path):
+    from _suite.workspaces import capture_is_current
+
+    from sage_core.data.synthetic import preset
+
+    cap = tmp_path / "cap"
+    (cap / "gt").mkdir(parents=True)
+    cfg = preset("tiny", "oneshot", seed=1, tracking="fitted", appearance="detailed")
+    (cap / "gt" / "info.json").write_text(json.dumps({"config": cfg.to_dict()}))
+    argv = ["synth", str(cap), "--regime", "oneshot", "--tracking", "fitted", "--preset", "tiny", "--seed", "1", "--quiet"]
+    assert capture_is_current(cap, argv) and capture_is_current(cap, [*argv[:-1], "--appearance", "detailed"])
+    assert not capture_is_current(cap, [*argv[:-1], "--appearance", "smooth"])
+    assert not capture_is_current(cap, [*argv[:-3], "--seed", "2"])
+
+
+def test_subject_numbers_are_averaged_and_counts_summed():
+    from _suite.execute import mean_tree
+
+    a = {"test": {"overall": {"psnr": 20.0, "ssim": 0.8, "lpips": None, "count": 4}, "frontal": None},
+         "novel": {"view_groups": {"back": {"overall": {"psnr": 12.0, "count": 2}}}}, "images": 4}  # fmt: skip
+    b = {"test": {"overall": {"psnr": 22.0, "ssim": 0.9, "lpips": 0.1, "count": 4}, "frontal": {"psnr": 25.0, "count": 1}},
+         "novel": {"view_groups": {"back": {"overall": {"psnr": 14.0, "count": 2}}}}, "images": 4}  # fmt: skip
+    m = mean_tree([a, b])
+    assert m["test"]["overall"] == {"psnr": 21.0, "ssim": pytest.approx(0.85), "lpips": 0.1, "count": 8}
+    assert m["test"]["frontal"] == {"psnr": 25.0, "count": 1} and m["images"] == 8
+    assert m["novel"]["view_groups"]["back"]["overall"]["psnr"] == 13.0
+    assert mean_tree([None, None]) is None
+
+
 # --------------------------------------------------------------------------------------------
 # results document
 # --------------------------------------------------------------------------------------------
@@ -255,6 +305,30 @@ def test_markdown_puts_numbers_in_their_columns_and_dashes_for_missing():
     assert doc.index("## Size `tiny`") < doc.index("## Size `small`") < doc.index("## Size `full`")
     doc = render_document([_results()], "## Discussion\n\nOurs against the paper.\n")
     assert doc.rstrip().endswith("Ours against the paper.") and doc.index("## Size `tiny`") < doc.index("## Discussion")
+
+
+def test_markdown_shows_the_head_the_subjects_and_the_back_views():
+    doc = _results()
+    doc["head"], doc["subject_seeds"] = "detailed", [0, 1]
+    one = {"id": "one_shot", "label": "SAGE", "input_type": "One-shot", "has_sdf": True, "errors": [], "steps": [], "capture": "oneshot",
+           "metrics": {"novel": {"overall": _m(18.5, 0.8, 0.2, 20), "view_groups": {"back": {"overall": _m(11.25, 0.6, 0.4, 8)}}}}}  # fmt: skip
+    one["subjects"] = [{"seed": 0, "hair": "bob", "metrics": {"novel": {"overall": _m(18.0, 0.8, 0.2, 10)}}},
+                       {"seed": 1, "hair": "short", "metrics": {"novel": {"overall": _m(19.0, 0.8, 0.2, 10),
+                                                                          "view_groups": {"back": {"overall": _m(11.5, 0.6, 0.4)}}}}}]  # fmt: skip
+    doc["rows"]["one_shot"] = one
+    md = render_markdown(doc)
+    assert "- Synthetic heads: detailed (`sage synth --appearance detailed`), 2 subjects (capture seeds 0, 1)" in md
+    header, rows = _table_rows(md, "### Single-view and one-shot regimes")
+    col = {h: j for j, h in enumerate(header)}
+    assert rows["one_shot"][col["Held-out GT PSNR"]] == "18.50" and rows["one_shot"][col["Back views PSNR"]] == "11.25"
+    sh, srows = _table_rows(md, "### Per subject")
+    lines = [ln for ln in md.split("### Per subject")[1].split("###")[0].splitlines() if ln.startswith("| SAGE (`one_shot`)")]
+    assert len(lines) == 2 and "| 1 | short |" in lines[1] and "11.50" in lines[1] and "19.00" in lines[1]
+    # an earlier document (no head recorded) is the smooth head with one subject, and is not merged with a detailed one
+    old = _results()
+    assert "- Synthetic heads: smooth (`sage synth --appearance smooth`), 1 subject (capture seed 0)" in render_markdown(old)
+    assert "### Per subject" not in render_markdown(old)
+    assert merge_results(old, doc) is doc
 
 
 def test_smoke_results_are_labelled():
@@ -404,6 +478,11 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert c["metrics"]["test"]["overall"]["count"] == doc["rows"]["no_phase2"]["metrics"]["test"]["overall"]["count"]
     r = doc["rows"]["no_phase2"]
     assert r["errors"] == [], r["errors"]
+    # two detailed subjects (capture seeds 0 and 1), averaged; the geometry check below is the first subject's
+    assert doc["head"] == "detailed" and doc["subject_seeds"] == [0, 1] and [s["seed"] for s in r["subjects"]] == [0, 1]
+    assert all(s["appearance"] == "detailed" for s in r["subjects"]) and (out / "ws" / "no_phase2_seed1").is_dir()
+    n0, n1 = (s["metrics"]["test"]["overall"]["psnr"] for s in r["subjects"])
+    assert r["metrics"]["test"]["overall"]["psnr"] == pytest.approx((n0 + n1) / 2)
     assert r["metrics"]["val"]["overall"]["psnr"] > 5 and r["metrics"]["test"]["overall"]["psnr"] > 5
     assert r["metrics"]["test"]["frontal"]["count"] >= 1
     # LPIPS where sage finds the weights (as in CI), reported unavailable where it does not
@@ -413,10 +492,11 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     # the capture is tracked: its FLAME mesh differs from the ground truth by the tracking error, so the
     # GT mesh moved to canonical space gives phase 1's Chamfer to its canonical FLAME mesh up to that error
     info = json.loads((out / "captures" / "multiview" / "gt" / "info.json").read_text())
-    t_can = int(r["geometry"]["gt_mesh"].split("canonical timestep ")[1].split(",")[0])
+    geo = r["subjects"][0]["geometry"]
+    t_can = int(geo["gt_mesh"].split("canonical timestep ")[1].split(",")[0])
     err_mm = info["tracking"]["timesteps"][t_can]["max_mm"]
     assert r["capture_tracking"]["mode"] == "fitted" and 0 < err_mm < 10
-    assert abs(r["geometry"]["chamfer_mm"] - r["stages"]["phase1"]["chamfer_m"] * 1000) <= 1.1 * err_mm + 0.05 * r["geometry"]["chamfer_mm"]
+    assert abs(geo["chamfer_mm"] - r["stages"]["phase1"]["chamfer_m"] * 1000) <= 1.1 * err_mm + 0.05 * geo["chamfer_mm"]
     assert doc["steps"]["sage:phase1"]["ran"] is True and doc["steps"]["sage:phase1"]["peak_rss_mib"] > 100
     md = (docs / "results.md").read_text()
     assert "Smoke test" in md and "sage phase1 " in md and "### Comparison with the paper" in md

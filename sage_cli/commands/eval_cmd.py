@@ -131,6 +131,8 @@ def show(r: EvalResult, ws: Path) -> None:
         if doc.get("frontal") is not None:
             rows.append(("frontal PSNR / SSIM / LPIPS", _means(doc["frontal"])))
         rows.append(("visible region PSNR / SSIM / LPIPS", _means(doc["visible_region"]["overall"])))
+        for group, g in (doc.get("view_groups") or {}).items():
+            rows.append((f"{group} views PSNR / SSIM / LPIPS", f"{_means(g['overall'])} (cameras {', '.join(str(c) for c in g['cameras'])})"))
         paths = [("novel metrics", out_dir / name / "metrics.json"), ("novel samples", out_dir / name / "images")]
         lpips_label, notes = "LPIPS", []
     else:

@@ -20,6 +20,7 @@ def synth(
     test_timesteps: Annotated[Optional[int], typer.Option("--test-timesteps", help="Held-out timesteps with novel expressions (monocular: novel head poses).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Identity, texture and expression seed; the same seed writes identical files.")] = 0,
     tracking: Annotated[str, typer.Option("--tracking", help="fitted: the truth deforms beyond the written FLAME-format model and flame_param/ is a tracker-like fit with pose noise (error in gt/info.json); exact: the written model and parameters are the truth.")] = "fitted",
+    appearance: Annotated[str, typer.Option("--appearance", help="detailed: pixel-scale skin detail, brows, lashes and hair strands, hair volume off the scalp, and (monocular, oneshot) held-out views all around the head; smooth: the smooth head of earlier versions (same seed, same files).")] = "detailed",
     sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override a synth config field, e.g. --set crease_depth_mm=3 or --set pose_noise_deg=0 (repeatable; fields in docs/synthetic.md).")] = None,
     preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a grid of views x expressions.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace OUT if it already holds files.")] = False,
@@ -34,7 +35,7 @@ def synth(
         from sage_core.data.synthetic.config import parse_sets
 
         options = {"seed": seed, "n_cameras": cameras, "width": width, "height": height, "train_timesteps": train_timesteps,
-                   "test_timesteps": test_timesteps, "tracking": tracking}
+                   "test_timesteps": test_timesteps, "tracking": tracking, "appearance": appearance}
         cfg = make_preset(preset, regime=regime, **{**options, **parse_sets(sets)})
         t0 = time.time()
         with ProgressDisplay("synth", enabled=verbose) as progress:
@@ -54,6 +55,7 @@ def synth(
             ("images train/val/test", f"{counts['train_images']}/{counts['val_images']}/{counts['test_images']}"),
             ("model", f"{counts['vertices']} vertices, {counts['faces']} faces"),
             ("tracking", _tracking_row(info)),
+            ("appearance", _appearance_row(info)),
             ("wall time", f"{elapsed:.1f} s"),
         ]
         paths = [
@@ -64,6 +66,8 @@ def synth(
         ]
         if "novel" in info:
             paths.append(("held-out views", path / info["novel"]["folder"]))
+        if "hair" in info:
+            paths.append(("hair volume", path / info["hair"]["folder"]))
         if preview:
             paths.append(("preview", path / "preview.png"))
         summary_panel("sage synth", rows, paths)
@@ -76,3 +80,16 @@ def _tracking_row(info: dict) -> str:
         return "exact (the written FLAME parameters are the ground truth)"
     err = tr["error"]["all"]
     return f"fitted: vertex error mean {err['mean_mm']:.2f} mm, max {err['max_mm']:.2f} mm over {err['timesteps']} timesteps"
+
+
+def _appearance_row(info: dict) -> str:
+    """The appearance line of the summary: smooth, or the detailed subject's main traits."""
+    d = info.get("identity", {}).get("appearance", {}).get("detail")
+    if not d:
+        return "smooth"
+    traits = [f"{d['hair_style']} hair"]
+    if d.get("freckles", 0) > 0:
+        traits.append("freckles")
+    if d.get("stubble", 0) > 0:
+        traits.append("stubble")
+    return "detailed: " + ", ".join(traits)
