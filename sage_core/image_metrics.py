@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .native_build import NativeExtension
+from .native_build import native_extension
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -124,14 +123,7 @@ def gaussian_window_1d(
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
-BLUR_EXT = NativeExtension(
-    name="sage_blur_cpu",
-    source=Path(__file__).parent / "csrc" / "blur_cpu.cpp",
-    namespace="sage_blur_cpu",
-    probe_op="gaussian_blur",
-    what="SSIM blur",
-    fallback="convolution for the SSIM windows",
-)
+BLUR_EXT = native_extension(__file__, "blur_cpu", probe_op="gaussian_blur", what="SSIM blur", fallback="convolution for the SSIM windows")
 """The native separable blur of the SSIM windows on CPU tensors (compiled on first use)."""
 
 

@@ -53,7 +53,7 @@ def test_default_threads_leave_the_busy_cores_alone(monkeypatch):
         _busy(monkeypatch, busy)
         choice = runtime.choose_threads(None)
         assert choice.threads == want and choice.source == "idle cores"
-        assert choice.describe().startswith(f"{want} thread") and f"of 8 cores idle" in choice.describe()
+        assert choice.describe().startswith(f"{want} thread") and "of 8 cores idle" in choice.describe()
     monkeypatch.setenv(runtime.THREADS_ENV, "6")  # an explicit count is taken as given
     assert runtime.default_threads() == 6
 
