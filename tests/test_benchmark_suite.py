@@ -430,3 +430,28 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert doc2["steps"]["sage:phase1"]["ran"] is False
     assert doc2["steps"]["sage:phase1"]["peak_rss_mib"] == doc["steps"]["sage:phase1"]["peak_rss_mib"]
     assert doc2["rows"]["no_phase2"]["metrics"]["val"] == r["metrics"]["val"]
+
+
+def test_the_written_results_name_no_path_of_this_machine(tmp_path):
+    """Paths under --out are written relative to it (OUT in commands), the LPIPS weights by name,
+    any other absolute path by its last component; the committed documents hold none."""
+    from _suite.portable import portable_doc, portable_text
+
+    out, weights = tmp_path / "runs" / "t", tmp_path / "w" / "lpips_alex_v0.1.pth"
+    doc = {"settings": {"out": str(out), "lpips_weights": str(weights)},
+           "steps": {"sage:eval": {"command": f"sage eval {out}/ws/sage --lpips-weights {weights}", "log": f"{out}/logs/sage__eval.log",
+                                   "error": f"exit 2: error: {out}/ws/sage/data: missing | see https://example.org/x"}},
+           "rows": {"sage": {"workspace": f"{out}/ws/sage", "errors": [f"copy: {tmp_path}/elsewhere/file.txt: gone"]}},
+           "runs": [{"command": f"python benchmarks/suite.py --size tiny --out {out} --docs /somewhere/docs_new"}]}  # fmt: skip
+    new = portable_doc(doc, [out], [weights])
+    assert new["settings"] == {"out": ".", "lpips_weights": "lpips_alex_v0.1.pth"}
+    step = new["steps"]["sage:eval"]
+    assert step["command"] == "sage eval OUT/ws/sage --lpips-weights lpips_alex_v0.1.pth" and step["log"] == "logs/sage__eval.log"
+    assert step["error"] == "exit 2: error: OUT/ws/sage/data: missing | see https://example.org/x"
+    assert new["rows"]["sage"] == {"workspace": "ws/sage", "errors": ["copy: file.txt: gone"]}
+    assert new["runs"][0]["command"].endswith("--out OUT --docs docs_new")
+    assert portable_text("--variant a=/x/ref::/x/ws::phase1.k=1") == "--variant a=ref::ws::phase1.k=1"
+    text = "\n".join(p.read_text(encoding="utf-8") for p in [REPO / "docs" / "results.md", *(REPO / "docs" / "benchmarks").glob("*")])
+    import re
+
+    assert not re.search(r"(?<![\w.~/-])/(work|home|tmp|root|mnt|data)/", text)

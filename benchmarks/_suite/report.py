@@ -319,6 +319,7 @@ def render_markdown(results: dict[str, Any]) -> str:
         f"device `{m.get('device', DASH)}`" + (f" ({m['gpu']}, {m.get('gpu_memory_gib')} GiB)" if m.get("gpu") else ""),
         f"- Preset `{st.get('preset', DASH)}`, seed {st.get('seed', DASH)}, LPIPS weights: {st.get('lpips_weights') or 'none (LPIPS unavailable)'}"
         + (f"; overrides: {st.get('overrides')}" if st.get("overrides") else ""),
+        "- Paths are relative to the suite's `--out` folder, written `OUT` in the commands; the LPIPS weights are named by their file.",
     ]
     for run in results.get("runs") or []:
         lines.append(f"- Run {run.get('started_at', DASH)} → {run.get('finished_at', DASH)} ({fmt(run.get('wall_s'), 0)} s), rows "
