@@ -128,7 +128,7 @@ class SDFNetConfig:
 
 @dataclass
 class PretrainConfig:
-    """SDF pretraining on the canonical FLAME mesh (rendering.md §8)."""
+    """SDF pretraining on the canonical FLAME mesh (docs/rendering.md §10)."""
 
     steps: int = _f(3000, "Optimisation steps.", ge=1)
     batch_size: int = _f(8192, "Sample points per step, split evenly over surface / near-surface / uniform samples.", ge=3)
@@ -398,7 +398,7 @@ class Phase1Config:
 
 @dataclass
 class EvalConfig:
-    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (formats.md §8)."""
+    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (docs/formats.md §8)."""
 
     stage: str = _f("auto", "Avatar to evaluate: auto (the latest finished of phase2, phase1), phase1 or phase2.", choices=("auto", "phase1", "phase2"))
     split: str = _f("test", "Split: test (self-reenactment), val (novel view) or all (both).", choices=("test", "val", "all", "novel"))

@@ -8,7 +8,7 @@ is also accepted and gives a 0-d result. Images stored channels-last (``(H, W, C
 ``(B, H, W, C)``, as :func:`sage_core.data.imageio.read_image` returns) go through
 :func:`to_nchw` first. Values are in [0, 1] (data range 1).
 
-Protocol (formats.md §8): PSNR clamps both images to [0, 1] itself. SSIM does not clamp, because it
+Protocol (docs/formats.md §8): PSNR clamps both images to [0, 1] itself. SSIM does not clamp, because it
 is also a training loss (``0.8·L1 + 0.2·(1 − SSIM)``) and clamping would cut gradients; the
 evaluation caller clamps renders before calling it.
 """
@@ -64,7 +64,7 @@ def _mse_to_psnr(mse: torch.Tensor, cap: float | None) -> torch.Tensor:
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, cap: float | None = None) -> torch.Tensor:
-    """Standard PSNR per image, ``10·log10(1 / MSE)`` with max 1 (formats.md §8).
+    """Standard PSNR per image, ``10·log10(1 / MSE)`` with max 1 (docs/formats.md §8).
 
     Both images are clamped to [0, 1]; the MSE is over all pixels × channels.
 
@@ -203,7 +203,7 @@ def ssim_map(
     window_size: int = SSIM_WINDOW,
     sigma: float = SSIM_SIGMA,
 ) -> torch.Tensor:
-    """Per-pixel, per-channel SSIM map (formats.md §8).
+    """Per-pixel, per-channel SSIM map (docs/formats.md §8).
 
     Gaussian window ``window_size``² with std ``sigma``, zero-padded 'same' convolution as in the
     3DGS code, ``C1 = 0.01²``, ``C2 = 0.03²`` (data range 1). No clamping; differentiable in pred.

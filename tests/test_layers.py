@@ -1,4 +1,4 @@
-"""Imports in ``sage_core`` run down the layers of the design (design.md, "Layout"): the CLI over
+"""Imports in ``sage_core`` run down the layers of the design (DEVELOPERS.md, "Layers"): the CLI over
 the stages over train / export / evaluate over the avatar over render, fields and flame over
 geometry, with a few small foundation modules (errors, atomic writes, image metrics, …) at the
 bottom. A package imports only from a lower layer or from itself: never from a higher layer, and
@@ -124,7 +124,7 @@ def _violations(root: Path = PACKAGE) -> list[str]:
 
 def test_sage_core_imports_only_go_down_the_layers() -> None:
     bad = _violations()
-    assert not bad, "imports against the layers of design.md:\n" + "\n".join(bad)
+    assert not bad, "imports against the layers of DEVELOPERS.md:\n" + "\n".join(bad)
 
 
 def _import_circles(root: Path = PACKAGE) -> list[list[str]]:

@@ -6,14 +6,14 @@ The folder loads with GaussianAvatars' ``FlameGaussianModel`` (``load_ply`` with
 ``point_cloud.ply`` — one row per surfel, INRIA property order then ``binding_0`` (float32, the
 face id), all float32:
 
-* frame: GA's per-face frame R = [a0 | a1 | a2] (formats.md §6), not sage's surfel frame
+* frame: GA's per-face frame R = [a0 | a1 | a2] (docs/formats.md §6), not sage's surfel frame
   [a0 | −a2 | a1]; the local attributes are converted exactly:
   ``μ_loc = R_cᵀ(x_c − T_c)/k_c``, ``q_loc = q(R_c)⁻¹ ⊗ q_c``, ``ŝ_loc = log(s_c/k_c)``, with
   R_c, T_c, k_c the frames of sage's canonical mesh and (x_c, q_c, s_c) the surfels' canonical
   centre, rotation and in-plane scales. GA's posing ``μ = k·R·μ_loc + T``, ``s = k·exp(ŝ_loc)``,
   ``q = q(R) ⊗ q_loc`` on any posed mesh then gives exactly sage's uncorrected posed surfels.
 * scales: three log scales in GA's k-relative convention; the surfel's thin third axis (its normal,
-  the third column of R(q)) is ``1e-3·min(s0, s1)``, as in the viewer PLY (formats.md §7.1).
+  the third column of R(q)) is ``1e-3·min(s0, s1)``, as in the viewer PLY (docs/formats.md §7.1).
 * appearance: colours and opacities are evaluated once from sage's networks (or per-surfel SH) at
   the canonical pose, each surfel seen along its normal, and stored as SH degree 3 with
   ``f_dc = (rgb − 0.5)/C0`` and ``f_rest = 0`` (view-independent); opacity as a logit. A shaded

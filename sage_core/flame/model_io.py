@@ -187,7 +187,7 @@ def load_flame_model(path: str | Path, add_teeth: bool | None = None) -> FlameMo
 
     path: ``.pkl`` (FLAME 2020 ``generic_model.pkl``, FLAME 2023 ``flame2023.pkl``; chumpy is not
         needed) or ``.npz`` written by :func:`save_flame_npz` (loaded exactly).
-    add_teeth: append the 120 teeth vertices (formats.md §4). None = only when the model has the
+    add_teeth: append the 120 teeth vertices (docs/formats.md §4). None = only when the model has the
         plain 5023-vertex FLAME topology; True on any other topology raises InputError.
     Raises InputError(path, ...) for a missing file, bad keys, shapes or values.
     """
