@@ -22,7 +22,9 @@ Every stage runs through the real ``sage`` CLI in a subprocess, one workspace pe
 stage folders keeps their manifests, so the workspace accepts them as complete). A rerun skips
 every stage that is already complete with the same settings. Results go to
 ``docs/benchmarks/suite_<size>.json`` (rows of an earlier run that were not rerun are kept) and
-``docs/results.md`` is regenerated from every ``suite_*.json``.
+``docs/results.md`` is regenerated from every ``suite_*.json``; both name no path of this machine
+(paths relative to ``--out``, written ``OUT`` in commands; the LPIPS weights by file name:
+:mod:`_suite.portable`).
 
 Hidden options for checking the machinery: ``--smoke`` (a few steps per stage on a reduced
 capture, labelled as not representative) and ``--override STAGE:key=value`` (added to every run
@@ -95,6 +97,7 @@ def write_docs(doc: dict, docs_dir: Path) -> tuple[Path, Path]:
 
 def main(argv: list[str] | None = None) -> int:
     from _suite.execute import collect_row, execute
+    from _suite.portable import portable_doc
     from _suite.report import SCHEMA, machine_info
     from _suite.rows import ROWS, SIZES, Settings, parse_overrides, plan, smoke_size
 
@@ -167,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         "steps": records,
         "rows": row_docs,
     }
-    jp, mp = write_docs(doc, docs_dir)
+    jp, mp = write_docs(portable_doc(doc, [out], [settings.lpips_weights] if settings.lpips_weights else []), docs_dir)
     failed = [rid for rid, r in row_docs.items() if r["errors"]]
     log(f"wrote {jp} and {mp} ({time.time() - t0:.0f} s)")
     if failed:

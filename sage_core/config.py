@@ -30,6 +30,21 @@ from .errors import ConfigError
 
 PRESETS = ("tiny", "small", "default")
 
+REGIMES: tuple[str, ...] = ("mv-sf", "mv-mf", "sv-hr", "one-shot")
+"""The reconstruction regimes of ``sage ingest``."""
+
+REGIME_SPELLINGS: dict[str, str] = {"oneshot": "one-shot", "one_shot": "one-shot", "monocular": "sv-hr", "svhr": "sv-hr"}
+"""Other spellings accepted for a regime: ``sage synth``'s names of the captures of those regimes
+(``oneshot``, ``monocular``) and the unhyphenated forms."""
+
+
+def canonical_regime(name: str) -> str:
+    """A regime name as ``sage ingest`` spells it (``oneshot`` -> ``one-shot``); unknown names are
+    returned as given (the caller reports them)."""
+    key = str(name).strip().lower()
+    return REGIME_SPELLINGS.get(key, key)
+
+
 RENDER_BACKENDS = ("auto", "torch", "cpp", "triton")
 """Values of the ``render_backend`` field of the stages that render surfels."""
 
@@ -46,6 +61,7 @@ def _f(
     length: int | None = None,
     alias: str | None = None,
     added: bool = False,
+    spellings: dict[str, str] | None = None,
     **kw: Any,
 ) -> Any:
     """A dataclass field with its help text and its allowed values.
@@ -57,12 +73,14 @@ def _f(
     key name in the stage config of earlier versions (accepted in files, flags and saved configs,
     and the key of the field in the config hash; see :func:`legacy_aliases`). added: a field added
     after workspaces were written whose default keeps the earlier behaviour; at its default it is
-    left out of the config hash, so stages finished before it existed stay up to date.
+    left out of the config hash, so stages finished before it existed stay up to date. spellings:
+    other names of the choices, mapped to them when the value is set.
     """
     meta: dict[str, Any] = {"help": help}
     if added:
         meta["added"] = True
-    for key, val in (("choices", choices), ("ge", ge), ("gt", gt), ("le", le), ("lt", lt), ("length", length), ("alias", alias)):
+    for key, val in (("choices", choices), ("ge", ge), ("gt", gt), ("le", le), ("lt", lt), ("length", length), ("alias", alias),
+                     ("spellings", spellings)):
         if val is not None:
             meta[key] = tuple(val) if key == "choices" else val
     if isinstance(default, (list, dict)):
@@ -85,7 +103,7 @@ def _sub(cls: type, help: str, **defaults: Any) -> Any:
 class IngestConfig:
     """``sage ingest``: read a VHAP/GaussianAvatars capture into the workspace."""
 
-    regime: str = _f("mv-sf", "Reconstruction regime: mv-sf (one multiview timestep), mv-mf (all training timesteps), sv-hr (one camera, head turns), one-shot (one image).", choices=("mv-sf", "mv-mf", "sv-hr", "one-shot"))
+    regime: str = _f("mv-sf", "Reconstruction regime: mv-sf (one multiview timestep), mv-mf (all training timesteps), sv-hr (one camera, head turns; also spelled monocular), one-shot (one image; also oneshot).", choices=REGIMES, spellings=REGIME_SPELLINGS)
     timestep: int | None = _f(None, "Training timestep for mv-sf (default: the train timestep closest to a neutral face with the mouth slightly open).", ge=0)
     camera: int | None = _f(None, "Camera index for sv-hr and one-shot when the capture has several cameras.", ge=0)
     height: int | None = _f(None, "Resize images to this height (width keeps the aspect). Exclusive with downsample.", ge=8)
@@ -116,7 +134,7 @@ class SDFNetConfig:
 
 @dataclass
 class PretrainConfig:
-    """SDF pretraining on the canonical FLAME mesh (rendering.md §8)."""
+    """SDF pretraining on the canonical FLAME mesh (docs/rendering.md §10)."""
 
     steps: int = _f(3000, "Optimisation steps.", ge=1)
     batch_size: int = _f(8192, "Sample points per step, split evenly over surface / near-surface / uniform samples.", ge=3)
@@ -388,7 +406,7 @@ class Phase1Config:
 
 @dataclass
 class EvalConfig:
-    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (formats.md §8)."""
+    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (docs/formats.md §8)."""
 
     stage: str = _f("auto", "Avatar to evaluate: auto (the latest finished of phase2, phase1), phase1 or phase2.", choices=("auto", "phase1", "phase2"))
     split: str = _f("test", "Split: test (self-reenactment), val (novel view) or all (both).", choices=("test", "val", "all", "novel"))
@@ -883,7 +901,12 @@ def _apply(cfg: Any, key: str, value: Any, where: str) -> None:
                 for k, v in value.items():
                     _apply(getattr(obj, p), str(k), v, where)
             else:
-                setattr(obj, p, _coerce(value, tp, f"{where}: {key}"))
+                v = _coerce(value, tp, f"{where}: {key}")
+                meta = next(f.metadata for f in dataclasses.fields(obj) if f.name == p)
+                if "spellings" in meta and isinstance(v, str):  # other names of the choices, any case
+                    low = v.strip().lower()
+                    v = meta["spellings"].get(low, low if low in meta.get("choices", ()) else v)
+                setattr(obj, p, v)
         else:
             obj = getattr(obj, p)
             if not dataclasses.is_dataclass(obj):

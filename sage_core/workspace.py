@@ -1,6 +1,6 @@
 """Workspace layout, manifests, atomic writes, checkpoints and the per-workspace lock.
 
-A workspace ``WS`` holds one folder per stage (design.md "Data flow"): ``WS/data`` (ingest),
+A workspace ``WS`` holds one folder per stage (docs/method.md §1): ``WS/data`` (ingest),
 ``WS/init`` (init-mesh), ``WS/phase1``, ``WS/phase2``, ``WS/eval``, ``WS/export``. A stage runs in
 ``WS/.work/<stage>/`` (which also keeps its checkpoints between interrupted runs) and, on
 success, its outputs are promoted to ``WS/<stage folder>/`` by a directory rename; the stage's

@@ -5,6 +5,7 @@ workspaces, and one end-to-end smoke run of two rows."""
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -356,14 +357,33 @@ def test_merge_keeps_rows_that_were_not_rerun():
 # --------------------------------------------------------------------------------------------
 
 
-def test_run_process_measures_the_child_and_keeps_its_output(tmp_path):
-    code = "import sys, time; b = bytearray(160 * 2**20); b[::4096] = b'x' * len(b[::4096]); print('made it'); time.sleep(0.6); sys.exit(3)"
-    res = run_process([sys.executable, "-c", code], tmp_path / "log.txt")
-    assert res.rc == 3
-    assert res.peak_rss_mib is not None and 150 < res.peak_rss_mib < 400
-    assert "made it" in res.tail and res.wall_s > 0
-    small = run_process([sys.executable, "-c", "import time; time.sleep(0.6)"], tmp_path / "log2.txt")
-    assert small.rc == 0 and small.peak_rss_mib < res.peak_rss_mib
+def test_memory_sampler_reads_the_peak_of_the_running_child(tmp_path):
+    """The child holds 160 MiB until the test has sampled it (it waits for a line on its stdin): no
+    timing involved."""
+    import subprocess
+
+    from _suite.runner import MemorySampler
+
+    code = "import sys; b = bytearray(160 * 2**20); b[::4096] = b'x' * len(b[::4096]); print('ready', flush=True); sys.stdin.readline()"
+    p = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert p.stdout.readline().strip() == b"ready"
+        sampler = MemorySampler(p.pid, os.fsencode(sys.executable))
+        assert MemorySampler(p.pid, b"/not/this/program").sample() is None  # only once it runs its own program
+        v = sampler.sample()
+        assert v is not None and 150 < v < 400 and sampler.peak == v
+        p.stdin.write(b"done\n")
+        p.stdin.flush()
+    finally:
+        p.communicate(timeout=60)
+    assert sampler.sample() is None and sampler.peak == v  # gone: the peak stays
+
+
+def test_run_process_keeps_the_exit_code_and_the_output(tmp_path):
+    res = run_process([sys.executable, "-c", "import sys; print('made it'); sys.exit(3)"], tmp_path / "log.txt")
+    assert res.rc == 3 and "made it" in res.tail and res.wall_s > 0
+    assert res.peak_rss_mib is None or res.peak_rss_mib > 1  # sampled only if the child lived past the first sample
+    assert "made it" in (tmp_path / "log.txt").read_text()
 
 
 def _fake_stage(ws: Path, stage: str, requires: list[str], payload: str) -> dict:
@@ -507,3 +527,28 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert doc2["steps"]["sage:phase1"]["ran"] is False
     assert doc2["steps"]["sage:phase1"]["peak_rss_mib"] == doc["steps"]["sage:phase1"]["peak_rss_mib"]
     assert doc2["rows"]["no_phase2"]["metrics"]["val"] == r["metrics"]["val"]
+
+
+def test_the_written_results_name_no_path_of_this_machine(tmp_path):
+    """Paths under --out are written relative to it (OUT in commands), the LPIPS weights by name,
+    any other absolute path by its last component; the committed documents hold none."""
+    from _suite.portable import portable_doc, portable_text
+
+    out, weights = tmp_path / "runs" / "t", tmp_path / "w" / "lpips_alex_v0.1.pth"
+    doc = {"settings": {"out": str(out), "lpips_weights": str(weights)},
+           "steps": {"sage:eval": {"command": f"sage eval {out}/ws/sage --lpips-weights {weights}", "log": f"{out}/logs/sage__eval.log",
+                                   "error": f"exit 2: error: {out}/ws/sage/data: missing | see https://example.org/x"}},
+           "rows": {"sage": {"workspace": f"{out}/ws/sage", "errors": [f"copy: {tmp_path}/elsewhere/file.txt: gone"]}},
+           "runs": [{"command": f"python benchmarks/suite.py --size tiny --out {out} --docs /somewhere/docs_new"}]}  # fmt: skip
+    new = portable_doc(doc, [out], [weights])
+    assert new["settings"] == {"out": ".", "lpips_weights": "lpips_alex_v0.1.pth"}
+    step = new["steps"]["sage:eval"]
+    assert step["command"] == "sage eval OUT/ws/sage --lpips-weights lpips_alex_v0.1.pth" and step["log"] == "logs/sage__eval.log"
+    assert step["error"] == "exit 2: error: OUT/ws/sage/data: missing | see https://example.org/x"
+    assert new["rows"]["sage"] == {"workspace": "ws/sage", "errors": ["copy: file.txt: gone"]}
+    assert new["runs"][0]["command"].endswith("--out OUT --docs docs_new")
+    assert portable_text("--variant a=/x/ref::/x/ws::phase1.k=1") == "--variant a=ref::ws::phase1.k=1"
+    text = "\n".join(p.read_text(encoding="utf-8") for p in [REPO / "docs" / "results.md", *(REPO / "docs" / "benchmarks").glob("*")])
+    import re
+
+    assert not re.search(r"(?<![\w.~/-])/(work|home|tmp|root|mnt|data)/", text)

@@ -334,3 +334,21 @@ def test_integer_cap_applies_to_every_integer_field_without_a_bound(tmp_path):
         resolve_config("phase2", "tiny", load_config_file(f))
     # a declared bound still wins, and the large values the suite uses stay valid
     assert resolve_config("phase1", "tiny", None, {"sdf_from": 1_000_000_000}).schedule.sdf_from == 1_000_000_000
+
+
+def test_regimes_take_the_synth_spellings_too(tmp_path):
+    from sage_cli.commands.synth import INGEST_SPELLINGS
+    from sage_core.batch import load_subjects
+    from sage_core.config import REGIMES, canonical_regime
+    from sage_core.data.synthetic import REGIMES as SYNTH_REGIMES
+
+    assert resolve_config("ingest", flags={"regime": "oneshot"}).regime == "one-shot"
+    assert resolve_config("ingest", flags={"regime": "monocular"}).regime == "sv-hr"
+    assert resolve_config("ingest", flags={"regime": "MV-SF"}).regime == "mv-sf"
+    with pytest.raises(ConfigError, match="regime = 'multiview' is not allowed"):
+        resolve_config("ingest", flags={"regime": "multiview"})  # one or all timesteps? mv-sf or mv-mf
+    assert {canonical_regime(r) for r in REGIMES} == set(REGIMES)
+    assert set(INGEST_SPELLINGS) >= {"one-shot", "sv-hr"} and set(INGEST_SPELLINGS.values()) <= set(SYNTH_REGIMES)
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "s.csv").write_text("id,capture,regime\na,cap,oneshot\nb,cap,monocular\n")
+    assert [s.regime for s in load_subjects(tmp_path / "s.csv")] == ["one-shot", "sv-hr"]

@@ -1,5 +1,5 @@
 """`sage export --gaussian-avatars`: GA's file layout in GA's own FLAME topology (the model's rows plus
-GA's 120 teeth rows, bindings inside GA's face table), and GA's posing math (formats.md §6),
+GA's 120 teeth rows, bindings inside GA's face table), and GA's posing math (docs/formats.md §6),
 re-implemented here in numpy, reproducing sage's own posed surfels at several frames."""
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def _unit(x):
 
 
 def _ga_frames(v, faces):
-    """GA's per-face R = [a0 | a1 | a2], T, k (formats.md §6)."""
+    """GA's per-face R = [a0 | a1 | a2], T, k (docs/formats.md §6)."""
     v0, v1, v2 = (v[faces[:, i]] for i in range(3))
     a0 = _unit(v1 - v0)
     a1 = _unit(np.cross(a0, v2 - v0))

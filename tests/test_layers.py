@@ -1,4 +1,4 @@
-"""Imports in ``sage_core`` run down the layers of the design (design.md, "Layout"): the CLI over
+"""Imports in ``sage_core`` run down the layers of the design (DEVELOPERS.md, "Layers"): the CLI over
 the stages over train / export / evaluate over the avatar over render, fields and flame over
 geometry, with a few small foundation modules (errors, atomic writes, image metrics, …) at the
 bottom. A package imports only from a lower layer or from itself: never from a higher layer, and
@@ -124,7 +124,7 @@ def _violations(root: Path = PACKAGE) -> list[str]:
 
 def test_sage_core_imports_only_go_down_the_layers() -> None:
     bad = _violations()
-    assert not bad, "imports against the layers of design.md:\n" + "\n".join(bad)
+    assert not bad, "imports against the layers of DEVELOPERS.md:\n" + "\n".join(bad)
 
 
 def _import_circles(root: Path = PACKAGE) -> list[list[str]]:
@@ -237,3 +237,22 @@ def test_the_version_has_one_source_below_every_module() -> None:
     code = "import sys, sage_core.workspace; print(sorted(m for m in sys.modules if m.startswith('sage_core.') and m.count('.') == 1))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=PACKAGE.parent).stdout
     assert "sage_core.api" not in out and "sage_core.stages" not in out, out
+
+
+def test_every_native_extension_follows_the_loader_layout() -> None:
+    """Each native extension is built from ``csrc/<stem>.cpp`` beside its loader and registers
+    ``torch.ops.sage_<stem>`` (:func:`sage_core.native_build.native_extension`), and every C++ source
+    has a loader."""
+    import importlib
+
+    from sage_core.native_build import NativeExtension
+
+    loaders = {"sage_core.image_metrics": "BLUR_EXT", "sage_core.fields._cpp_eigh": "EXT", "sage_core.fields._cpp_hashgrid": "EXT",
+               "sage_core.fields._cpp_sdf": "EXT", "sage_core.render._cpp_surfels": "EXT"}  # fmt: skip
+    sources = set()
+    for module, attr in loaders.items():
+        ext = getattr(importlib.import_module(module), attr)
+        assert isinstance(ext, NativeExtension) and ext.source.is_file(), module
+        assert ext.name == ext.namespace == f"sage_{ext.source.stem}" and ext.source.parent.name == "csrc", module
+        sources.add(ext.source.resolve())
+    assert sources == {p.resolve() for p in PACKAGE.rglob("csrc/*.cpp")}

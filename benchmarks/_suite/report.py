@@ -344,6 +344,7 @@ def render_markdown(results: dict[str, Any]) -> str:
         f"device `{m.get('device', DASH)}`" + (f" ({m['gpu']}, {m.get('gpu_memory_gib')} GiB)" if m.get("gpu") else ""),
         f"- Preset `{st.get('preset', DASH)}`, seed {st.get('seed', DASH)}, LPIPS weights: {st.get('lpips_weights') or 'none (LPIPS unavailable)'}"
         + (f"; overrides: {st.get('overrides')}" if st.get("overrides") else ""),
+        "- Paths are relative to the suite's `--out` folder, written `OUT` in the commands; the LPIPS weights are named by their file.",
     ]
     head, seeds = _head(results)
     lines.append(f"- Synthetic heads: {head} (`sage synth --appearance {head}`), {len(seeds)} subject{'s' if len(seeds) > 1 else ''} "
@@ -357,7 +358,7 @@ def render_markdown(results: dict[str, Any]) -> str:
     lines += ["### Novel view and self-reenactment (multiview rows)", "",
               "Val = novel view (the held-out frontal camera at the training timesteps); Frontal / All = self-reenactment",
               "on the test split (held-out novel expressions) seen by the frontal camera / all cameras. PSNR is the",
-              "standard per-image value (formats.md §8), SSIM 11×11 Gaussian, LPIPS AlexNet v0.1 on [−1, 1].", ""]  # fmt: skip
+              "standard per-image value (docs/formats.md §8), SSIM 11×11 Gaussian, LPIPS AlexNet v0.1 on [−1, 1].", ""]  # fmt: skip
     mv_ids = ("ceiling", "sage", "sage_exact", "no_mlp", "no_phase2", "no_correction", "no_wrinkles", "no_light", "ga_mvsf", "ga_mvmf", "free_mvsf")
     lines += _capture_lines(_rows(results, mv_ids))
     lines += _rendering_table(_rows(results, mv_ids))

@@ -1,4 +1,4 @@
-"""``sage eval WS``: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (formats.md §8).
+"""``sage eval WS``: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (docs/formats.md §8).
 
 Every frame of a split is rendered with that frame's FLAME parameters and camera on the dataset
 background and compared with its ground truth. ``WS/eval/`` is a workspace stage that accumulates

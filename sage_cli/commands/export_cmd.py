@@ -6,7 +6,7 @@ Outputs accumulate in ``WS/export/`` (a workspace stage with a manifest):
 - ``ply/canonical.ply`` (canonical pose), ``ply/frame_{T:05d}.ply`` (dataset timestep T) or
   ``ply/seq_<motion>/{i:05d}.ply`` (frame i of ``--flame-seq``, one motion per folder):
   INRIA-layout PLY, SH degree 0 from the avatar's colours (``f_dc = (rgb − 0.5) / 0.28209479``;
-  ``--sh-degree 3`` zero-pads), thin third scale (formats.md §7.1); ``--splat`` /
+  ``--sh-degree 3`` zero-pads), thin third scale (docs/formats.md §7.1); ``--splat`` /
   ``--compressed-ply`` write ``.splat`` and ``.compressed.ply`` beside them. By default
   (``--orientation viewer``) the world is turned by 180° about x into the y-down convention of
   splat viewers; ``--orientation flame`` keeps sage's y-up world and tags the names ``-flame``;
@@ -16,7 +16,7 @@ Outputs accumulate in ``WS/export/`` (a workspace stage with a manifest):
   (:mod:`sage_core.export.web`);
 - ``mesh/sdf_mesh.{ply,obj}``: zero level set of the canonical SDF (canonical space);
   ``mesh/flame_canonical.{ply,obj}`` or ``mesh/flame_frame_{T:05d}.{ply,obj}``: the posed FLAME mesh;
-- ``bundle/``: ``avatar.safetensors`` + ``flame_param.npz`` + ``bundle.json`` (formats.md §7.2), loadable by
+- ``bundle/``: ``avatar.safetensors`` + ``flame_param.npz`` + ``bundle.json`` (docs/formats.md §7.2), loadable by
   ``sage reenact --bundle``.
 
 ``WS/export/results.json`` indexes every item with the key of its inputs; a new export keeps the

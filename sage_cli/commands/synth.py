@@ -8,10 +8,13 @@ from typing import Annotated, Optional
 
 import typer
 
+INGEST_SPELLINGS: dict[str, str] = {"one-shot": "oneshot", "one_shot": "oneshot", "sv-hr": "monocular", "mv-sf": "multiview", "mv-mf": "multiview"}
+"""``sage ingest``'s regime names, accepted for the synthetic capture of that regime."""
+
 
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the capture into (VHAP / GaussianAvatars layout).")],
-    regime: Annotated[str, typer.Option("--regime", help="multiview (16-camera arc, train/val/test), monocular (one camera, head turns) or oneshot (one frontal image).")] = "multiview",
+    regime: Annotated[str, typer.Option("--regime", help="multiview (16-camera arc, train/val/test), monocular (one camera, head turns; also sv-hr) or oneshot (one frontal image; also one-shot).")] = "multiview",
     preset: Annotated[str, typer.Option("--preset", help="tiny (128x186 images, seconds on a CPU), small (256x372) or default (550x802, more timesteps).")] = "default",
     cameras: Annotated[Optional[int], typer.Option("--cameras", help="Number of multiview cameras (camera 8 is frontal and held out as val).")] = None,
     width: Annotated[Optional[int], typer.Option("--width", help="Image width in pixels.")] = None,
@@ -36,7 +39,7 @@ def synth(
 
         options = {"seed": seed, "n_cameras": cameras, "width": width, "height": height, "train_timesteps": train_timesteps,
                    "test_timesteps": test_timesteps, "tracking": tracking, "appearance": appearance}
-        cfg = make_preset(preset, regime=regime, **{**options, **parse_sets(sets)})
+        cfg = make_preset(preset, regime=INGEST_SPELLINGS.get(regime.strip().lower(), regime), **{**options, **parse_sets(sets)})
         t0 = time.time()
         with ProgressDisplay("synth", enabled=verbose) as progress:
             path = write_capture(out, cfg, progress=progress, preview=preview, force=force)

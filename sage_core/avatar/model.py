@@ -1,9 +1,9 @@
 """The animatable avatar: FLAME rig, triangle-bound surfels, canonical SDF and attribute networks.
 
 Canonical space is the FLAME mesh of the canonical timestep with zero global rotation and
-translation (design.md "Canonical space"). Every surfel has a canonical state (centre x_c, rotation
+translation (docs/method.md §2). Every surfel has a canonical state (centre x_c, rotation
 R_canon, in-plane scales s_c) and is bound to a triangle b. A frame's FLAME mesh poses it through
-the triangle's canonical frame (R_c, T_c, k_c) and posed frame (R_p, T_p, k_p) (formats.md §6,
+the triangle's canonical frame (R_c, T_c, k_c) and posed frame (R_p, T_p, k_p) (docs/formats.md §6,
 surfel convention):
 
     μ = k_p·R_p·R_cᵀ·(x_c − T_c)/k_c + T_p,    R = R_p·R_cᵀ·R_canon,    s = s_c·k_p/k_c

@@ -7,7 +7,7 @@ hash-grid features at x_c, whose symmetric matrix is added to the flat-on-triang
 I − n_b·n_bᵀ (:func:`shape_forward`).
 
 Posing (:func:`posed` -> :class:`PosedSurfels`): a frame's FLAME mesh (:func:`pose_mesh`) moves the
-surfels through the canonical (R_c, T_c, k_c) and posed (R_p, T_p, k_p) triangle frames (formats.md
+surfels through the canonical (R_c, T_c, k_c) and posed (R_p, T_p, k_p) triangle frames (docs/formats.md
 §6, surfel convention):
 
     μ = k_p·R_p·R_cᵀ·(x_c − T_c)/k_c + T_p,    R = R_p·R_cᵀ·R_canon,    s = s_c·k_p/k_c

@@ -1,6 +1,6 @@
 """Read and validate a VHAP "NeRF-style" capture export (single sequence or union).
 
-Layout (formats.md §1): ``transforms_{train,val,test}.json`` whose per-frame entries name an image,
+Layout (docs/formats.md §1): ``transforms_{train,val,test}.json`` whose per-frame entries name an image,
 an optional foreground mask and a per-timestep FLAME npz, plus an optional
 ``canonical_flame_param.npz``. Frame paths are resolved relative to the JSON file's folder and then
 normalised, so union exports (``../<sequence>/images/...``) work when they sit beside their

@@ -221,6 +221,16 @@ def _read_novel_frames(root: Path) -> tuple[list[tuple[str, int, int, Path, Path
     return out, stack_params(loaded, sources)
 
 
+def has_novel_ground_truth(data: IngestedData) -> bool:
+    """Whether the capture the data was ingested from has held-out ground truth (``gt/novel`` with
+    a transforms file), without reading it."""
+    src = data.summary.get("source")
+    if not src:
+        return False
+    root = Path(src) / NOVEL_FOLDER
+    return root.is_dir() and any((root / f"transforms_{s}.json").is_file() for s in SUBSETS)
+
+
 def open_novel_set(data: IngestedData, n_vertices: int | None = None, n_base_vertices: int | None = None) -> NovelSet:
     """Read ``CAPTURE/gt/novel`` for the ingested data.
 

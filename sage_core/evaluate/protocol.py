@@ -1,6 +1,6 @@
 """Evaluation protocol: render every frame of a split and compare it with its ground truth.
 
-Protocol (formats.md §8): the caller's ``render_fn`` poses the avatar with the frame's FLAME
+Protocol (docs/formats.md §8): the caller's ``render_fn`` poses the avatar with the frame's FLAME
 parameters and renders it with the frame's camera on the dataset background (white). The render
 and the ground-truth PNG are both clamped to [0, 1] and compared over the full image, without a
 mask. Per image this computes
@@ -274,7 +274,7 @@ def evaluate_frames(
     psnr_cap: float | None = None,
     progress: Progress | None = None,
 ) -> EvalReport:
-    """Evaluate ``render_fn`` on ``frames`` with the protocol of formats.md §8.
+    """Evaluate ``render_fn`` on ``frames`` with the protocol of docs/formats.md §8.
 
     render_fn: ``frame -> (H, W, 3)`` float tensor in [0, 1], H×W the frame's ground-truth size.
         It runs under ``torch.no_grad()`` (use ``torch.enable_grad()`` inside if it needs autograd).

@@ -1,4 +1,4 @@
-"""The avatar bundle: a self-contained, animatable avatar folder (formats.md §7.2).
+"""The avatar bundle: a self-contained, animatable avatar folder (docs/formats.md §7.2).
 
 Layout of a bundle folder (format 3; ``docs/workspace.md`` "Bundle format" describes every array)::
 

@@ -6,7 +6,7 @@ The folder is meant for GaussianAvatars' ``FlameGaussianModel`` (``load_ply`` wi
 
 **Topology.** GaussianAvatars' FLAME is the user's FLAME model (N vertices, F faces; 5023 and 9976
 for FLAME itself) with 120 teeth vertices and 168 teeth faces appended, placed by FLAME vertex ids
-(formats.md §4). sage's model may carry more: its mouth cavity (and, for a model without teeth, its
+(docs/formats.md §4). sage's model may carry more: its mouth cavity (and, for a model without teeth, its
 own teeth arcs), appended after the model's own vertices and faces. The folder holds exactly
 GaussianAvatars' rows:
 
@@ -27,7 +27,7 @@ GaussianAvatars' rows:
 **Attributes.** One row per surfel, INRIA property order then ``binding_0`` (float32, the face id),
 all float32:
 
-* frame: GA's per-face frame R = [a0 | a1 | a2] (formats.md §6), not sage's surfel frame
+* frame: GA's per-face frame R = [a0 | a1 | a2] (docs/formats.md §6), not sage's surfel frame
   [a0 | −a2 | a1]; the local attributes are converted exactly:
   ``μ_loc = R_cᵀ(x_c − T_c)/k_c``, ``q_loc = q(R_c)⁻¹ ⊗ q_c``, ``ŝ_loc = log(s_c/k_c)``, with
   R_c, T_c, k_c the frames of sage's canonical mesh and (x_c, q_c, s_c) the surfels' canonical
@@ -35,7 +35,7 @@ all float32:
   ``q = q(R) ⊗ q_loc`` on any posed mesh then gives exactly sage's uncorrected posed surfels (for
   the rebound surfels, as said above).
 * scales: three log scales in GA's k-relative convention; the surfel's thin third axis (its normal,
-  the third column of R(q)) is ``1e-3·min(s0, s1)``, as in the viewer PLY (formats.md §7.1).
+  the third column of R(q)) is ``1e-3·min(s0, s1)``, as in the viewer PLY (docs/formats.md §7.1).
 * appearance: colours and opacities are evaluated once from sage's networks (or per-surfel SH) at
   the canonical pose, each surfel seen along its normal, and stored as SH degree 3 with
   ``f_dc = (rgb − 0.5)/C0`` and ``f_rest = 0`` (view-independent); opacity as a logit. A shaded
@@ -87,7 +87,7 @@ GA_TEETH_FACES = 168
 GA_LOWER_TEETH_FIRST_FACE = 84
 """GaussianAvatars' teeth faces: 84 upper triangles, then 84 lower ones."""
 # GaussianAvatars' first upper and first lower teeth triangle, as offsets into its teeth vertices
-# (formats.md §4 order: upper_root 0-14, lower_root 15-29, upper_edge 30-44, lower_edge 45-59, ...)
+# (docs/formats.md §4 order: upper_root 0-14, lower_root 15-29, upper_edge 30-44, lower_edge 45-59, ...)
 _GA_UPPER_ANCHOR = (0, 31, 30)
 _GA_LOWER_ANCHOR = (45, 46, 15)
 _NECK, _JAW = 1, 2

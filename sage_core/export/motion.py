@@ -1,6 +1,6 @@
 """Driving motion for reenactment: FLAME expression and pose sequences, and orbit cameras.
 
-A motion comes from one of three sources (formats.md §1.3, §7.2):
+A motion comes from one of three sources (docs/formats.md §1.3, §7.2):
 
 - a GaussianAvatars motion npz: T-leading float32 ``expr, rotation, neck_pose, jaw_pose,
   eyes_pose, translation`` and optionally ``dynamic_offset (T,V,3)`` and a scalar ``fps``;
@@ -12,7 +12,7 @@ A motion comes from one of three sources (formats.md §1.3, §7.2):
 Only the dynamic part is kept. ``shape`` and ``static_offset`` of the source are ignored, so the
 driven avatar keeps its own identity (cross-reenactment). Everything is validated when the motion
 is loaded, before anything renders; in particular every T-leading key must have the same number of
-rows (GaussianAvatars indexes past the end on a mismatch, formats.md §7.2).
+rows (GaussianAvatars indexes past the end on a mismatch, docs/formats.md §7.2).
 """
 
 from __future__ import annotations

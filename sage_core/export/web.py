@@ -8,7 +8,7 @@ The folder holds three files and works offline from disk (``file://``; no networ
   a fetched file, because browsers refuse ``fetch`` from ``file://``).
 
 The surfels are posed on the GPU: the vertex shader reads the frame's mesh vertices from a texture,
-builds GaussianAvatars' face frame (R = [a0 | a1 | a2], centroid T, scale k; formats.md §6) of each
+builds GaussianAvatars' face frame (R = [a0 | a1 | a2], centroid T, scale k; docs/formats.md §6) of each
 surfel's bound triangle and applies ``μ = k·R·μ_loc + T``, ``R(q) = R·R(q_loc)``, ``s = k·s_loc``
 to the local attributes of :func:`~sage_core.export.gaussian_avatars.ga_local_gaussians` — the same
 posing as ``sage``'s uncorrected surfels. Only the mesh vertices change per frame. Each surfel is

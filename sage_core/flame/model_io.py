@@ -192,7 +192,7 @@ def load_flame_model(path: str | Path, add_teeth: bool | None = None, *, npz_onl
         restricted reader of :mod:`sage_core.flame._unpickle`, chumpy is not needed) or ``.npz``
         written by :func:`save_flame_npz` (loaded exactly). A file named ``.npz`` is read only as a
         zip archive of plain arrays; another name is read by its content (zip or pickle).
-    add_teeth: append the 120 teeth vertices (docs/formats.md "Teeth"). None = only when the model
+    add_teeth: append the 120 teeth vertices (docs/formats.md §4). None = only when the model
         has the plain 5023-vertex FLAME topology; True on any other topology raises InputError.
     npz_only: accept only the project's npz, whatever the file's name (for files sage wrote itself).
     Raises InputError(path, ...) for a missing file, bad keys, shapes or values.

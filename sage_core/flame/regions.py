@@ -1,4 +1,4 @@
-"""FLAME vertex/face regions (formats.md §5): official masks, derived sets, face clusters."""
+"""FLAME vertex/face regions (docs/formats.md §5): official masks, derived sets, face clusters."""
 
 from __future__ import annotations
 

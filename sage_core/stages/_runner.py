@@ -136,11 +136,12 @@ def execute_stage(
     with ``remove_new_workspace_on_failure``.
     """
     from ..config import config_hash, to_dict
-    from ..runtime import apply_threads, resolve_render_backend
+    from ..runtime import apply_thread_choice, resolve_render_backend
     from ..workspace import begin_stage, resolve_device, stage_up_to_date
 
     device = resolve_device(settings.device)
-    threads = apply_threads(settings.threads)
+    choice = apply_thread_choice(settings.threads)
+    threads = choice.threads
     backend = resolve_render_backend(cfg.render_backend, device) if hasattr(cfg, "render_backend") else None
     if validate is not None:
         validate()
@@ -174,10 +175,13 @@ def execute_stage(
                 run.metrics["sdf_backend"] = resolve_fused_backend("auto", device)
             log_path = setup_logging(ws.root, stage)
             log = logging.getLogger("sage")
-            log.info("stage %s started: config %s, seed %s, device %s, resumed %s, threads %s, render backend %s",
-                     stage, run.config_hash, settings.seed, device, run.resumed, threads, backend)  # fmt: skip
+            log.info("stage %s started: config %s, seed %s, device %s, resumed %s, %s, render backend %s",
+                     stage, run.config_hash, settings.seed, device, run.resumed, choice.describe(), backend)  # fmt: skip
+            if choice.warning() is not None:
+                log.warning("%s", choice.warning())
+                emitter.note(str(choice.warning()), level="warning")
             emitter.emit("running", title=emitter.title, metrics={"resumed": run.resumed, "device": device, "threads": threads,
-                                                                   "render_backend": backend})  # fmt: skip
+                                                                   "threads_basis": choice.describe(), "render_backend": backend})  # fmt: skip
             try:
                 body(run, emitter)
             except KeyboardInterrupt:

@@ -1,4 +1,4 @@
-"""The eval stage: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (formats.md §8).
+"""The eval stage: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (docs/formats.md §8).
 
 Every frame of a split is rendered with that frame's FLAME parameters and camera on the dataset
 background and compared with its ground truth. ``WS/eval/`` accumulates results: each (avatar

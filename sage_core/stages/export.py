@@ -3,7 +3,7 @@ web player, meshes, and the animatable avatar bundle, accumulating in ``WS/expor
 
 - ``ply/canonical.ply`` (canonical pose) or ``ply/frame_{T:05d}.ply`` (dataset timestep T):
   INRIA-layout PLY, SH degree 0 from the avatar's colours (``f_dc = (rgb − 0.5) / 0.28209479``;
-  ``sh_degree 3`` zero-pads), thin third scale (formats.md §7.1); ``splat`` / ``compressed-ply``
+  ``sh_degree 3`` zero-pads), thin third scale (docs/formats.md §7.1); ``splat`` / ``compressed-ply``
   write ``.splat`` and ``.compressed.ply`` beside them. With ``orientation viewer`` (the default)
   the world is turned by 180° about x into the y-down convention of splat viewers; ``flame`` keeps
   sage's y-up world and adds ``-flame`` to the file name (``canonical-flame.splat``), since a
@@ -17,7 +17,7 @@ web player, meshes, and the animatable avatar bundle, accumulating in ``WS/expor
   (:mod:`sage_core.export.web`);
 - ``mesh/sdf_mesh.{ply,obj}``: zero level set of the canonical SDF (canonical space);
   ``mesh/flame_canonical.{ply,obj}`` or ``mesh/flame_frame_{T:05d}.{ply,obj}``: the posed FLAME mesh;
-- ``bundle/``: ``avatar.safetensors`` + ``flame_param.npz`` + ``bundle.json`` (formats.md §7.2).
+- ``bundle/``: ``avatar.safetensors`` + ``flame_param.npz`` + ``bundle.json`` (docs/formats.md §7.2).
 
 ``WS/export/results.json`` indexes every item with the key of its inputs and EVERY file it wrote
 (relative to ``WS/export/``); a new export keeps the earlier items whose avatar is unchanged (their

@@ -78,7 +78,7 @@ def run_phase2(
     ``distortion_curve.json`` and evaluation folders (``eval_test/``, ``eval_val/``) into
     ``out_dir``; resume from the newest checkpoint in ``checkpoint_dir``. Returns the metrics.
 
-    Evaluation (formats.md §8 via :func:`evaluate_frames`): self-reenactment on the test split (all
+    Evaluation (docs/formats.md §8 via :func:`evaluate_frames`): self-reenactment on the test split (all
     cameras and the frontal camera) and novel views on the val split, rendered with the correction
     when it is enabled. With ``cfg.eval_phase1`` the phase-1 avatar is evaluated on the test split too.
     LPIPS uses ``lpips_weights`` (or ``$SAGE_LPIPS_WEIGHTS`` / the cache), else it is unavailable.

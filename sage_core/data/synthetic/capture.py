@@ -1,10 +1,10 @@
-"""Write a synthetic capture in the VHAP / GaussianAvatars layout (formats.md §1–2) plus ground truth.
+"""Write a synthetic capture in the VHAP / GaussianAvatars layout (docs/formats.md §1–2) plus ground truth.
 
 Layout of ``OUT``::
 
     images/{ti:05d}_{ci:02d}.png      RGB on white, below the neck line blanked
     fg_masks/{ti:05d}_{ci:02d}.png    L uint8 = coverage × neck-line mask
-    flame_param/{ti:05d}.npz          per-timestep FLAME parameters (formats.md §1.3)
+    flame_param/{ti:05d}.npz          per-timestep FLAME parameters (docs/formats.md §1.3)
     canonical_flame_param.npz
     transforms.json, transforms_{train,val,test}.json
     model/   synth_flame.pkl (official pickle layout), synth_flame.npz, FLAME_masks.pkl
@@ -137,7 +137,7 @@ def canonical_vertices(subject: _Subject) -> np.ndarray:
 
 
 def neck_line_mask(head: HeadModel, vertices: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W) float mask in [0, 1] keeping what is above the neck line (formats.md §1.1), blurred."""
+    """(H, W) float mask in [0, 1] keeping what is above the neck line (docs/formats.md §1.1), blurred."""
     import cv2
 
     ids = list(head.neck_line)
@@ -372,7 +372,7 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
     else:
         frames = [Frame(label="train: neutral, frontal")]
         cameras = [monocular_camera(cfg.width, cfg.height, cfg.mono_focal)]
-    # world re-centring (formats.md §1.5): mean translation 0, cameras moved along
+    # world re-centring (docs/formats.md §1.5): mean translation 0, cameras moved along
     t_mean = np.mean([f.translation for f in frames], axis=0)
     for f in frames:
         f.translation = f.translation - t_mean

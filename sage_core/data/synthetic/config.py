@@ -39,7 +39,7 @@ class SynthConfig:
             fractional matte); 1 disables it.
         camera_distance: metres from the head centre to every multiview camera.
         view_height_m: vertical extent (metres) seen at the head centre by the multiview cameras.
-        mono_focal: normalised monocular focal length (fl = mono_focal·max(w, h), formats.md §1.8).
+        mono_focal: normalised monocular focal length (fl = mono_focal·max(w, h), docs/formats.md §1.6).
         novel_views: cameras of the held-out ground truth written to gt/ (monocular, oneshot).
         novel_expressions: held-out expressions of that ground truth (monocular, oneshot).
         tracking: "exact" — the written FLAME-format model and parameters are the ground truth;

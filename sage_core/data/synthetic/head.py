@@ -82,7 +82,7 @@ class HeadModel:
         eye_dir: (V, 3) unit direction from the eyeball centre (eyeball vertices; zeros elsewhere).
         mouth_depth: (V,) 0 at the lips .. 1 at the back of the mouth pocket.
         masks: region name -> sorted int64 vertex ids (FLAME_masks.pkl keys).
-        neck_line: vertex ids (left, right, front-bottom) for the neck-line rule (formats.md §1.1).
+        neck_line: vertex ids (left, right, front-bottom) for the neck-line rule (docs/formats.md §1.1).
         mouth_y: height of the mouth slit in the template.
         slit_pairs: (n, 2) int64 (upper, lower) vertex ids that coincide on the closed mouth slit.
         grid_shape: (rows, cols) of the skin grid: vertex 0 is the top pole, grid vertex (r, c) is
