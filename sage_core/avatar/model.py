@@ -136,7 +136,9 @@ class Avatar(nn.Module):
         sdf_args: :class:`SDFNetwork` constructor kwargs (plain data).
         attributes: "mlp" or "free".
         app_args: :class:`AppearanceNetwork` kwargs other than the feature size and box.
-        shape_args: :class:`ShapeNetwork` kwargs other than in_features and box (mlp mode).
+        shape_args: :class:`ShapeNetwork` kwargs other than in_features and box (mlp mode), and
+            ``detail_grid``: the shape network also reads the appearance network's hash-grid
+            features (:attr:`shape_reads_detail`).
         base_scale: (N,) world base size of each surfel for the shape network (mlp mode); default
             the surfel set's current canonical scale (geometric mean of the two).
         neus_variance: initial NeuS s-variance (``variance`` module, inv_s per SDF box half extent).
@@ -206,7 +208,9 @@ class Avatar(nn.Module):
         self.exposure_gains: dict[tuple[int, int], torch.Tensor] = {}
         self.shape: ShapeNetwork | None = None
         if attributes == "mlp":
-            self.shape = ShapeNetwork(self.sdf.encoding.output_dim, *box, **self.shape_args).to(device)
+            net_args = {k: v for k, v in self.shape_args.items() if k != "detail_grid"}
+            in_features = self.sdf.encoding.output_dim + (self.appearance.grid.output_dim if self.shape_reads_detail else 0)
+            self.shape = ShapeNetwork(in_features, *box, **net_args).to(device)
             with torch.no_grad():
                 last = self.shape.mlp[-1]
                 assert isinstance(last, nn.Linear)
@@ -358,6 +362,12 @@ class Avatar(nn.Module):
     def pose_mesh(self, flame_inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """(V, 3) posed FLAME vertices of one frame (batch-1 kwargs)."""
         return _posing.pose_mesh(self, flame_inputs)
+
+    @property
+    def shape_reads_detail(self) -> bool:
+        """Whether the shape network reads the appearance hash grid's features beside the SDF's
+        (``shape_args["detail_grid"]``; needs an appearance grid)."""
+        return bool(self.shape_args.get("detail_grid")) and self.appearance.grid is not None
 
     def posed(
         self,

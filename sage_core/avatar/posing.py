@@ -167,10 +167,13 @@ def shape_forward(avatar: Avatar, x: torch.Tensor, prior_normal: torch.Tensor, e
     """The avatar's shape network with the flat-on-triangle prior (mlp mode).
 
     x, prior_normal: (N, 3); enc: (N, L·F) hash features at x -> R (N, 3, 3), s (N, 2); the size
-    multiplier is relative to ``avatar.base_scale`` (N,).
+    multiplier is relative to ``avatar.base_scale`` (N,). With :attr:`Avatar.shape_reads_detail` the
+    appearance grid's features at x join ``enc``.
     """
     net = avatar.shape
     assert net is not None
+    if avatar.shape_reads_detail:
+        enc = torch.cat([enc, avatar.appearance.grid(x)], -1)
     xn = (x - net.center.to(x.dtype)) / net.half_extent
     out = net.mlp(torch.cat([xn, enc], -1))
     eye = torch.eye(3, dtype=x.dtype, device=x.device)

@@ -91,7 +91,7 @@ def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, de
     return Avatar.build(
         init_dir, data, cfg.surfels.count, cfg.attributes,
         app_args=appearance_args(cfg),
-        shape_args={"hidden": cfg.shape.hidden, "n_layers": cfg.shape.layers},
+        shape_args={"hidden": cfg.shape.hidden, "n_layers": cfg.shape.layers, **({"detail_grid": True} if cfg.shape.detail_grid else {})},
         sh_degree=cfg.free.sh_degree, init_opacity=cfg.free.init_opacity,
         init_args={"face_weight": cfg.surfels.face_weight, "mouth_weight": cfg.surfels.mouth_weight, "hair_weight": cfg.surfels.hair_weight,
                    "neck_weight": cfg.surfels.neck_weight, "camera_weight": cfg.surfels.camera_weight,
