@@ -6,15 +6,17 @@ evaluated at the template (texture) position with the footprint on the surface, 
 :mod:`.detail` is band-limited to what the pixel can hold: the footprint is half the world size of
 a sub-pixel at the sample's depth, widened by the obliquity of the surface (the geometric mean of
 the two axes of the sub-pixel's ellipse on it). Pixels whose sub-pixels all hit the same part get
-one albedo, at their mean attributes with the whole pixel's footprint; silhouette and part-boundary
-pixels one per sub-pixel. Shading is per sub-pixel. Shading is
-that of the smooth head (Lambert + ambient under the world light, optional Blinn-Phong
-highlights) plus, with highlights, an anisotropic sheen on hair strands (Kajiya-Kay: the strength
-follows ``sqrt(1 - (t·h)²)`` for the strand tangent t and the half vector h).
+one albedo, at their mean attributes with the footprint of the whole pixel (the Gaussian equivalent
+of its box, σ = pixel / √12); silhouette and part-boundary pixels one per sub-pixel, averaged.
+Shading, per sub-pixel, is that of the smooth head (Lambert + ambient under the world light,
+optional Blinn-Phong highlights) plus, with highlights, an anisotropic sheen on hair strands
+(Kajiya-Kay: the strength follows ``sqrt(1 - (t·h)²)`` for the strand tangent t and the half
+vector h).
 """
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -130,7 +132,8 @@ def _pixel_albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, ys: np.ndarr
     """:func:`_albedo` of the M foreground sub-pixel samples (at ys, xs of the supersampled grid),
     evaluated once per pixel where all of a pixel's sub-pixels hit the same part: at the mean of
     their attributes, with the footprint of the whole pixel (the prefilter then does what the
-    sub-pixels' average would); per sub-pixel elsewhere (silhouettes, part boundaries)."""
+    pixel's box would: a Gaussian of σ = pixel / √12); per sub-pixel elsewhere (silhouettes, part
+    boundaries)."""
     s = supersample
     if s == 1:
         return _albedo(a, which, fp, app, head, bun_frame)
@@ -152,7 +155,9 @@ def _pixel_albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, ys: np.ndarr
     if len(upix):
         ps = pix[shared]
         a_px = np.stack([np.bincount(ps, weights=a[shared, c], minlength=n_px)[upix] for c in range(a.shape[1])], 1) / (s * s)
-        fp_px = s * np.bincount(ps, weights=fp[shared], minlength=n_px)[upix] / (s * s)
+        # the pixel integrates the light of its area: a box, whose Gaussian equivalent has σ = pixel / √12
+        # (a sub-pixel footprint is half a sub-pixel, so σ = 2·s·fp / √12)
+        fp_px = (2.0 / math.sqrt(12.0)) * s * np.bincount(ps, weights=fp[shared], minlength=n_px)[upix] / (s * s)
         pa, pc, pt = _albedo(a_px, kmin[upix] // 2, fp_px, app, head, bun_frame)
         k = slot[ps]
         alb[shared], cov[shared], tan[shared] = pa[k], pc[k], pt[k]
