@@ -76,7 +76,7 @@ def test_config_keeps_old_captures_readable_and_presets_add_views_around() -> No
 
 @pytest.fixture(scope="module")
 def detailed(tmp_path_factory) -> Path:
-    return make_capture(tmp_path_factory.mktemp("detailed") / "cap", preset("tiny", tracking="fitted", appearance="detailed", seed=3, **SMALL))
+    return make_capture(tmp_path_factory.mktemp("detailed") / "cap", preset("tiny", tracking="fitted", appearance="detailed", seed=0, **SMALL))
 
 
 def test_detailed_capture_writes_the_hair_volume_beside_the_head(detailed: Path) -> None:
