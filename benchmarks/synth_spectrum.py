@@ -235,6 +235,14 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _repo_relative(path: Path) -> str:
+    """``path`` relative to the repository when inside it (no machine paths in the results)."""
+    try:
+        return str(path.resolve().relative_to(REPO))
+    except ValueError:
+        return str(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python benchmarks/synth_spectrum.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="Synthetic subjects (seeds).")
@@ -273,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         "photo": {"source": PHOTO, "pupils_px": [list(p) for p in PHOTO_PUPILS], "ipd_px": float(np.linalg.norm(pupils[1] - pupils[0])),
                   "ipd_mm": IPD_MM, "px_per_mm": pxmm, "spectrum": photo_doc},
         "subjects": results,
-        "image": str(args.image),
+        "image": _repo_relative(args.image),
         "image_rel": image_rel,
     }
     doc["summary"] = summarise(results, photo_doc)

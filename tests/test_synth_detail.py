@@ -76,7 +76,7 @@ def test_config_keeps_old_captures_readable_and_presets_add_views_around() -> No
 
 @pytest.fixture(scope="module")
 def detailed(tmp_path_factory) -> Path:
-    return make_capture(tmp_path_factory.mktemp("detailed") / "cap", preset("tiny", tracking="fitted", appearance="detailed", seed=3, **SMALL))
+    return make_capture(tmp_path_factory.mktemp("detailed") / "cap", preset("tiny", tracking="fitted", appearance="detailed", seed=0, **SMALL))
 
 
 def test_detailed_capture_writes_the_hair_volume_beside_the_head(detailed: Path) -> None:
@@ -171,9 +171,10 @@ def test_detail_is_glued_to_the_skin() -> None:
     ca, cb = _bilinear(a, ua), _bilinear(b, ub)
     texture = float(np.abs(ca - ca.mean(0)).mean())
     assert texture > 0.01  # there is detail to follow
-    assert float(np.abs(ca - cb).mean()) < 0.35 * texture
-    # the world-fixed texture it would be otherwise: sample the moved render where the vertices were
-    assert float(np.abs(_bilinear(b, ua) - ca).mean()) > 0.6 * texture
+    glued = float(np.abs(ca - cb).mean())
+    # what a texture fixed in the image would give: the moved render sampled where the vertices were
+    fixed = float(np.abs(_bilinear(b, ua) - ca).mean())
+    assert glued < 0.35 * texture and glued < 0.4 * fixed, (glued, fixed, texture)
 
 
 def test_prefiltering_keeps_the_mean_and_removes_what_the_pixel_cannot_hold() -> None:

@@ -165,8 +165,9 @@ def attenuation(freq: float | np.ndarray, fp: np.ndarray) -> np.ndarray:
     return np.exp(-_TWO_PI2 * np.square(freq * fp))
 
 
-_MIN_GAIN = 1e-3
-"""Below this gain a band is not evaluated (it contributes its mean)."""
+_MIN_GAIN = 0.02
+"""Below this gain a band is not evaluated (it contributes its mean; the step is under 2 % of the
+band's contrast)."""
 
 _LATTICE_BITS = 6
 _LATTICE = 1 << _LATTICE_BITS
@@ -178,6 +179,7 @@ def _lattice_table() -> np.ndarray:
     return np.random.default_rng(20240617).random(_LATTICE**3, dtype=np.float32)
 
 
+@cache
 def _seed_offset(seed: int) -> np.ndarray:
     """Lattice offset (3,) int64 of a noise seed (each seed reads another part of the table)."""
     h = _hash01(np.array([seed, seed, seed], np.int64), np.array([1, 2, 3], np.int64), np.zeros(3, np.int64), 77)

@@ -1,18 +1,22 @@
 """Shaded rendering of a detailed synthetic subject (head plus hair volume) by the ground-truth
 mesh rasterizer.
 
-The head and the hair volume are rasterized together (one z-buffer, supersampled). Every sample's
-albedo is evaluated at its template (texture) position with the sample's footprint on the surface,
-so the detail of :mod:`.detail` is band-limited to what the supersampled pixel can hold: the
-footprint is half the world size of a sub-pixel at the sample's depth, widened by the obliquity
-of the surface (the geometric mean of the two axes of the sub-pixel's ellipse on it). Shading is
-that of the smooth head (Lambert + ambient under the world light, optional Blinn-Phong
-highlights) plus, with highlights, an anisotropic sheen on hair strands (Kajiya-Kay: the strength
-follows ``sqrt(1 - (t·h)²)`` for the strand tangent t and the half vector h).
+The head and the hair volume are rasterized together (one z-buffer, supersampled). The albedo is
+evaluated at the template (texture) position with the footprint on the surface, so the detail of
+:mod:`.detail` is band-limited to what the pixel can hold: the footprint is half the world size of
+a sub-pixel at the sample's depth, widened by the obliquity of the surface (the geometric mean of
+the two axes of the sub-pixel's ellipse on it). Pixels whose sub-pixels all hit the same part get
+one albedo, at their mean attributes with the footprint of the whole pixel (the Gaussian equivalent
+of its box, σ = pixel / √12); silhouette and part-boundary pixels one per sub-pixel, averaged.
+Shading, per sub-pixel, is that of the smooth head (Lambert + ambient under the world light,
+optional Blinn-Phong highlights) plus, with highlights, an anisotropic sheen on hair strands
+(Kajiya-Kay: the strength follows ``sqrt(1 - (t·h)²)`` for the strand tangent t and the half
+vector h).
 """
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -97,7 +101,8 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
         n[cosv > 0] *= -1.0
         fl = 0.5 * (camera.K[0, 0] + camera.K[1, 1]) * supersample
         fp = 0.5 * frag.depth[m] / fl / np.sqrt(np.maximum(np.abs(cosv), 0.1))
-        alb, cov, tan = _albedo(a, which, fp, app, head, hair.volume.bun_frame if hair is not None else None)
+        alb, cov, tan = _pixel_albedo(a, which, fp, ys, xs, camera, supersample, app, head,
+                                      hair.volume.bun_frame if hair is not None else None)
         shade = AMBIENT + DIFFUSE * np.clip(n @ LIGHT_DIR, 0.0, None)
         out = alb * shade[:, None]
         if specular is not None:
@@ -120,6 +125,46 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
             normal[g.mask] = nn
         res.normal = normal.astype(np.float32)
     return res
+
+
+def _pixel_albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, ys: np.ndarray, xs: np.ndarray, camera: Camera, supersample: int,
+                  app: Appearance, head: HeadModel, bun_frame: tuple | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_albedo` of the M foreground sub-pixel samples (at ys, xs of the supersampled grid),
+    evaluated once per pixel where all of a pixel's sub-pixels hit the same part: at the mean of
+    their attributes, with the footprint of the whole pixel (the prefilter then does what the
+    pixel's box would: a Gaussian of σ = pixel / √12); per sub-pixel elsewhere (silhouettes, part
+    boundaries)."""
+    s = supersample
+    if s == 1:
+        return _albedo(a, which, fp, app, head, bun_frame)
+    n_px = camera.width * camera.height
+    pix = (ys // s) * camera.width + (xs // s)
+    key = which * 2 + (a[:, 16] > 0.5)  # part, and the bun's strand frame apart from the scalp's
+    count = np.bincount(pix, minlength=n_px)
+    kmin = np.full(n_px, 1 << 20)
+    kmax = np.full(n_px, -1)
+    np.minimum.at(kmin, pix, key)
+    np.maximum.at(kmax, pix, key)
+    uniform = (count == s * s) & (kmin == kmax)
+    shared = uniform[pix]
+    upix = np.flatnonzero(uniform)
+    slot = np.full(n_px, -1)
+    slot[upix] = np.arange(len(upix))
+    M = a.shape[0]
+    alb, cov, tan = np.zeros((M, 3)), np.zeros(M), np.zeros((M, 3))
+    if len(upix):
+        ps = pix[shared]
+        a_px = np.stack([np.bincount(ps, weights=a[shared, c], minlength=n_px)[upix] for c in range(a.shape[1])], 1) / (s * s)
+        # the pixel integrates the light of its area: a box, whose Gaussian equivalent has σ = pixel / √12
+        # (a sub-pixel footprint is half a sub-pixel, so σ = 2·s·fp / √12)
+        fp_px = (2.0 / math.sqrt(12.0)) * s * np.bincount(ps, weights=fp[shared], minlength=n_px)[upix] / (s * s)
+        pa, pc, pt = _albedo(a_px, kmin[upix] // 2, fp_px, app, head, bun_frame)
+        k = slot[ps]
+        alb[shared], cov[shared], tan[shared] = pa[k], pc[k], pt[k]
+    own = ~shared
+    if own.any():
+        alb[own], cov[own], tan[own] = _albedo(a[own], which[own], fp[own], app, head, bun_frame)
+    return alb, cov, tan
 
 
 def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, head: HeadModel, bun_frame: tuple | None

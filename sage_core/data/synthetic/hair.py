@@ -153,7 +153,7 @@ def build_hair(head: HeadModel, st: DetailStyle) -> HairVolume:
         back = smoothstep(aphi, 1.8, 2.8)
         s_bob = arc_at_y(st.bob_end_y - 0.03 * back + 2 * jag)
         s_end = s_hair + (np.maximum(s_bob, s_hair) - s_hair) * f_bob
-    K = max(10, int(round(0.6 * R)))
+    K = max(12, int(round(0.45 * R)))
     frac = np.arange(1, K + 1) / K
     s_rows = frac[:, None] * s_end[None]  # (K, C)
     src = np.zeros((K, C, 2), np.int64)
