@@ -81,10 +81,13 @@ class MetricMeans:
 
     @staticmethod
     def of(images: list[ImageMetrics]) -> MetricMeans:
-        """Means of ``images`` (NaN for an empty list)."""
+        """Means of ``images`` (NaN for an empty list). Images whose PSNR is NaN (a region metric over an
+        empty region, e.g. a view of the back of the head that no training view saw) are left out;
+        ``count`` is the number of images in the means."""
         def mean(values: list[float]) -> float:
             return float(np.mean(np.asarray(values, dtype=np.float64))) if values else math.nan
 
+        images = [m for m in images if not math.isnan(m.psnr)]
         lp = [m.lpips for m in images]
         return MetricMeans(
             count=len(images),

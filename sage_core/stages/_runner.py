@@ -34,7 +34,7 @@ class StageSettings:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
             raise ConfigError(f"--seed must be an integer in 0..{2**32 - 1}, got {self.seed!r}")
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1):
-            raise ConfigError(f"--threads must be a positive integer, got {self.threads!r}")
+            raise ConfigError(f"--threads = {self.threads!r} is out of range (allowed: integers >= 1)")
 
 
 @dataclass
