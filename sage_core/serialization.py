@@ -5,7 +5,8 @@ bundle) is a `safetensors <https://github.com/huggingface/safetensors>`_ file: a
 little-endian header length, a JSON header naming each tensor's dtype, shape and byte range, then
 the raw tensor bytes. Nothing in it is executed on load. The header's ``__metadata__`` holds:
 
-* ``sage.kind``: what the file is (``sage-avatar``, ``sage-sdf``, ``sage-checkpoint``);
+* ``sage.kind``: what the file is (``sage-avatar``, ``sage-sdf``, ``sage-checkpoint``,
+  ``sage-mouth-prior``);
 * ``sage.format``: the kind's format version (an integer, as text);
 * ``sage.tree``: the saved object as JSON in which every tensor or numpy array is replaced by a
   reference to a tensor of the file (see :func:`encode`);
@@ -54,6 +55,9 @@ SDF_FILE_FORMAT = 2
 CHECKPOINT_KIND = "sage-checkpoint"
 CHECKPOINT_FORMAT = 2
 """Stage checkpoints: format 1 was a torch.save pickle (refused now); 2 is a safetensors file."""
+MOUTH_PRIOR_KIND = "sage-mouth-prior"
+MOUTH_PRIOR_FORMAT = 1
+"""The pretrained mouth-interior prior (:mod:`sage_core.avatar.mouth_prior`)."""
 
 META_KIND = "sage.kind"
 META_FORMAT = "sage.format"

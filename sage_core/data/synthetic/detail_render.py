@@ -1,7 +1,8 @@
-"""Shaded rendering of a detailed synthetic subject (head plus hair volume) by the ground-truth
-mesh rasterizer.
+"""Shaded rendering of a detailed synthetic subject (head plus hair volume and mouth interior) by
+the ground-truth mesh rasterizer.
 
-The head and the hair volume are rasterized together (one z-buffer, supersampled). Every sample's
+The head, the hair volume and the mouth interior (:mod:`.mouth`: teeth, gums, tongue with their
+own per-vertex albedo; the pocket lining in the subject's cavity colour) are rasterized together (one z-buffer, supersampled). Every sample's
 albedo is evaluated at its template (texture) position with the sample's footprint on the surface,
 so the detail of :mod:`.detail` is band-limited to what the supersampled pixel can hold: the
 footprint is half the world size of a sub-pixel at the sample's depth, widened by the obliquity
@@ -21,6 +22,7 @@ from ..cameras import Camera
 from ._fields import smoothstep
 from .detail import FaceAnchors, hair_strands, skin_detail
 from .hair import PosedHair
+from .mouth import MouthStyle, PosedMouth
 from .head import (
     _EYE_R,
     PART_LEFT_EYE,
@@ -54,7 +56,7 @@ def face_anchors(head: HeadModel) -> FaceAnchors:
 
 def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appearance, crease: np.ndarray | None,
                     background: tuple[float, float, float], supersample: int, geometry: bool, specular: Specular | None,
-                    hair: PosedHair | None) -> Render:
+                    hair: PosedHair | None, mouth: PosedMouth | None = None) -> Render:
     """See :func:`.appearance.render_head` (same arguments; ``app.detail`` is set)."""
     st = app.detail
     assert st is not None
@@ -66,7 +68,7 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
     part[head.part == PART_MOUTH, _MOUTH] = 1.0
     part[head.part == PART_SKIN, _SKIN] = 1.0
     nrm = vertex_normals(vertices, head.faces)
-    cols = [head.v_template, head.eye_dir, part, head.mouth_depth[:, None], crease[:, None], nrm, np.zeros((V, 5))]
+    cols = [head.v_template, head.eye_dir, part, head.mouth_depth[:, None], crease[:, None], nrm, np.zeros((V, 6))]
     attrs = np.concatenate(cols, 1)
     verts, faces = np.asarray(vertices, np.float64), head.faces
     rot = np.eye(3)
@@ -77,11 +79,23 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
         hpart[:, _HAIR] = 1.0
         hn = vertex_normals(hair.vertices, hv.faces)
         hattrs = np.concatenate([hv.tex, np.zeros((H, 3)), hpart, np.zeros((H, 2)), hn, hv.force[:, None], hv.frame[:, None].astype(np.float64),
-                                 hv.tangent], 1)
+                                 hv.tangent, np.zeros((H, 1))], 1)
         attrs = np.concatenate([attrs, hattrs], 0)
         verts = np.concatenate([verts, hair.vertices], 0)
         faces = np.concatenate([faces, hv.faces + V], 0)
         rot = hair.rotation
+    if mouth is not None:
+        # column 20 flags an albedo given per vertex (in columns 0:3)
+        mv = mouth.volume
+        M = mv.n_vertices
+        mpart = np.zeros((M, 4))
+        mpart[:, _MOUTH] = 1.0
+        mn = vertex_normals(mouth.vertices, mv.faces)
+        mattrs = np.concatenate([mv.albedo, np.zeros((M, 3)), mpart, np.zeros((M, 2)), mn, np.zeros((M, 5)), np.ones((M, 1))], 1)
+        n_before = verts.shape[0]
+        attrs = np.concatenate([attrs, mattrs], 0)
+        verts = np.concatenate([verts, mouth.vertices], 0)
+        faces = np.concatenate([faces, mv.faces + n_before], 0)
     frag = rasterize(verts, faces, camera, supersample)
     H_, W_ = frag.face.shape
     m = frag.mask
@@ -97,7 +111,8 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
         n[cosv > 0] *= -1.0
         fl = 0.5 * (camera.K[0, 0] + camera.K[1, 1]) * supersample
         fp = 0.5 * frag.depth[m] / fl / np.sqrt(np.maximum(np.abs(cosv), 0.1))
-        alb, cov, tan = _albedo(a, which, fp, app, head, hair.volume.bun_frame if hair is not None else None)
+        alb, cov, tan = _albedo(a, which, fp, app, head, hair.volume.bun_frame if hair is not None else None,
+                                mouth.volume.style if mouth is not None else None)
         shade = AMBIENT + DIFFUSE * np.clip(n @ LIGHT_DIR, 0.0, None)
         out = alb * shade[:, None]
         if specular is not None:
@@ -122,10 +137,11 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
     return res
 
 
-def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, head: HeadModel, bun_frame: tuple | None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, head: HeadModel, bun_frame: tuple | None,
+            mouth_style: MouthStyle | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Albedo (M, 3), hair coverage (M,) and template strand tangents (M, 3) of the M samples with
-    interpolated attributes ``a`` and parts ``which``; bun_frame: the hair volume's bun frame."""
+    interpolated attributes ``a`` and parts ``which``; bun_frame: the hair volume's bun frame;
+    mouth_style: the mouth interior's style (its cavity colours the pocket lining), or None."""
     st = app.detail
     assert st is not None
     M = a.shape[0]
@@ -140,7 +156,12 @@ def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, h
         alb[e] = _eye_albedo(a[e, 3:6], app)
     mo = which == _MOUTH
     if mo.any():
-        alb[mo] = np.array([0.45, 0.12, 0.12])[None] * (1.0 - 0.75 * np.clip(a[mo, 10], 0, 1))[:, None]
+        if mouth_style is None:
+            alb[mo] = np.array([0.45, 0.12, 0.12])[None] * (1.0 - 0.75 * np.clip(a[mo, 10], 0, 1))[:, None]
+        else:
+            alb[mo] = mouth_style.cavity_albedo(a[mo, 10])
+            own = mo & (a[:, 20] > 0.5)
+            alb[own] = a[own, 0:3]
     hair_px = which == _HAIR
     bun = hair_px & (frame > 0.5)
     # skin, and the hair sheet where it may still show skin (near the hairline)
