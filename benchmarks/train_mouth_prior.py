@@ -9,8 +9,9 @@ exact tracking: the written model is the truth's geometry) is posed with each ja
 by small cameras aimed at its mouth from each yaw and pitch. sage's mouth interior is appended to
 its written model as ``sage init-mesh`` appends it (cavity, teeth and tongue) and rasterized with
 the same camera. Every pixel where that mesh shows a mouth-interior or teeth face and the truth
-covers the pixel gives one sample: the truth's albedo there (its colour divided by the truth's
-Lambert + ambient shading at its normal) at the mouth coordinates of the point sage's mesh shows,
+covers the pixel gives one sample: the truth's albedo there in sage's convention (its colour divided
+by the truth's Lambert + ambient shading at its normal relative to that shading's mean over the
+sphere, as sage's light has mean irradiance 1) at the mouth coordinates of the point sage's mesh shows,
 in the grid of that face's part (:mod:`sage_core.avatar.mouth_prior`). Each grid node holds the
 trilinearly weighted mean of its samples; nodes without samples take the mean of their nearest
 sampled neighbours. The result is deterministic in the arguments.
@@ -125,7 +126,9 @@ def subject_samples(seed: int, jaws: list[float], yaws: list[float], pitches: li
                     continue
                 f = fid[ok]
                 p = (bary[ok][:, :, None] * canon[model.faces[f]]).sum(1)
-                shade = AMBIENT + DIFFUSE * np.clip(r.normal[ok].astype(np.float64) @ LIGHT_DIR, 0.0, None)
+                # sage's albedo convention: the light's irradiance has mean 1 over the sphere, so the
+                # truth's shading is taken relative to its own mean (ambient + diffuse / 4)
+                shade = (AMBIENT + DIFFUSE * np.clip(r.normal[ok].astype(np.float64) @ LIGHT_DIR, 0.0, None)) / (AMBIENT + 0.25 * DIFFUSE)
                 coords.append(mouth_coordinates(p, origin, w))
                 part_out.append(parts[f])
                 albedo.append(np.clip(r.rgb[ok].astype(np.float64) / shade[:, None], 0.0, 1.0))
@@ -212,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     provenance = {"script": "benchmarks/train_mouth_prior.py", "command": cmd, "seeds": seeds, "jaw": jaws, "yaw_deg": yaws,
                   "pitch_deg": pitches, "image_size": [width, height], "grid": list(grid), "samples": int(len(parts)),
                   "samples_per_part": [int((parts == i).sum()) for i in range(color.shape[0])], "sage_version": __version__,
+                  "albedo": "colour / (shading / its mean over the sphere): sage's convention, mean irradiance 1",
                   "subjects": "sage synth --appearance detailed --tracking exact --preset tiny --seed S (benchmark subjects: seeds 0 and 1)"}  # fmt: skip
     save_mouth_prior(out, MouthPrior(color, weight, provenance=provenance))
     print(f"wrote {out} ({Path(out).stat().st_size} bytes, {len(parts)} samples, {time.time() - t0:.0f} s)")

@@ -61,6 +61,17 @@ def test_prior_file_rejects_foreign_or_damaged_files(tmp_path):
         MouthPrior(np.zeros((3, 2, 2, 2, 3), np.float32), np.zeros((3, 2, 2, 2), np.float32))
 
 
+def test_safetensors_header_length_that_reads_like_a_pickle_opcode_is_not_taken_for_one():
+    import pickle
+
+    from sage_core.serialization import _looks_like_pickle
+
+    # a header of 0x0580 bytes starts the file with 80 05, like a protocol-5 pickle
+    assert not _looks_like_pickle(b"\x80\x05\x00\x00\x00\x00\x00\x00{")
+    assert _looks_like_pickle(pickle.dumps({"a": 1}, protocol=5)[:9])
+    assert _looks_like_pickle(pickle.dumps([1, 2, 3], protocol=2)[:9])
+
+
 def test_lookup_is_trilinear_and_clamped():
     c = np.zeros((4, 2, 2, 2, 3), np.float32)
     c[1, 1] = 1.0  # the lower cavity grid: 1 on the lateral +side, 0 on the -side

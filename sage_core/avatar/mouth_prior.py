@@ -16,7 +16,8 @@ up and backward from the mouth frame's origin (the slit's centre on the front pl
 trilinear interpolation of its part's grid at its canonical centre, so the prior maps onto any
 subject's mouth mesh (sage's own, FLAME with teeth, a capture's own mouth pocket) by position alone.
 
-The grids hold albedo (what the avatar's colour is before the light's shading). They are fitted
+The grids hold albedo (what the avatar's colour is before the light's shading) in sage's convention,
+where the light's irradiance has mean 1 over the sphere (:mod:`sage_core.avatar.shading`). They are fitted
 once, on synthetic subjects that no benchmark uses, by ``python benchmarks/train_mouth_prior.py``
 (docs/method.md, "The mouth interior"); the file's ``provenance`` records the script, the seeds, the
 sampling and the sage version.
