@@ -434,7 +434,7 @@ def test_wrinkle_basis_expression_ignores_skinning_but_not_expression_creases(ph
 def test_mouth_prior_by_face_visibility_colours_surfels_of_unseen_mouth_faces(phase1_avatar_path, p2_data, p2_init_dir):
     from sage_core.flame.regions import Regions
 
-    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="faces", mouth_occlusion_jaw=0.0)
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="faces", mouth_occlusion_jaw=0.0, mouth_prior_source="table")
     av = tr.avatar
     regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
     mouth = torch.as_tensor(regions.face_mask("mouth_interior") | regions.face_mask("teeth"))
@@ -460,11 +460,32 @@ def test_mouth_prior_by_face_visibility_colours_surfels_of_unseen_mouth_faces(ph
     assert off.avatar.surfels.color_prior is None
 
 
+def test_learned_mouth_prior_composites_unseen_surfels_and_spares_seen_ones(phase1_avatar_path, p2_data, p2_init_dir):
+    from sage_core.avatar.mouth_prior import avatar_prior_colors
+    from sage_core.flame.regions import Regions
+
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_prior_source="learned")
+    av = tr.avatar
+    regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
+    cols, mouth = avatar_prior_colors(av, regions)
+    prior = av.surfels.color_prior
+    assert prior is not None
+    on = prior[:, 3] > 0
+    seen = tr.surfel_view_weights() >= 0.5
+    # the unseen mouth surfels take the learned prior's albedo (no occlusion darkening), the seen ones
+    # and every surfel outside the mouth keep their own colour
+    assert bool(on.any()) and torch.equal(on, mouth & ~seen)
+    torch.testing.assert_close(prior[on, :3], cols[on])
+    table = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_prior_source="table",
+                     mouth_occlusion_jaw=0.0)
+    assert not torch.allclose(table.avatar.surfels.color_prior[on, :3], prior[on, :3])
+
+
 def test_mouth_prior_by_surfel_visibility_spares_seen_surfels(phase1_avatar_path, p2_data, p2_init_dir):
     from sage_core.errors import ConfigError
     from sage_core.flame.regions import Regions
 
-    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_occlusion_jaw=0.0)
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_occlusion_jaw=0.0, mouth_prior_source="table")
     av = tr.avatar
     regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
     mouth = torch.as_tensor(regions.face_mask("mouth_interior") | regions.face_mask("teeth"))[av.surfels.binding]

@@ -37,8 +37,10 @@ probability, so the appearance term also holds the avatar to its own phase-1 ren
 
 Mouth-interior prior (``mouth.enabled``, SAGE's composited mouth prior): the surfels bound to
 mouth-interior and teeth triangles that no training view sees at rest (:meth:`Phase2Trainer.seen_faces`)
-get fixed colours, ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
-jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), stored in the avatar
+get prior colours: with ``mouth.prior`` learned (the default) the pretrained prior's albedo at their
+canonical centre (:mod:`sage_core.avatar.mouth_prior`, :func:`learned_mouth_colors`); with table the
+fixed ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
+jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`). They are stored in the avatar
 (:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
 of the appearance term.
 
@@ -151,6 +153,24 @@ def mouth_prior_table(avatar: Avatar, init_dir: str | Path | None, cavity: list[
             colors[m] = torch.tensor([float(v) for v in rgb], device=avatar.device)
             has |= m
     return colors, has
+
+
+def learned_mouth_colors(avatar: Avatar, init_dir: str | Path | None, fallback: torch.Tensor) -> torch.Tensor:
+    """(N, 3) per-surfel colours of the pretrained mouth prior (:mod:`sage_core.avatar.mouth_prior`)
+    for the mouth-interior surfels, ``fallback`` (N, 3) for the others. Needs ``init_dir/regions.json``
+    (present whenever :func:`mouth_prior_table` found mouth faces)."""
+    from ..avatar.mouth_prior import avatar_prior_colors
+    from ..flame.regions import Regions
+
+    path = Path(init_dir) / "regions.json"  # type: ignore[arg-type]
+    regions = Regions.from_dict(json.loads(path.read_text()))
+    try:
+        cols, on = avatar_prior_colors(avatar, regions)
+    except ValueError as e:
+        raise InputError(path, f"cannot place the mouth prior: {e}") from None
+    out = fallback.clone()
+    out[on] = cols[on].to(out)
+    return out
 
 
 def build_sampler(avatar: Avatar, data: IngestedData, cfg: Phase2Config, seed: int = 0) -> ExpressionSampler:
@@ -274,6 +294,9 @@ class Phase2Trainer:
         b = avatar.surfels.binding
         on = torch.zeros(len(avatar.surfels), dtype=torch.bool, device=avatar.device)
         rgb = self.prior_colors[b].clone()
+        learned = cfg.mouth.prior == "learned" and bool(mouth_faces.any())
+        if learned:
+            rgb = learned_mouth_colors(avatar, init_dir, rgb)
         weights: torch.Tensor | None = None
         if bool(mouth_faces.any()):
             self.prior_faces &= ~self.seen_faces()
@@ -282,7 +305,7 @@ class Phase2Trainer:
             else:
                 weights = self.surfel_view_weights()
                 on = mouth_faces[b] & ~(weights >= SEEN_MIN_WEIGHT)
-            if cfg.mouth.occlusion_jaw > 0 and bool(on.any()):
+            if not learned and cfg.mouth.occlusion_jaw > 0 and bool(on.any()):
                 rgb[on] *= self.prior_visibility(on, cfg.mouth.occlusion_jaw)[:, None].to(rgb)
         if cfg.unseen_fill.enabled:
             weights = self.surfel_view_weights() if weights is None else weights
