@@ -42,10 +42,13 @@ jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), 
 (:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
 of the appearance term.
 
-Unseen fill (``unseen_fill.enabled``, off by default): the other surfels that no training view sees at rest
-(less than ``SEEN_MIN_WEIGHT`` pixels of blending weight, hair excluded) get the mean albedo of
-their nearest seen surfels of the same region label as their colour prior
-(:meth:`Phase2Trainer.unseen_fill_colors`).
+Unseen fill (``unseen_fill.enabled``; off by default, on in the single-camera regimes): the other
+surfels that no training view sees at rest (less than ``SEEN_MIN_WEIGHT`` pixels of blending weight)
+get, as their colour prior, the continuation of the albedos of the seen surfels of their region
+group over the surfel graph (:mod:`sage_core.train.unseen_fill`, :func:`unseen_fill_groups`; the hair
+only with ``unseen_fill.hair``, never from skin-coloured sources), and as their opacity floor the
+median opacity of those sources with a gain on their scales that closes the gaps between them
+(``unseen_fill.cover``; :meth:`Phase2Trainer.unseen_fill_colors`).
 
 Wrinkle shading (``wrinkles.enabled``, on by default; :mod:`sage_core.avatar.wrinkles`): after the
 last step every surfel gets a darkening amplitude, stored in the avatar and applied at render time in
@@ -74,7 +77,7 @@ import numpy as np
 import torch
 
 from ..avatar.corrected import CorrectedPosing
-from ..avatar.init import REGION_HAIR, face_region_labels
+from ..avatar.init import REGION_EYES, REGION_FACE, REGION_HAIR, REGION_MOUTH, REGION_NECK, REGION_OTHER, face_region_labels
 from ..avatar.model import Avatar
 from ..avatar.posing import wrinkle_meshes
 from ..avatar.wrinkles import FaceDistortionStats, face_compression, wrinkle_amplitude
@@ -124,6 +127,15 @@ def hair_face_mask(avatar: Avatar, init_dir: str | Path | None = None) -> torch.
 
 SEEN_MIN_WEIGHT = 0.5
 """Pixels of blending weight over the training views at rest below which a surfel counts as unseen."""
+
+
+def unseen_fill_groups(hair: bool) -> tuple[tuple[int, ...], ...]:
+    """Region labels the unseen fill continues together (one surfel graph and one set of sources per
+    group): eyes, face, neck and mouth each alone; with ``hair`` the hair and the rest of the scalp
+    (``other``: the back of the head below the scalp mask, the ears) as one group, else ``other``
+    alone and the hair left out."""
+    alone = ((REGION_FACE,), (REGION_EYES,), (REGION_NECK,), (REGION_MOUTH,))
+    return (((REGION_HAIR, REGION_OTHER),) if hair else ((REGION_OTHER,),)) + alone
 
 
 def mouth_prior_table(avatar: Avatar, init_dir: str | Path | None, cavity: list[float], teeth: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -284,11 +296,16 @@ class Phase2Trainer:
                 on = mouth_faces[b] & ~(weights >= SEEN_MIN_WEIGHT)
             if cfg.mouth.occlusion_jaw > 0 and bool(on.any()):
                 rgb[on] *= self.prior_visibility(on, cfg.mouth.occlusion_jaw)[:, None].to(rgb)
+        self.unseen_fill_result: Any = None
         if cfg.unseen_fill.enabled:
             weights = self.surfel_view_weights() if weights is None else weights
             fill, fill_rgb = self.unseen_fill_colors(weights, on, cfg.unseen_fill.neighbours)
             rgb[fill] = fill_rgb.to(rgb)
             on = on | fill
+            res = self.unseen_fill_result
+            if cfg.unseen_fill.cover and res.opacity is not None and bool(fill.any()):
+                floor = torch.stack([torch.where(fill, res.opacity, torch.zeros_like(res.opacity)), res.scale_gain.to(res.opacity)], -1)
+                avatar.surfels.set_unseen_floor(floor)
         if bool(mouth_faces.any()) or bool(on.any()):
             avatar.surfels.set_color_prior(torch.cat([rgb, on.to(rgb)[:, None]], -1))
         self.rest_teacher: RestTeacher | None = None
@@ -365,33 +382,32 @@ class Phase2Trainer:
 
     @torch.no_grad()
     def unseen_fill_colors(self, weights: torch.Tensor, taken: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Colours for the surfels no training view sees at rest.
+        """Colours for the surfels no training view sees at rest (:mod:`sage_core.train.unseen_fill`).
 
         weights: (N,) :meth:`surfel_view_weights`; taken: (N,) bool surfels that already have a prior.
-        A surfel with less than ``SEEN_MIN_WEIGHT`` pixels of weight, not hair and not taken, gets the
-        mean albedo of its ``k`` nearest seen surfels (canonical centres) of the same region label
-        (eyes, face, neck, ...), so that what an expression or a change of gaze reveals (the sclera
-        under the lids, skin in folds) continues what the views showed. Returns ((N,) bool surfels
-        filled, (M, 3) their colours)."""
+        A surfel with less than ``SEEN_MIN_WEIGHT`` pixels of weight, not taken, in a region that
+        ``unseen_fill.hair`` lets fill (without it, every region but the hair), takes the harmonic
+        continuation over its group's surfel graph (``k`` neighbours) of the albedos of the group's
+        seen surfels (eyes, face, neck, mouth each alone; the hair with the rest of the scalp, its
+        skin-coloured sources left out). Sets :attr:`unseen_fill_result` (with the opacity floor and
+        scale gain of ``unseen_fill.cover``).
+        Returns ((N,) bool surfels filled, (M, 3) their colours)."""
+        from .unseen_fill import fill_unseen
+
         av = self.avatar
         s = av.surfels
-        seen = weights.to(av.device) >= SEEN_MIN_WEIGHT
-        fill = ~seen & ~taken & ~s.hair_mask()
-        if not bool(fill.any()):
-            return fill, torch.zeros(0, 3, device=av.device)
-        canon = av.canonical_state(with_sdf=False)
-        colors = av.posed(self.inputs(self.data.canonical_timestep), None, canonical=canon, shade=False).colors
-        out = torch.zeros_like(colors)
-        region = s.region_id
-        for r in torch.unique(region[fill]).tolist():
-            src = (seen & (region == r)).nonzero().squeeze(-1)
-            dst = fill & (region == r)
-            if src.numel() == 0:  # no seen surfel of that region: left as it is
-                fill &= region != r
-                continue
-            near = nearest_indices(canon.means[dst], canon.means[src], min(int(k), int(src.numel())))
-            out[dst] = colors[src[near]].mean(1)
-        return fill, out[fill]
+        c = self.cfg.unseen_fill
+        canon = av.canonical_state(with_sdf=av.attributes == "mlp")
+        p = av.posed(self.inputs(self.data.canonical_timestep), None, canonical=canon, shade=False)
+        res = fill_unseen(
+            canon.means, p.colors, weights.to(av.device), s.region_id, p.opacities if c.cover else None,
+            canon.scales if c.cover else None,
+            groups=unseen_fill_groups(c.hair), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
+            cover_regions=(REGION_HAIR, REGION_OTHER), taken=taken,
+            seen_min=SEEN_MIN_WEIGHT, source_min=c.source_min, neighbours=int(k),
+        )  # fmt: skip
+        self.unseen_fill_result = res
+        return res.filled, res.colors[res.filled]
 
     def seen_surfels(self, min_weight: float = SEEN_MIN_WEIGHT) -> torch.Tensor:
         """(N,) bool surfels that the training views at rest see: :meth:`surfel_view_weights` at least
