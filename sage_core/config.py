@@ -507,6 +507,7 @@ class UnseenFillConfig:
     neighbours: int = _f(8, "Neighbours of each surfel in the group graph the colours propagate over.", ge=1, alias="unseen_fill_neighbours")
     hair: bool = _f(False, "Fill the hair too, with the rest of the scalp (the back of the head below the scalp mask, the ears) as one group whose skin-coloured seen surfels pass nothing on: the unseen back of the head continues the seen hair, never the face. Regime default for sv-hr and one-shot: true.", alias="unseen_fill_hair")
     source_min: float = _f(0.5, "Pixels of blending weight over the training views a seen surfel needs to pass its colour on (at least the seen threshold of half a pixel).", ge=0, alias="unseen_fill_source_min")
+    grazing_cos: float = _f(0.3, "With hair: a seen surfel of the hair group whose colour is skin and that the views saw only at grazing angles (weighted mean |cos| between its normal and the view direction below this) is filled like an unseen one (0: never).", ge=0, le=1, alias="unseen_fill_grazing_cos")
     cover: bool = _f(True, "Keep the unseen surface covered: a filled surfel's opacity is raised to at least the median opacity of its group's sources and its in-plane scales grow (at most 4x) until their geometric mean reaches 0.75 times the distance to its 4th nearest surfel of the group (stored in the avatar), so that no gap in the unseen back shows the inside of the face.", alias="unseen_fill_cover")
 
 

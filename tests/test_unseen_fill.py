@@ -147,4 +147,27 @@ def test_skin_like_split() -> None:
     # a small minority of dark pixels does not turn the majority into "skin"
     few = np.vstack([hair[:5], skin])
     assert not skin_like_sources(few, np.array([0.8, 0.6, 0.5])).any()
+    # lighter and darker hair (shading, strands) are both hair: nearer the hair than the skin
+    mixed = np.vstack([hair, hair + 0.2, skin])
+    got = skin_like_sources(mixed, np.array([0.8, 0.6, 0.5]))
+    assert not got[:120].any() and got[120:].all()
+
+
+def test_skin_coloured_hair_seen_only_at_grazing_angles_is_refilled() -> None:
+    x, c, w, r, op = _head(1500, 5)
+    seen = w >= 0.5
+    facing = w * 0.9
+    # a skin-coloured blotch on the seen hair, seen only at grazing angles
+    blotch = seen & (r == REGION_HAIR) & (x[:, 2] < 0.03) & (x[:, 0] > 0.0)
+    c[blotch] = SKIN
+    facing[blotch] = 0.1 * w[blotch]
+    # another one seen frontally: real skin (a forehead), kept
+    kept = seen & (r == REGION_HAIR) & (x[:, 2] < 0.03) & (x[:, 0] <= 0.0)
+    c[kept] = SKIN
+    res = fill_unseen(x, c, w, r, op, None, facing, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,),
+                      skin_regions=(REGION_FACE,))
+    assert bool(blotch.any()) and bool(res.filled[blotch].all())
+    assert float((res.colors[blotch] - HAIR).abs().max()) < 1e-6
+    assert torch.equal(res.colors[kept], c[kept]) and not bool(res.filled[kept].any())
+    assert res.per_group[str(REGION_HAIR)]["grazing_skin_refilled"] == float(blotch.sum())
 

@@ -389,7 +389,7 @@ class Phase2Trainer:
         ``unseen_fill.hair`` lets fill (without it, every region but the hair), takes the harmonic
         continuation over its group's surfel graph (``k`` neighbours) of the albedos of the group's
         seen surfels (eyes, face, neck, mouth each alone; the hair with the rest of the scalp, its
-        skin-coloured sources left out). Sets :attr:`unseen_fill_result` (with the opacity floor and
+        skin-coloured sources left out, and those of them seen only at grazing angles filled too). Sets :attr:`unseen_fill_result` (with the opacity floor and
         scale gain of ``unseen_fill.cover``).
         Returns ((N,) bool surfels filled, (M, 3) their colours)."""
         from .unseen_fill import fill_unseen
@@ -399,12 +399,15 @@ class Phase2Trainer:
         c = self.cfg.unseen_fill
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
         p = av.posed(self.inputs(self.data.canonical_timestep), None, canonical=canon, shade=False)
+        facing = getattr(self, "view_facing", None)
+        if facing is not None and tuple(facing.shape) != tuple(weights.shape):
+            facing = None
         res = fill_unseen(
             canon.means, p.colors, weights.to(av.device), s.region_id, p.opacities if c.cover else None,
-            canon.scales if c.cover else None,
+            canon.scales if c.cover else None, facing,
             groups=unseen_fill_groups(c.hair), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
             cover_regions=(REGION_HAIR, REGION_OTHER), taken=taken,
-            seen_min=SEEN_MIN_WEIGHT, source_min=c.source_min, neighbours=int(k),
+            seen_min=SEEN_MIN_WEIGHT, source_min=c.source_min, neighbours=int(k), grazing_cos=c.grazing_cos,
         )  # fmt: skip
         self.unseen_fill_result = res
         return res.filled, res.colors[res.filled]
@@ -418,9 +421,14 @@ class Phase2Trainer:
         """(N,) float64 blending weight of every surfel summed over the foreground pixels (the mesh
         raster's mask eroded by one pixel) of the training views at rest (at most
         ``rest_teacher.max_views``). The weight of surfel i is the gradient of Σ_p mask_p·C_p with respect
-        to its colour, one backward pass per view; over all surfels it sums to Σ_p mask_p·A_p."""
+        to its colour, one backward pass per view; over all surfels it sums to Σ_p mask_p·A_p. Also sets
+        :attr:`view_facing`: the same sum with each view's weight times |cos| of the angle between the
+        surfel's normal and the direction to that view's camera."""
+        from ..geometry.rotations import quat_to_matrix
+
         av, c = self.avatar, self.cfg
         total = torch.zeros(len(av.surfels), dtype=torch.float64, device=av.device)
+        facing = torch.zeros_like(total)
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
         for fr in evenly_spaced_frames(self.frames, c.rest_teacher.max_views):
             cam = RenderCamera.from_camera(fr.camera, self.device)
@@ -433,6 +441,12 @@ class Phase2Trainer:
                                     near=c.near, far=c.far, return_statistics=False, backend=self.render_backend)  # fmt: skip
             (grad,) = torch.autograd.grad((img.color[..., 0] * inner).sum(), cols)
             total += grad[:, 0].detach().to(total)
+            with torch.no_grad():
+                n = quat_to_matrix(p.quats.detach() / p.quats.detach().norm(dim=-1, keepdim=True))[..., 2]
+                to_cam = cam.w2c[:3, :3].T.to(p.means) @ -cam.w2c[:3, 3].to(p.means) - p.means.detach()
+                cos = (n * to_cam).sum(-1).abs() / to_cam.norm(dim=-1).clamp_min(1e-12)
+                facing += grad[:, 0].detach().to(total) * cos.to(total)
+        self.view_facing = facing
         return total
 
     @torch.no_grad()

@@ -11,9 +11,16 @@ what was seen, region by region (docs/method.md, "The unseen back and sides"):
    ``source_min`` pixels (at least ``seen_min``). Targets are the unseen surfels of the region groups
    to fill that no other prior colours (the mouth interior has its own).
 2. **Hair sources are hair.** Among the sources of a group with the hair, those whose colour belongs to the skin
-   are left out (:func:`skin_like_sources`): a 2-means split of their colours whose cluster nearer
-   the skin reference (the median colour of the face region's sources) is dropped when it is clearly
-   apart from the other and the other is not a small minority (an avatar without hair keeps all).
+   are left out (:func:`skin_like_sources`): a 2-means split of their colours gives the hair centre
+   (the one farther from the skin reference, the median colour of the face region's sources), and a
+   colour nearer the skin reference than the hair centre is skin, provided the hair centre is
+   clearly apart from the skin and not a small minority (an avatar without hair keeps all). A
+   skin-coloured surfel of such a group that the views saw only at grazing angles (weighted mean
+   |cosine| between its normal and the view direction below ``grazing_cos``) is filled as if unseen:
+   in a clip of head turns the back of the head is seen only that way, and at the lower edge of
+   hair that stands off the scalp the rays graze the scalp and take the skin below. The skin left
+   out is not lost: a target whose nearest seen skin is nearer than 0.7 times its nearest seen hair
+   continues the skin instead (the cheeks by the ears, which the region masks put with the scalp).
 3. **Propagation over the surface.** Within each group of regions (the hair with the rest of the
    scalp; the face; the neck; ...), the surfels (canonical centres) form a symmetric
    k-nearest-neighbour graph, a discrete version of the surface; the unseen colours solve the graph
@@ -150,22 +157,21 @@ def _two_means(x: np.ndarray, iters: int = 20) -> tuple[np.ndarray, np.ndarray]:
 def skin_like_sources(colors: np.ndarray, skin: np.ndarray, separation: float = 0.12, min_share: float = 0.2) -> np.ndarray:
     """(M,) bool: which hair colours ``colors`` (M, 3) are skin, given the skin reference ``skin`` (3,).
 
-    The colours are split in two by 2-means; the cluster whose centre is nearer ``skin`` is skin-like
-    when the two centres are at least ``separation`` apart (RGB distance) and the other cluster holds
-    at least ``min_share`` of the colours. Otherwise (one colour throughout: hair like skin, or no
-    hair) nothing is skin-like.
+    The colours are split in two by 2-means; the centre farther from ``skin`` is the hair's. When it
+    is at least ``separation`` (RGB distance) from the skin reference and its cluster holds at least
+    ``min_share`` of the colours, a colour is skin-like when it is nearer the skin reference than the
+    hair centre. Otherwise (hair coloured like skin, or no hair) nothing is skin-like.
     """
     colors = np.asarray(colors, dtype=np.float64)
+    skin = np.asarray(skin, dtype=np.float64)
     out = np.zeros(len(colors), dtype=bool)
     if len(colors) < 4:
         return out
     lab, c = _two_means(colors)
-    if np.linalg.norm(c[0] - c[1]) < separation:
+    far = int(np.argmax([np.linalg.norm(c[j] - skin) for j in range(2)]))
+    if np.linalg.norm(c[far] - skin) < separation or (lab == far).mean() < min_share:
         return out
-    near = int(np.argmin([np.linalg.norm(c[j] - np.asarray(skin)) for j in range(2)]))
-    if (lab != near).mean() < min_share:
-        return out
-    return lab == near
+    return np.linalg.norm(colors - skin[None], axis=1) < np.linalg.norm(colors - c[far][None], axis=1)
 
 
 def fill_unseen(
@@ -175,6 +181,7 @@ def fill_unseen(
     region: torch.Tensor,
     opacity: torch.Tensor | None = None,
     scales: torch.Tensor | None = None,
+    facing: torch.Tensor | None = None,
     *,
     groups: Sequence[Sequence[int]],
     hair_regions: Iterable[int] = (),
@@ -184,6 +191,8 @@ def fill_unseen(
     seen_min: float = 0.5,
     source_min: float = 0.5,
     neighbours: int = 8,
+    grazing_cos: float = 0.3,
+    skin_ratio: float = 0.7,
     cover_neighbours: int = 4,
     cover_ratio: float = 0.75,
     seen_ratio: float = 0.15,
@@ -193,14 +202,20 @@ def fill_unseen(
 
     points: (N, 3) canonical centres; colors: (N, 3) albedos; weights: (N,) blending weight (pixels)
     over the training views; region: (N,) labels; opacity: (N,) (None: no opacity floor); scales:
-    (N, 2) canonical in-plane scales (None: no scale gain); groups:
+    (N, 2) canonical in-plane scales (None: no scale gain); facing: (N,) the view weights times the
+    |cosine| between the surfel's normal and the direction to the camera, summed like ``weights``
+    (None: no surfel counts as seen only at grazing angles); groups:
     region labels filled together (one graph and one set of sources per group, e.g. the hair with
     the rest of the scalp); hair_regions: a group holding one of these labels leaves out its
     skin-coloured sources (:func:`skin_like_sources`); skin_regions: labels whose sources give the
     skin reference; cover_regions: the opacity floor and scale gain apply to the groups holding one
     of these labels (None: every group); taken: (N,) bool surfels with another prior (never filled, never sources);
     seen_min / source_min: pixels of weight to count as seen / as a source; neighbours: k of the
-    group graph; cover_neighbours, cover_ratio, seen_ratio, max_gain: the scale gain of a filled
+    group graph; grazing_cos: in a group with hair, a seen skin-like surfel whose weighted mean
+    |cosine| (facing / weights) is below this was seen only at grazing angles and is filled like an
+    unseen one; skin_ratio: in a group with hair, a target whose nearest seen skin-like surfel is
+    nearer than ``skin_ratio`` times its nearest hair source continues the skin instead (0: never);
+    cover_neighbours, cover_ratio, seen_ratio, max_gain: the scale gain of a filled
     surfel makes its geometric mean scale at least ``cover_ratio`` times the distance to its
     ``cover_neighbours``-th nearest surfel of the group, but not beyond ``seen_ratio`` times its
     distance to the nearest seen surfel, and at most ``max_gain``. Seen surfels are returned unchanged.
@@ -214,6 +229,10 @@ def fill_unseen(
     tk = taken.detach().bool().cpu().numpy() if taken is not None else np.zeros(n, dtype=bool)
     op = opacity.detach().double().cpu().numpy() if opacity is not None else None
     sg = scales.detach().double().cpu().numpy() if scales is not None else None
+    grazing = np.zeros(n, dtype=bool)
+    if facing is not None:
+        fc = facing.detach().double().cpu().numpy()
+        grazing = (w >= float(seen_min)) & (fc < float(grazing_cos) * w)
     gain = np.ones(n)
     seen = w >= float(seen_min)
     src_all = (w >= max(float(source_min), float(seen_min))) & ~tk
@@ -236,8 +255,12 @@ def fill_unseen(
                 skin_like[gs[skin_like_sources(col[gs], skin_ref)]] = True
         sources = src_all & in_g & ~skin_like
         target = in_g & ~seen & ~tk
+        refill = np.zeros(n, dtype=bool)
+        if hair_ids & set(ids):
+            refill = in_g & skin_like & grazing & ~tk
+            target |= refill
         s = {"surfels": float(in_g.sum()), "targets": float(target.sum()), "sources": float(sources.sum()),
-             "skin_like_sources": float((skin_like & in_g).sum()), "filled": 0.0}
+             "skin_like_sources": float((skin_like & in_g).sum()), "grazing_skin_refilled": float(refill.sum()), "filled": 0.0}
         stats["+".join(map(str, ids))] = s
         if not target.any() or not sources.any():
             continue
@@ -247,6 +270,18 @@ def fill_unseen(
         vals, reached = harmonic_fill(adj, col[nodes], sources[nodes])
         vals[~reached] = np.median(col[sources], axis=0)
         t = target[nodes]
+        skin_src = src_all & in_g & skin_like & ~grazing
+        if skin_src.any() and float(skin_ratio) > 0:
+            # skin continued where the seen skin is much nearer than the seen hair (cheeks, ears)
+            from scipy.spatial import cKDTree
+
+            d_h, _ = cKDTree(x[sources]).query(x[nodes], k=1)
+            d_s, _ = cKDTree(x[skin_src]).query(x[nodes], k=1)
+            near_skin = t & (d_s < float(skin_ratio) * d_h)
+            if near_skin.any():
+                sv, _ = harmonic_fill(adj, col[nodes], skin_src[nodes])
+                vals[near_skin] = sv[near_skin]
+                s["skin_continued"] = float(near_skin.sum())
         out_col[nodes[t]] = vals[t].clip(0.0, 1.0)
         filled[nodes[t]] = True
         s["filled"] = float(t.sum())
@@ -261,8 +296,9 @@ def fill_unseen(
 
             d, _ = cKDTree(x[nodes]).query(x[nodes[t]], k=int(cover_neighbours) + 1)
             want = float(cover_ratio) * d[:, -1]
-            if seen.any():  # near the seen surface the seen surfels cover: grow only away from it
-                d_seen, _ = cKDTree(x[seen]).query(x[nodes[t]], k=1)
+            kept = seen & ~filled
+            if kept.any():  # near the seen surface the seen surfels cover: grow only away from it
+                d_seen, _ = cKDTree(x[kept]).query(x[nodes[t]], k=1)
                 want = np.minimum(want, float(seen_ratio) * d_seen)
             geo = np.sqrt(np.maximum(sg[nodes[t], 0] * sg[nodes[t], 1], 1e-30))
             gain[nodes[t]] = np.clip(want / geo, 1.0, float(max_gain))
