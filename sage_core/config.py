@@ -505,10 +505,14 @@ class MouthPriorConfig:
 
 @dataclass
 class UnseenFillConfig:
-    """Phase 2: colours of the other surfels no training view sees."""
+    """Phase 2: colours and opacities of the other surfels no training view sees."""
 
-    enabled: bool = _f(False, "Surfels that no training view sees at rest (less than half a pixel of blending weight) and that the mouth prior does not colour take the mean albedo of their nearest seen surfels of the same region (eyes, face, neck, ...; hair excluded): what an expression or a change of gaze reveals, such as the sclera under the lids, continues what the views showed instead of the appearance network's extrapolation.", alias="unseen_fill")
-    neighbours: int = _f(8, "Seen surfels averaged per unseen surfel.", ge=1, alias="unseen_fill_neighbours")
+    enabled: bool = _f(False, "Surfels that no training view sees at rest (less than half a pixel of blending weight) and that the mouth prior does not colour take the continuation, over the surfel graph of their region group, of the albedos of the group's seen surfels (eyes, face, neck, mouth each alone; the hair only with unseen_fill.hair): what no view saw continues what the views showed instead of the appearance network's extrapolation. Regime default for sv-hr and one-shot: true.", alias="unseen_fill")
+    neighbours: int = _f(8, "Neighbours of each surfel in the group graph the colours propagate over.", ge=1, alias="unseen_fill_neighbours")
+    hair: bool = _f(False, "Fill the hair too, with the rest of the scalp (the back of the head below the scalp mask, the ears) as one group whose skin-coloured seen surfels pass nothing on: the unseen back of the head continues the seen hair, never the face. Regime default for sv-hr and one-shot: true.", alias="unseen_fill_hair")
+    source_min: float = _f(0.5, "Pixels of blending weight over the training views a seen surfel needs to pass its colour on (at least the seen threshold of half a pixel).", ge=0, alias="unseen_fill_source_min")
+    grazing_cos: float = _f(0.3, "With hair: a seen surfel of the hair group whose colour is skin and that the views saw only at grazing angles (weighted mean |cos| between its normal and the view direction below this) is filled like an unseen one (0: never).", ge=0, le=1, alias="unseen_fill_grazing_cos")
+    cover: bool = _f(True, "Keep the unseen surface covered: a filled surfel's opacity is raised to at least the median opacity of its group's sources and its in-plane scales grow (at most 4x) until their geometric mean reaches 0.75 times the distance to its 4th nearest surfel of the group (stored in the avatar), so that no gap in the unseen back shows the inside of the face.", alias="unseen_fill_cover")
 
 
 @dataclass
@@ -682,8 +686,10 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 # Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
-    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
-    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
+    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05},
+              "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True}},
+    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05},
+                 "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True}},
 }
 
 # Rules that tie several fields of one config together: (check, fields named in the error, what is

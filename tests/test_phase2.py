@@ -775,9 +775,10 @@ def test_render_settings_keep_the_correction_mode_an_avatar_was_trained_with(tmp
     assert stage_render_settings(tmp_path, None).correction is None
 
 
-def test_unseen_fill_gives_unseen_surfels_the_mean_colour_of_their_nearest_seen_neighbours(phase1_avatar_path, p2_data, p2_init_dir,
-                                                                                          monkeypatch):
-    from sage_core.train.phase2 import SEEN_MIN_WEIGHT
+def test_unseen_fill_continues_each_groups_seen_surfels_and_keeps_the_back_covered(phase1_avatar_path, p2_data, p2_init_dir,
+                                                                                    monkeypatch):
+    from sage_core.avatar.init import REGION_EYES, REGION_FACE, REGION_HAIR, REGION_MOUTH, REGION_NECK, REGION_OTHER
+    from sage_core.train.phase2 import SEEN_MIN_WEIGHT, unseen_fill_groups
 
     tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
     av = tr.avatar
@@ -788,30 +789,43 @@ def test_unseen_fill_gives_unseen_surfels_the_mean_colour_of_their_nearest_seen_
     taken = torch.zeros(N, dtype=torch.bool)
     taken[:7] = True
     weights[:7] = 0.0
-    k = 4
-    fill, rgb = tr.unseen_fill_colors(weights, taken, k)
     seen = weights >= SEEN_MIN_WEIGHT
+    region = av.surfels.region_id
     hair = av.surfels.hair_mask()
-    assert not bool((fill & (seen | taken | hair)).any())
-    assert bool(fill.any()) and rgb.shape == (int(fill.sum()), 3)
-    # the reference: brute force over the same region's seen surfels
     with torch.no_grad():
         colors = av.posed(av.frame_inputs(p2_data.canonical_timestep), None, shade=False).colors
-        means = av.canonical_state(with_sdf=False).means
-    region = av.surfels.region_id
-    for row, i in enumerate(fill.nonzero().squeeze(-1)[:25].tolist()):
-        src = (seen & (region == region[i])).nonzero().squeeze(-1)
-        d = (means[src] - means[i]).norm(dim=-1)
-        want = colors[src[d.argsort()[:k]]].mean(0)
-        torch.testing.assert_close(rgb[row], want, atol=1e-5, rtol=1e-5)
-    # through the trainer (with these weights): the filled surfels carry the colours as their prior
+    # without unseen_fill.hair: every region but the hair, each from its own seen surfels
+    fill, rgb = tr.unseen_fill_colors(weights, taken, 4)
+    assert not bool((fill & (seen | taken | hair)).any())
+    assert bool(fill.any()) and rgb.shape == (int(fill.sum()), 3)
+    for r in torch.unique(region[fill]).tolist():
+        src = colors[seen & (region == r)]
+        got = rgb[region[fill] == r]
+        # a harmonic continuation is a mean of its sources: inside their colour range
+        assert bool((got >= src.min(0).values - 1e-5).all() and (got <= src.max(0).values + 1e-5).all())
+    assert unseen_fill_groups(False) == ((REGION_OTHER,), (REGION_FACE,), (REGION_EYES,), (REGION_NECK,), (REGION_MOUTH,))
+    assert (REGION_HAIR, REGION_OTHER) in unseen_fill_groups(True)
+    # through the trainer with the single-camera regimes' settings: the filled surfels carry the colours
+    # as their prior; the hair's unseen surfels are filled too and get the unseen floor
     monkeypatch.setattr(Phase2Trainer, "surfel_view_weights", lambda self: weights.clone())
-    tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_neighbours=k)
+    tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_hair=True)
+    res = tr2.unseen_fill_result
     prior = tr2.avatar.surfels.color_prior
-    assert prior is not None
-    fill2, rgb2 = tr2.unseen_fill_colors(weights, torch.zeros(N, dtype=torch.bool), k)
-    assert torch.equal(prior[:, 3] > 0, fill2)
-    torch.testing.assert_close(prior[fill2, :3], rgb2)
+    assert prior is not None and torch.equal(prior[:, 3] > 0, res.filled)
+    torch.testing.assert_close(prior[res.filled, :3], res.colors[res.filled].to(prior))
+    assert bool((res.filled & hair).any()) and not bool((res.filled & seen).any())
+    floor = tr2.avatar.surfels.unseen_floor
+    assert floor is not None
+    assert bool((floor[~res.filled, 0] == 0).all() and (floor[~res.filled, 1] == 1).all())
+    assert bool((floor[res.filled & hair, 0] > 0).all() and (floor[:, 1] >= 1).all())
+    # the floor reaches the posed opacities and scales; seen surfels are posed as before
+    inputs = tr2.avatar.frame_inputs(p2_data.canonical_timestep)
+    with torch.no_grad():
+        after = tr2.avatar.posed(inputs, None)
+        ref = _avatar(phase1_avatar_path).posed(inputs, None)
+    torch.testing.assert_close(after.opacities[seen], ref.opacities[seen])
+    torch.testing.assert_close(after.scales[seen], ref.scales[seen])
+    assert bool((after.opacities[res.filled & hair] >= floor[res.filled & hair, 0] - 1e-6).all())
 
 
 def test_correction_radius_defaults_by_attributes(phase1_avatar_path):

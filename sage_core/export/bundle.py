@@ -322,6 +322,7 @@ _EXACT: dict[str, str] = {
     "state/surfels.sh_rest": "free mode: higher SH colour coefficients (N,(d+1)^2-1,3)",
     "state/surfels.wrinkle": "wrinkle shading per surfel (N,2): amplitude and full compression",
     "state/surfels.color_prior": "colour prior per surfel (N,4): RGB and blend weight",
+    "state/surfels.unseen_floor": "unseen fill per surfel (N,2): opacity lower bound (0: none) and in-plane scale gain (1: none)",
     "state/canonical_vertices": "canonical mesh vertices (V,3) (derived: FLAME at the canonical timestep, zero global motion)",
     "state/root_joint": "canonical root joint position (3,) (derived)",
     "state/R_c": "canonical triangle frames (F,3,3), columns [a0,-a2,a1] (surfel-flat convention) (derived)",
