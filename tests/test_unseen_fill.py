@@ -63,7 +63,9 @@ def test_hair_never_takes_skin_coloured_sources() -> None:
     seen = w >= 0.5
     forehead = seen & (r == REGION_HAIR) & (x[:, 1] < 0.05)
     c[forehead] = SKIN + 0.02
-    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,))
+    # skin_ratio=0: no skin continued near the seen skin (tested below), only the exclusion
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
+                      skin_ratio=0.0)
     assert bool(res.skin_like[forehead].all())
     assert not bool(res.skin_like[seen & (r == REGION_HAIR) & ~forehead].any())
     back_hair = ~seen & (r == REGION_HAIR)
@@ -71,6 +73,30 @@ def test_hair_never_takes_skin_coloured_sources() -> None:
     assert float((got - HAIR).abs().max()) < 1e-6, "a back hair surfel took a skin colour"
     # the forehead itself (seen) keeps its colour
     assert torch.equal(res.colors[forehead], c[forehead])
+
+
+def test_skin_is_continued_only_where_the_seen_skin_is_much_nearer_than_the_hair() -> None:
+    """With the default skin_ratio (0.7) an unseen surfel of the hair group continues the skin
+    exactly when its nearest seen skin-like surfel is nearer than 0.7 times its nearest hair source
+    (the cheeks by the ears); every other one takes the hair."""
+    from scipy.spatial import cKDTree
+
+    x, c, w, r, op = _head(2000, 1)
+    seen = w >= 0.5
+    forehead = seen & (r == REGION_HAIR) & (x[:, 1] < 0.05)
+    c[forehead] = SKIN + 0.02
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,))
+    back_hair = ~seen & (r == REGION_HAIR)
+    assert bool(res.filled[back_hair].all())
+    hair_src = res.sources.numpy()
+    d_h, _ = cKDTree(x[hair_src].numpy()).query(x[back_hair].numpy(), k=1)
+    d_s, _ = cKDTree(x[forehead].numpy()).query(x[back_hair].numpy(), k=1)
+    near_skin = torch.as_tensor(d_s < 0.7 * d_h)
+    assert 0 < int(near_skin.sum()) < int(back_hair.sum())
+    got = res.colors[back_hair]
+    # the far ones are pure hair; the near ones a continuation of the skin fringe (its colour range)
+    assert float((got[~near_skin] - HAIR).abs().max()) < 1e-6
+    assert float((got[near_skin] - (SKIN + 0.02)).abs().max()) < 1e-5
 
 
 def test_regions_do_not_leak_and_taken_surfels_are_left_alone() -> None:
@@ -165,7 +191,7 @@ def test_skin_coloured_hair_seen_only_at_grazing_angles_is_refilled() -> None:
     kept = seen & (r == REGION_HAIR) & (x[:, 2] < 0.03) & (x[:, 0] <= 0.0)
     c[kept] = SKIN
     res = fill_unseen(x, c, w, r, op, None, facing, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,),
-                      skin_regions=(REGION_FACE,))
+                      skin_regions=(REGION_FACE,), skin_ratio=0.0)
     assert bool(blotch.any()) and bool(res.filled[blotch].all())
     assert float((res.colors[blotch] - HAIR).abs().max()) < 1e-6
     assert torch.equal(res.colors[kept], c[kept]) and not bool(res.filled[kept].any())
