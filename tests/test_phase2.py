@@ -460,18 +460,27 @@ def test_mouth_prior_by_face_visibility_colours_surfels_of_unseen_mouth_faces(ph
     assert off.avatar.surfels.color_prior is None
 
 
-def test_learned_mouth_prior_composites_unseen_surfels_and_spares_seen_ones(phase1_avatar_path, p2_data, p2_init_dir):
+def test_learned_mouth_prior_composites_unseen_surfels_and_spares_seen_ones(phase1_avatar_path, p2_data, p2_init_dir,
+                                                                            monkeypatch):
     from sage_core.avatar.mouth_prior import avatar_prior_colors
     from sage_core.flame.regions import Regions
 
+    # the tiny avatar's few large mouth surfels are all seen at the open-jaw canonical timestep: the
+    # views' real weights with every other mouth surfel made unseen
+    base = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
+    regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
+    _, mouth = avatar_prior_colors(base.avatar, regions)
+    weights = base.surfel_view_weights()
+    hidden = mouth.nonzero().squeeze(-1)[::2]
+    weights[hidden] = 0.0
+    monkeypatch.setattr(Phase2Trainer, "surfel_view_weights", lambda self: weights.clone())
     tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_prior_source="learned")
     av = tr.avatar
-    regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
     cols, mouth = avatar_prior_colors(av, regions)
     prior = av.surfels.color_prior
     assert prior is not None
     on = prior[:, 3] > 0
-    seen = tr.surfel_view_weights() >= 0.5
+    seen = weights >= 0.5
     # the unseen mouth surfels take the learned prior's albedo (no occlusion darkening), the seen ones
     # and every surfel outside the mouth keep their own colour
     assert bool(on.any()) and torch.equal(on, mouth & ~seen)
