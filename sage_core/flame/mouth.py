@@ -78,7 +78,9 @@ def _dome(sign: float) -> tuple[np.ndarray, np.ndarray]:
 
 def _cap() -> tuple[np.ndarray, np.ndarray]:
     """Unit upper hemisphere (the tongue): vertices (R·T + 1, 3) (x, y ≥ 0, z) and faces facing out."""
-    theta = np.linspace(0.0, 2 * np.pi, _N_THETA, endpoint=False)
+    # starting on the midline (θ = π/2) makes the columns mirror-symmetric (x → −x maps θ to π − θ),
+    # so the mesh keeps its left/right vertex correspondence (sage_core.flame.mirror)
+    theta = np.pi / 2 + np.linspace(0.0, 2 * np.pi, _N_THETA, endpoint=False)
     phi = np.arange(_N_RINGS) / _N_RINGS * (np.pi / 2)
     th, ph = np.meshgrid(theta, phi)
     pts = np.stack([np.cos(th) * np.cos(ph), np.sin(ph), np.sin(th) * np.cos(ph)], -1).reshape(-1, 3)
