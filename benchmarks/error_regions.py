@@ -3,7 +3,7 @@
 Usage:
     python benchmarks/error_regions.py WS:STAGE[:LABEL] [WS:STAGE[:LABEL] | ceiling:CAPTURE ...]
         [--split test|val] [--cams 2,8,12] [--panels DIR] [--scale 3] [--out FILE.json]
-        [--lpips WEIGHTS]
+        [--lpips WEIGHTS] [--timesteps 2,4] [--min-jaw 0.1]
 
 Every avatar renders every frame of the split as ``sage eval`` renders it (the stage's render
 settings, surfel correction included) and is compared with the ground-truth image;
@@ -28,6 +28,10 @@ image), the image that is the render in that area and the ground truth everywher
 against the ground truth (``lpips_band``, ``lpips_mouth``, ``lpips_rest``, ``lpips_outside``, beside
 ``lpips`` of the whole render). LPIPS is not additive, so these do not sum to ``lpips``; each says how
 far the render's errors in one area alone are perceptually from the truth.
+
+``--timesteps`` keeps the frames of the listed timesteps; ``--min-jaw`` those whose tracked jaw
+opening (the first, opening component of the jaw pose, radians) is at least the value: the open-jaw
+frames, where the mouth interior shows.
 
 The workspaces must share the data (the same capture and split). Prints a Markdown table of the mean
 SSE per image (and of the LPIPS split); ``--out`` writes the per-image values as JSON; ``--panels`` writes, for the frames of
@@ -67,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--scale", type=int, default=3, help="panel upscaling")
     ap.add_argument("--out", type=Path, default=None, help="JSON file of the per-image values")
     ap.add_argument("--lpips", type=Path, default=None, help="LPIPS AlexNet v0.1 weights: also split LPIPS by area")
+    ap.add_argument("--timesteps", default=None, help="comma-separated timesteps: only their frames")
+    ap.add_argument("--min-jaw", type=float, default=None, help="only frames whose tracked jaw opening is at least this (rad)")
     return ap
 
 
@@ -99,6 +105,20 @@ def _face_labels(regions_path: Path) -> np.ndarray:
         for name in names:
             labels[np.asarray(reg["face_sets"].get(name, []), dtype=np.int64)] = gi
     return labels
+
+
+def select_frames(data: Any, frames: list[Any], timesteps: str | None, min_jaw: float | None) -> list[Any]:
+    """The frames of ``timesteps`` (comma-separated, None: all) whose tracked jaw opening is at least
+    ``min_jaw`` (None: any)."""
+    keep = None if timesteps is None else {int(t) for t in timesteps.split(",") if t.strip()}
+    out = []
+    for fr in frames:
+        if keep is not None and fr.timestep not in keep:
+            continue
+        if min_jaw is not None and float(np.asarray(data.params.jaw_pose)[data.params.row_of(fr.timestep)][0]) < min_jaw:
+            continue
+        out.append(fr)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -159,8 +179,12 @@ def main(argv: list[str] | None = None) -> int:
     cams = {int(c) for c in args.cams.split(",") if c.strip()}
     per_image: dict[str, list[dict[str, Any]]] = {lab: [] for lab, _ in avatars}
     ref = first.avatar
+    frames = select_frames(data, data.role(args.split), args.timesteps, args.min_jaw)
+    if not frames:
+        print("error: no frame of the split passes --timesteps / --min-jaw", file=sys.stderr)
+        return 2
     with torch.no_grad():
-        for fr in data.role(args.split):
+        for fr in frames:
             gt = data.load_image(fr)
             mask = data.load_mask(fr) if fr.mask is not None else np.ones(gt.shape[:2], np.float32)
             band, inside = _band_and_inside(mask)

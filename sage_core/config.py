@@ -156,6 +156,7 @@ class InitMeshConfig:
 
     mouth_interior: bool = _f(True, "Add the mouth-interior mesh (cavity and teeth) rigged to the jaw.")
     mouth_cavity: bool = _f(True, "With mouth_interior: include the cavity behind the lips (off: only the teeth, FLAME with teeth as GaussianAvatars rigs it; the benchmark's GaussianAvatars rows use this).")
+    mouth_tongue: bool = _f(True, "With the cavity: also a tongue on its floor, rigged to the jaw (off: the cavity and teeth of earlier versions).")
     bbox_padding: float = _f(0.25, "The SDF box is a cube around the canonical mesh whose half size is the mesh's largest half size times (1 + bbox_padding).", ge=0)
     sphere_radius: float = _f(0.8, "Radius of the SDF's initial sphere relative to the box half size.", gt=0)
     grid: HashGridConfig = _sub(HashGridConfig, "Hash grid of the SDF.")
@@ -224,6 +225,7 @@ class FreeSurfelConfig:
     init_opacity: float = _f(0.5, "Initial opacity of free surfels.", gt=0, lt=1, alias="init_opacity")
     position_threshold: float = _f(1.0, "Local offset length (in triangle scales) below which the position term is zero (GA: 1).", ge=0, alias="local_position_threshold")
     scale_threshold: float = _f(0.6, "Local scale (relative to the triangle scale) below which the scale term is zero (GA: 0.6).", ge=0, alias="local_scale_threshold")
+    mouth_prior: bool = _f(True, "Mouth-interior surfels start from the pretrained mouth prior's albedo (sage_core.avatar.mouth_prior) instead of grey; the training views refine what they see.", alias="mouth_prior")
 
 
 @dataclass
@@ -493,19 +495,24 @@ class PixelSamplingConfig:
 class MouthPriorConfig:
     """Phase 2: prior colours of the mouth interior no training view sees (SAGE's mouth prior)."""
 
-    enabled: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): the cavity cavity_color, the teeth teeth_color.", alias="mouth_prior")
+    enabled: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): see prior.", alias="mouth_prior")
+    prior: str = _f("learned", "Where the prior colours come from: learned (the pretrained mouth-interior prior shipped with sage, albedo grids over subject-independent mouth coordinates fitted on synthetic mouths; sage_core.avatar.mouth_prior) or table (earlier versions: one cavity_color and one teeth_color, darkened by occlusion_jaw).", choices=("learned", "table"), alias="mouth_prior_source")
     cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.", ge=0, le=1, length=3, alias="mouth_cavity_color")
     teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.", ge=0, le=1, length=3, alias="teeth_color")
     visibility: str = _f("surfels", "Which mouth surfels take the prior: surfels (the default: those bound to mouth triangles that themselves contribute less than half a pixel to the training views at rest, so mouth surfels that show at rest, e.g. on the lips, keep their fitted colour) or faces (those bound to mouth-interior or teeth triangles that no training view sees at rest, whether or not the surfels show). On the second small-suite subject faces cost 1.2 dB on the novel view and raised LPIPS on held-out expressions from 0.0609 to 0.0669 (docs/results.md).", choices=("faces", "surfels"), alias="mouth_prior_visibility")
-    occlusion_jaw: float = _f(0.2, "Darken the mouth prior by its ambient visibility (1 - ambient occlusion) computed with the jaw opened this far (rad); 0: no darkening.", ge=0, alias="mouth_occlusion_jaw")
+    occlusion_jaw: float = _f(0.2, "prior=table: darken the prior colours by their ambient visibility (1 - ambient occlusion) computed with the jaw opened this far (rad); 0: no darkening. The learned prior carries its own darkening.", ge=0, alias="mouth_occlusion_jaw")
 
 
 @dataclass
 class UnseenFillConfig:
-    """Phase 2: colours of the other surfels no training view sees."""
+    """Phase 2: colours and opacities of the other surfels no training view sees."""
 
-    enabled: bool = _f(False, "Surfels that no training view sees at rest (less than half a pixel of blending weight) and that the mouth prior does not colour take the mean albedo of their nearest seen surfels of the same region (eyes, face, neck, ...; hair excluded): what an expression or a change of gaze reveals, such as the sclera under the lids, continues what the views showed instead of the appearance network's extrapolation.", alias="unseen_fill")
-    neighbours: int = _f(8, "Seen surfels averaged per unseen surfel.", ge=1, alias="unseen_fill_neighbours")
+    enabled: bool = _f(False, "Surfels that no training view sees at rest (less than half a pixel of blending weight) and that the mouth prior does not colour take the continuation, over the surfel graph of their region group, of the albedos of the group's seen surfels (eyes, face, neck, mouth each alone; the hair only with unseen_fill.hair): what no view saw continues what the views showed instead of the appearance network's extrapolation. Regime default for sv-hr and one-shot: true.", alias="unseen_fill")
+    neighbours: int = _f(8, "Neighbours of each surfel in the group graph the colours propagate over.", ge=1, alias="unseen_fill_neighbours")
+    hair: bool = _f(False, "Fill the hair too, with the rest of the scalp (the back of the head below the scalp mask, the ears) as one group whose skin-coloured seen surfels pass nothing on: the unseen back of the head continues the seen hair, never the face. Regime default for sv-hr and one-shot: true.", alias="unseen_fill_hair")
+    source_min: float = _f(0.5, "Pixels of blending weight over the training views a seen surfel needs to pass its colour on (at least the seen threshold of half a pixel).", ge=0, alias="unseen_fill_source_min")
+    grazing_cos: float = _f(0.3, "With hair: a seen surfel of the hair group whose colour is skin and that the views saw only at grazing angles (weighted mean |cos| between its normal and the view direction below this) is filled like an unseen one (0: never).", ge=0, le=1, alias="unseen_fill_grazing_cos")
+    cover: bool = _f(True, "Keep the unseen surface covered: a filled surfel's opacity is raised to at least the median opacity of its group's sources and its in-plane scales grow (at most 4x) until their geometric mean reaches 0.75 times the distance to its 4th nearest surfel of the group (stored in the avatar), so that no gap in the unseen back shows the inside of the face.", alias="unseen_fill_cover")
 
 
 @dataclass
@@ -679,8 +686,10 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 # Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
-    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
-    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
+    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05},
+              "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True}},
+    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05},
+                 "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True}},
 }
 
 # Rules that tie several fields of one config together: (check, fields named in the error, what is

@@ -5,7 +5,8 @@ bundle) is a `safetensors <https://github.com/huggingface/safetensors>`_ file: a
 little-endian header length, a JSON header naming each tensor's dtype, shape and byte range, then
 the raw tensor bytes. Nothing in it is executed on load. The header's ``__metadata__`` holds:
 
-* ``sage.kind``: what the file is (``sage-avatar``, ``sage-sdf``, ``sage-checkpoint``);
+* ``sage.kind``: what the file is (``sage-avatar``, ``sage-sdf``, ``sage-checkpoint``,
+  ``sage-mouth-prior``);
 * ``sage.format``: the kind's format version (an integer, as text);
 * ``sage.tree``: the saved object as JSON in which every tensor or numpy array is replaced by a
   reference to a tensor of the file (see :func:`encode`);
@@ -54,6 +55,9 @@ SDF_FILE_FORMAT = 2
 CHECKPOINT_KIND = "sage-checkpoint"
 CHECKPOINT_FORMAT = 2
 """Stage checkpoints: format 1 was a torch.save pickle (refused now); 2 is a safetensors file."""
+MOUTH_PRIOR_KIND = "sage-mouth-prior"
+MOUTH_PRIOR_FORMAT = 1
+"""The pretrained mouth-interior prior (:mod:`sage_core.avatar.mouth_prior`)."""
 
 META_KIND = "sage.kind"
 META_FORMAT = "sage.format"
@@ -240,8 +244,14 @@ class FileCheck:
 
 
 def _looks_like_pickle(head: bytes) -> bool:
-    # torch.save zip archives start with a zip local header; raw pickles with the PROTO opcode
-    return head.startswith(b"PK\x03\x04") or (len(head) >= 2 and head[0] == 0x80 and 2 <= head[1] <= 5)
+    """Whether the first bytes (at least 9) are those of a torch.save file: a zip archive (local
+    header) or a raw pickle (PROTO opcode). A safetensors header length whose low bytes read like
+    the PROTO opcode (0x80, 2..5) is told apart by the JSON header that follows it."""
+    if head.startswith(b"PK\x03\x04"):
+        return True
+    if len(head) >= 9 and head[8:9] == b"{" and int.from_bytes(head[:8], "little") <= MAX_HEADER:
+        return False
+    return len(head) >= 2 and head[0] == 0x80 and 2 <= head[1] <= 5
 
 
 def _read_header(data: bytes) -> tuple[dict[str, Any], int]:
@@ -279,7 +289,7 @@ def inspect_file(path: str | Path) -> FileCheck:
         return FileCheck(p, "missing", reason="file not found")
     except OSError as e:
         return FileCheck(p, "corrupt", reason=f"cannot read ({e.strerror or e})")
-    if _looks_like_pickle(data[:8]):
+    if _looks_like_pickle(data[:9]):
         return FileCheck(p, "pickle", reason="a pickle file written by an older sage")
     try:
         header, _ = _read_header(data)
@@ -319,7 +329,7 @@ def load_file(
         raise InputError(p, f"{what} not found") from None
     except OSError as e:
         raise InputError(p, f"cannot read {what}: {e.strerror or e}") from None
-    if _looks_like_pickle(data[:8]):
+    if _looks_like_pickle(data[:9]):
         raise UnsafeFileError(p, legacy_message(p, what))
     try:
         header, _ = _read_header(data)

@@ -53,7 +53,7 @@ def test_mirror_camera_flips_the_rasterized_image_exactly():
 
 @pytest.fixture(scope="module")
 def synthetic_model():
-    """The tiny synthetic head with the mouth interior and teeth appended (as init-mesh builds it)."""
+    """The tiny synthetic head with the mouth interior, teeth and tongue appended (as init-mesh builds it)."""
     from sage_core.data.synthetic import build_head, flame_model_data
     from sage_core.data.synthetic.config import preset
     from sage_core.flame import Regions, add_mouth_interior
@@ -61,13 +61,13 @@ def synthetic_model():
     cfg = preset("tiny")
     head = build_head(cfg.head_rows, cfg.head_cols, cfg.eye_rows, cfg.eye_cols)
     md = flame_model_data(head)
-    return add_mouth_interior(md, Regions(head.masks, md.faces, md.n_vertices, md.vertex_groups))
+    return add_mouth_interior(md, Regions(head.masks, md.faces, md.n_vertices, md.vertex_groups), tongue=True)
 
 
 def test_mirror_correspondence_of_the_synthetic_head_is_an_involution(synthetic_model):
     md = synthetic_model
     v = np.asarray(md.v_template)
-    assert v.shape[0] > md.n_base_vertices  # teeth and mouth interior included
+    assert v.shape[0] > md.n_base_vertices  # teeth, mouth interior and tongue included
     m, reason = model_mirror(md)
     assert m is not None, reason
     idx = np.arange(v.shape[0])

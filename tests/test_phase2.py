@@ -434,7 +434,7 @@ def test_wrinkle_basis_expression_ignores_skinning_but_not_expression_creases(ph
 def test_mouth_prior_by_face_visibility_colours_surfels_of_unseen_mouth_faces(phase1_avatar_path, p2_data, p2_init_dir):
     from sage_core.flame.regions import Regions
 
-    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="faces", mouth_occlusion_jaw=0.0)
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="faces", mouth_occlusion_jaw=0.0, mouth_prior_source="table")
     av = tr.avatar
     regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
     mouth = torch.as_tensor(regions.face_mask("mouth_interior") | regions.face_mask("teeth"))
@@ -460,11 +460,41 @@ def test_mouth_prior_by_face_visibility_colours_surfels_of_unseen_mouth_faces(ph
     assert off.avatar.surfels.color_prior is None
 
 
+def test_learned_mouth_prior_composites_unseen_surfels_and_spares_seen_ones(phase1_avatar_path, p2_data, p2_init_dir,
+                                                                            monkeypatch):
+    from sage_core.avatar.mouth_prior import avatar_prior_colors
+    from sage_core.flame.regions import Regions
+
+    # the tiny avatar's few large mouth surfels are all seen at the open-jaw canonical timestep: the
+    # views' real weights with every other mouth surfel made unseen
+    base = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
+    regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
+    _, mouth = avatar_prior_colors(base.avatar, regions)
+    weights = base.surfel_view_weights()
+    hidden = mouth.nonzero().squeeze(-1)[::2]
+    weights[hidden] = 0.0
+    monkeypatch.setattr(Phase2Trainer, "surfel_view_weights", lambda self: weights.clone())
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_prior_source="learned")
+    av = tr.avatar
+    cols, mouth = avatar_prior_colors(av, regions)
+    prior = av.surfels.color_prior
+    assert prior is not None
+    on = prior[:, 3] > 0
+    seen = weights >= 0.5
+    # the unseen mouth surfels take the learned prior's albedo (no occlusion darkening), the seen ones
+    # and every surfel outside the mouth keep their own colour
+    assert bool(on.any()) and torch.equal(on, mouth & ~seen)
+    torch.testing.assert_close(prior[on, :3], cols[on])
+    table = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_prior_source="table",
+                     mouth_occlusion_jaw=0.0)
+    assert not torch.allclose(table.avatar.surfels.color_prior[on, :3], prior[on, :3])
+
+
 def test_mouth_prior_by_surfel_visibility_spares_seen_surfels(phase1_avatar_path, p2_data, p2_init_dir):
     from sage_core.errors import ConfigError
     from sage_core.flame.regions import Regions
 
-    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_occlusion_jaw=0.0)
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior_visibility="surfels", mouth_occlusion_jaw=0.0, mouth_prior_source="table")
     av = tr.avatar
     regions = Regions.from_dict(json.loads((p2_init_dir / "regions.json").read_text()))
     mouth = torch.as_tensor(regions.face_mask("mouth_interior") | regions.face_mask("teeth"))[av.surfels.binding]
@@ -754,9 +784,10 @@ def test_render_settings_keep_the_correction_mode_an_avatar_was_trained_with(tmp
     assert stage_render_settings(tmp_path, None).correction is None
 
 
-def test_unseen_fill_gives_unseen_surfels_the_mean_colour_of_their_nearest_seen_neighbours(phase1_avatar_path, p2_data, p2_init_dir,
-                                                                                          monkeypatch):
-    from sage_core.train.phase2 import SEEN_MIN_WEIGHT
+def test_unseen_fill_continues_each_groups_seen_surfels_and_keeps_the_back_covered(phase1_avatar_path, p2_data, p2_init_dir,
+                                                                                    monkeypatch):
+    from sage_core.avatar.init import REGION_EYES, REGION_FACE, REGION_HAIR, REGION_MOUTH, REGION_NECK, REGION_OTHER
+    from sage_core.train.phase2 import SEEN_MIN_WEIGHT, unseen_fill_groups
 
     tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False)
     av = tr.avatar
@@ -767,30 +798,43 @@ def test_unseen_fill_gives_unseen_surfels_the_mean_colour_of_their_nearest_seen_
     taken = torch.zeros(N, dtype=torch.bool)
     taken[:7] = True
     weights[:7] = 0.0
-    k = 4
-    fill, rgb = tr.unseen_fill_colors(weights, taken, k)
     seen = weights >= SEEN_MIN_WEIGHT
+    region = av.surfels.region_id
     hair = av.surfels.hair_mask()
-    assert not bool((fill & (seen | taken | hair)).any())
-    assert bool(fill.any()) and rgb.shape == (int(fill.sum()), 3)
-    # the reference: brute force over the same region's seen surfels
     with torch.no_grad():
         colors = av.posed(av.frame_inputs(p2_data.canonical_timestep), None, shade=False).colors
-        means = av.canonical_state(with_sdf=False).means
-    region = av.surfels.region_id
-    for row, i in enumerate(fill.nonzero().squeeze(-1)[:25].tolist()):
-        src = (seen & (region == region[i])).nonzero().squeeze(-1)
-        d = (means[src] - means[i]).norm(dim=-1)
-        want = colors[src[d.argsort()[:k]]].mean(0)
-        torch.testing.assert_close(rgb[row], want, atol=1e-5, rtol=1e-5)
-    # through the trainer (with these weights): the filled surfels carry the colours as their prior
+    # without unseen_fill.hair: every region but the hair, each from its own seen surfels
+    fill, rgb = tr.unseen_fill_colors(weights, taken, 4)
+    assert not bool((fill & (seen | taken | hair)).any())
+    assert bool(fill.any()) and rgb.shape == (int(fill.sum()), 3)
+    for r in torch.unique(region[fill]).tolist():
+        src = colors[seen & (region == r)]
+        got = rgb[region[fill] == r]
+        # a harmonic continuation is a mean of its sources: inside their colour range
+        assert bool((got >= src.min(0).values - 1e-5).all() and (got <= src.max(0).values + 1e-5).all())
+    assert unseen_fill_groups(False) == ((REGION_OTHER,), (REGION_FACE,), (REGION_EYES,), (REGION_NECK,), (REGION_MOUTH,))
+    assert (REGION_HAIR, REGION_OTHER) in unseen_fill_groups(True)
+    # through the trainer with the single-camera regimes' settings: the filled surfels carry the colours
+    # as their prior; the hair's unseen surfels are filled too and get the unseen floor
     monkeypatch.setattr(Phase2Trainer, "surfel_view_weights", lambda self: weights.clone())
-    tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_neighbours=k)
+    tr2 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_hair=True)
+    res = tr2.unseen_fill_result
     prior = tr2.avatar.surfels.color_prior
-    assert prior is not None
-    fill2, rgb2 = tr2.unseen_fill_colors(weights, torch.zeros(N, dtype=torch.bool), k)
-    assert torch.equal(prior[:, 3] > 0, fill2)
-    torch.testing.assert_close(prior[fill2, :3], rgb2)
+    assert prior is not None and torch.equal(prior[:, 3] > 0, res.filled)
+    torch.testing.assert_close(prior[res.filled, :3], res.colors[res.filled].to(prior))
+    assert bool((res.filled & hair).any()) and not bool((res.filled & seen).any())
+    floor = tr2.avatar.surfels.unseen_floor
+    assert floor is not None
+    assert bool((floor[~res.filled, 0] == 0).all() and (floor[~res.filled, 1] == 1).all())
+    assert bool((floor[res.filled & hair, 0] > 0).all() and (floor[:, 1] >= 1).all())
+    # the floor reaches the posed opacities and scales; seen surfels are posed as before
+    inputs = tr2.avatar.frame_inputs(p2_data.canonical_timestep)
+    with torch.no_grad():
+        after = tr2.avatar.posed(inputs, None)
+        ref = _avatar(phase1_avatar_path).posed(inputs, None)
+    torch.testing.assert_close(after.opacities[seen], ref.opacities[seen])
+    torch.testing.assert_close(after.scales[seen], ref.scales[seen])
+    assert bool((after.opacities[res.filled & hair] >= floor[res.filled & hair, 0] - 1e-6).all())
 
 
 def test_correction_radius_defaults_by_attributes(phase1_avatar_path):

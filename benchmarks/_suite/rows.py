@@ -29,6 +29,7 @@ light), on SAGE's surfel layout and rebinding: the ``free_mvsf`` row."""
 
 GA_PHASE1: tuple[str, ...] = (
     *FREE_PHASE1,
+    "--set", "mouth_prior=false",
     "--set", "init_layout=per_face",
     "--set", "init_opacity=0.1",
     "--set", "rebind_every=0",

@@ -64,9 +64,10 @@ def phase2(
                 raise ConfigError(f"--correction must be on or off, got {correction!r}")
             corr = correction.lower() == "on"
         flags = {"correction.enabled": corr, "iterations": iterations, "render_backend": render_backend, **parse_sets(set_)}
-        cfg = resolve_stage_config("phase2", preset, config, flags)
         require_workspace(ws, " (run `sage ingest`, `sage init-mesh` and `sage phase1` first)")
-        from sage_core.stages import StageSettings, phase2_stage
+        from sage_core.stages import StageSettings, phase2_stage, workspace_regime
+
+        cfg = resolve_stage_config("phase2", preset, config, flags, regime=workspace_regime(ws))
 
         with StageDisplay(verbose, preset) as display:
             r = phase2_stage(ws, cfg, lpips_weights, StageSettings(seed, device, force, threads), display)

@@ -296,6 +296,7 @@ def posed(
             view_c = -cs.rotation[..., 2].detach()
         colors, opac = avatar.appearance(cs.means, view_c, n, feat)
     colors = avatar.surfels.blend_color_prior(colors)
+    opac, scales = avatar.surfels.apply_unseen_floor(opac, scales)
     if avatar.surfels.wrinkle is not None:
         deformed, rest = wrinkle_meshes(avatar, verts, mesh.shaped)
         colors = apply_wrinkles(colors, avatar.surfels.wrinkle, deformed, rest, avatar.faces, b)

@@ -11,6 +11,10 @@ State (per-surfel tensors have N index-aligned rows):
 * optional buffer ``color_prior`` (N, 4): a fixed colour (RGB) and its blend weight in [0, 1] that
   replaces the attribute colour of surfels no training view saw (the mouth interior), set by phase 2
   with :meth:`SurfelSet.set_color_prior`; absent (None) otherwise;
+* optional buffer ``unseen_floor`` (N, 2): for surfels no training view saw (the unseen fill of
+  phase 2, :mod:`sage_core.train.unseen_fill`), a lower bound of the attribute opacity and a gain
+  (≥ 1) on the in-plane scales, so that the unseen surface stays covered (0 and 1: none); set with
+  :meth:`SurfelSet.set_unseen_floor`; absent (None) otherwise;
 * parameters ``mu_loc`` (N, 3), ``q_loc`` (N, 4) wxyz and ``s_loc`` (N, 2) log in-plane scales,
   all relative to the bound triangle's frame (docs/formats.md §6, surfel convention);
 * with ``attributes="free"``: ``sh_dc`` (N, 1, 3), ``sh_rest`` (N, (d+1)²−1, 3) (absent at degree
@@ -35,7 +39,7 @@ from .init import REGION_HAIR, SurfelInit
 SH_C0 = 0.28209479177387814
 ATTRIBUTE_MODES = ("free", "mlp")
 _PARAMS = ("mu_loc", "q_loc", "s_loc", "sh_dc", "sh_rest", "opacity")
-_BUFFERS = ("binding", "region_id", "wrinkle", "color_prior")
+_BUFFERS = ("binding", "region_id", "wrinkle", "color_prior", "unseen_floor")
 
 
 def _logit(p: float) -> float:
@@ -61,6 +65,7 @@ class SurfelSet(nn.Module):
     face_region: torch.Tensor
     wrinkle: torch.Tensor | None
     color_prior: torch.Tensor | None
+    unseen_floor: torch.Tensor | None
 
     def __init__(
         self,
@@ -99,6 +104,7 @@ class SurfelSet(nn.Module):
         self.register_buffer("face_region", fr.to(device=device, dtype=torch.long).clone())
         self.register_buffer("wrinkle", None)
         self.register_buffer("color_prior", None)
+        self.register_buffer("unseen_floor", None)
         self.mu_loc = nn.Parameter(mu_loc.detach().clone())
         self.q_loc = nn.Parameter(q_loc.detach().to(device=device, dtype=dtype).clone())
         self.s_loc = nn.Parameter(s_loc.detach().to(device=device, dtype=dtype).clone())
@@ -136,6 +142,8 @@ class SurfelSet(nn.Module):
             obj.set_wrinkle(state["wrinkle"])
         if state.get("color_prior") is not None:
             obj.set_color_prior(state["color_prior"])
+        if state.get("unseen_floor") is not None:
+            obj.set_unseen_floor(state["unseen_floor"])
         obj.load_state_dict(state)
         return obj
 
@@ -162,6 +170,19 @@ class SurfelSet(nn.Module):
             return colors
         w = self.color_prior[:, 3:4].to(colors)
         return colors * (1.0 - w) + self.color_prior[:, :3].to(colors) * w
+
+    def set_unseen_floor(self, floor: torch.Tensor | None) -> None:
+        """Set (or with None remove) the unseen floor: (N, 2) per surfel, the lower bound of its
+        opacity (0: none) and the gain on its in-plane scales (1: none)."""
+        self._set_optional_rows("unseen_floor", floor, 2)
+
+    def apply_unseen_floor(self, opacities: torch.Tensor, scales: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """opacities (N,) raised to the floor and scales (N, 2) times the gain (unchanged without
+        the buffer)."""
+        if self.unseen_floor is None:
+            return opacities, scales
+        f = self.unseen_floor
+        return torch.maximum(opacities, f[:, 0].to(opacities)), scales * f[:, 1:2].to(scales)
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:
@@ -303,12 +324,12 @@ class SurfelSet(nn.Module):
         """Append M new surfels, in place.
 
         rows: the new rows of every per-surfel parameter and of the ``binding`` and ``region_id``
-        buffers (name -> (M, ...) tensor); the optional buffers (``wrinkle``, ``color_prior``) must be
+        buffers (name -> (M, ...) tensor); the optional buffers (``wrinkle``, ``color_prior``, ``unseen_floor``) must be
         absent from the set. Parameters are replaced by longer ones; with ``optimizer`` given, its
         param groups follow and the per-row state (e.g. Adam's moments) of the new rows starts at
         zero. Returns M."""
         present = self._row_tensors()
-        for name in ("wrinkle", "color_prior"):
+        for name in ("wrinkle", "color_prior", "unseen_floor"):
             if name in present:
                 raise ValueError(f"cannot extend a surfel set that has the {name!r} buffer")
         missing = [n for n in present if n not in rows]

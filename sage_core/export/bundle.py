@@ -16,7 +16,7 @@ Layout of a bundle folder (format 3; ``docs/workspace.md`` "Bundle format" descr
 
 The FLAME model is licensed and is not handed out with a bundle: ``bundle.json`` ("flame" →
 "model") names the user's model file and its SHA-256, and records what sage appended to it (the
-mouth interior: the lip vertex ids it is placed from, whether it has a cavity). :func:`load_bundle`
+mouth interior: the lip vertex ids it is placed from, whether it has a cavity and a tongue). :func:`load_bundle`
 then needs that model file (``sage reenact --bundle DIR --flame-model PATH``): its bytes are
 checked against the SHA-256 before it is parsed, the appended parts are rebuilt, and the result
 must have the content hash the avatar file records. ``sage export --include-flame-model`` embeds
@@ -88,7 +88,8 @@ class FlameSource:
     bytes (64 hex), or only its first 16 hex digits (``file_sha256_prefix``) when the file was no
     longer at hand at export; base: the model as sage reads that file (with GaussianAvatars-order
     teeth for FLAME's 5023-vertex topology); lips: the lip vertex ids the mouth interior was placed
-    from (None: sage appended nothing); cavity: whether the mouth interior has its cavity.
+    from (None: sage appended nothing); cavity: whether the mouth interior has its cavity; tongue:
+    whether it has the tongue (references without the key have none).
     """
 
     file_name: str
@@ -97,6 +98,7 @@ class FlameSource:
     base: Any
     lips: list[int] | None = None
     cavity: bool = True
+    tongue: bool = False
 
     def reference(self) -> dict[str, Any]:
         """The plain-data reference written into ``bundle.json`` and the avatar file."""
@@ -104,7 +106,8 @@ class FlameSource:
 
         return {"included": False, "file": self.file_name, "file_sha256": self.file_sha256,
                 "file_sha256_prefix": self.file_sha256_prefix, "base_sha256": flame_model_sha256(self.base),
-                "mouth_interior": None if self.lips is None else {"lips": [int(i) for i in self.lips], "cavity": bool(self.cavity)}}  # fmt: skip
+                "mouth_interior": None if self.lips is None else {"lips": [int(i) for i in self.lips], "cavity": bool(self.cavity),
+                                                                  "tongue": bool(self.tongue)}}  # fmt: skip
 
 
 def rebuild_model(base: Any, ref: dict[str, Any]) -> Any:
@@ -115,7 +118,8 @@ def rebuild_model(base: Any, ref: dict[str, Any]) -> Any:
         return base
     from ..flame import add_mouth_interior
 
-    return add_mouth_interior(base, {"lips": np.asarray(mouth["lips"], dtype=np.int64)}, cavity=bool(mouth.get("cavity", True)))
+    return add_mouth_interior(base, {"lips": np.asarray(mouth["lips"], dtype=np.int64)}, cavity=bool(mouth.get("cavity", True)),
+                              tongue=bool(mouth.get("tongue", False)))
 
 
 def check_model_file(path: Path, ref: dict[str, Any], where: Path) -> None:
@@ -318,6 +322,7 @@ _EXACT: dict[str, str] = {
     "state/surfels.sh_rest": "free mode: higher SH colour coefficients (N,(d+1)^2-1,3)",
     "state/surfels.wrinkle": "wrinkle shading per surfel (N,2): amplitude and full compression",
     "state/surfels.color_prior": "colour prior per surfel (N,4): RGB and blend weight",
+    "state/surfels.unseen_floor": "unseen fill per surfel (N,2): opacity lower bound (0: none) and in-plane scale gain (1: none)",
     "state/canonical_vertices": "canonical mesh vertices (V,3) (derived: FLAME at the canonical timestep, zero global motion)",
     "state/root_joint": "canonical root joint position (3,) (derived)",
     "state/R_c": "canonical triangle frames (F,3,3), columns [a0,-a2,a1] (surfel-flat convention) (derived)",

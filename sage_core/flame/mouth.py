@@ -12,11 +12,17 @@ y up, z forward, the face looking towards +z):
   The upper half (palate, ``mouth_upper``) is skinned one-hot to joint 1 (neck), the lower half
   (floor and tongue bed, ``mouth_lower``) to joint 2 (jaw). Its faces face into the cavity.
 - the teeth (only if the model has none yet): two arcs just inside the cavity, a band above the
-  slit (``teeth_upper``, joint 1) and one below it (``teeth_lower``, joint 2), facing forwards.
+  slit (``teeth_upper``, joint 1) and one below it (``teeth_lower``, joint 2), facing forwards;
+- the tongue (``tongue=True``, with the cavity): a low dome (radii 0.3·w lateral and deep, 0.08·w
+  high) on the cavity floor, its centre 0.42·w behind the front plane and 0.14·w below the slit,
+  skinned one-hot to the jaw (``mouth_tongue``, so a part of the ``mouth_interior`` region).
 
 Identity blendshapes of each new vertex are copied from the nearest original vertex (so the part
 follows the subject's shape); expression blendshapes, pose correctives and J_regressor columns
-are zero. The face table gains ``+sage-mouth-v1`` (cavity only) or ``+sage-mouth-teeth-v1``.
+are zero. The face table gains ``+sage-mouth-v1`` (cavity only) or ``+sage-mouth-teeth-v1``, then
+``+sage-tongue-v1`` with the tongue. :func:`mouth_frame` gives the frame (origin and ``w``) of any
+mesh with the same lips, which the mouth-interior prior (:mod:`sage_core.avatar.mouth_prior`) uses
+as its subject-independent coordinates.
 """
 
 from __future__ import annotations
@@ -35,6 +41,10 @@ JAW_JOINT = 2
 _N_THETA = 13  # columns around the cavity from one mouth corner to the other
 _N_RINGS = 3  # rings per half before the pole
 _N_ARC = 11  # columns of a teeth arc
+TONGUE_RADII = (0.3, 0.08, 0.3)
+"""Tongue dome radii (lateral, height, depth) in lip widths."""
+TONGUE_CENTRE = (0.0, -0.14, 0.42)
+"""Tongue dome centre (lateral, height, backward) in lip widths from the mouth frame's origin."""
 
 
 def has_mouth_interior(data: FlameModelData) -> bool:
@@ -64,6 +74,29 @@ def _dome(sign: float) -> tuple[np.ndarray, np.ndarray]:
         faces.append([idx[-1, i], idx[-1, i + 1], pole])
     faces = np.array(faces, dtype=np.int64)
     return pts, _orient(pts, faces, inward_to=np.zeros(3))
+
+
+def _cap() -> tuple[np.ndarray, np.ndarray]:
+    """Unit upper hemisphere (the tongue): vertices (R·T + 1, 3) (x, y ≥ 0, z) and faces facing out."""
+    # starting on the midline (θ = π/2) makes the columns mirror-symmetric (x → −x maps θ to π − θ),
+    # so the mesh keeps its left/right vertex correspondence (sage_core.flame.mirror)
+    theta = np.pi / 2 + np.linspace(0.0, 2 * np.pi, _N_THETA, endpoint=False)
+    phi = np.arange(_N_RINGS) / _N_RINGS * (np.pi / 2)
+    th, ph = np.meshgrid(theta, phi)
+    pts = np.stack([np.cos(th) * np.cos(ph), np.sin(ph), np.sin(th) * np.cos(ph)], -1).reshape(-1, 3)
+    pts = np.concatenate([pts, [[0.0, 1.0, 0.0]]], 0)
+    idx = np.arange(_N_RINGS * _N_THETA).reshape(_N_RINGS, _N_THETA)
+    pole = _N_RINGS * _N_THETA
+    faces = []
+    for r in range(_N_RINGS - 1):
+        for i in range(_N_THETA):
+            a, b = idx[r, i], idx[r, (i + 1) % _N_THETA]
+            c, d = idx[r + 1, (i + 1) % _N_THETA], idx[r + 1, i]
+            faces += [[a, b, c], [a, c, d]]
+    for i in range(_N_THETA):
+        faces.append([idx[-1, i], idx[-1, (i + 1) % _N_THETA], pole])
+    faces = np.array(faces, dtype=np.int64)
+    return pts, _orient(pts, faces, inward_to=np.array([0.0, -10.0, 0.0]))[:, [0, 2, 1]]
 
 
 def _orient(pts: np.ndarray, faces: np.ndarray, inward_to: np.ndarray) -> np.ndarray:
@@ -106,14 +139,43 @@ def _lips(regions_or_masks: Regions | Mapping[str, np.ndarray], n_base: int) -> 
     return ids
 
 
+def mouth_frame(v: np.ndarray, lips: np.ndarray, lbs_weights: np.ndarray) -> tuple[np.ndarray, float]:
+    """The mouth's frame from a mesh: (origin (3,) = (x_c, y_slit, z_f), lip width w).
+
+    v: (V, 3) vertices (template or canonical); lips: lip vertex ids; lbs_weights: (V, J) skinning
+    weights (joint 2 tells the lower lip from the upper). See the module doc for the definitions.
+    Raises ValueError if the lips cannot be split or have no width.
+    """
+    jaw_w = lbs_weights[lips, JAW_JOINT]
+    lo, hi = float(jaw_w.min()), float(jaw_w.max())
+    if hi - lo < 1e-6:
+        raise ValueError("the lips have uniform jaw skinning weights; upper and lower lip cannot be told apart")
+    thr = 0.5 if lo < 0.5 <= hi else 0.5 * (lo + hi)
+    upper_lip, lower_lip = lips[jaw_w < thr], lips[jaw_w >= thr]
+    lp = v[lips]
+    width = float(lp[:, 0].max() - lp[:, 0].min())
+    if width <= 0:
+        raise ValueError("the lips region has zero width")
+    y_slit = 0.5 * (float(v[upper_lip, 1].min()) + float(v[lower_lip, 1].max()))
+    x_c = 0.5 * float(lp[:, 0].max() + lp[:, 0].min())
+    z_f = float(lp[:, 2].min()) - 0.02 * width
+    return np.array([x_c, y_slit, z_f]), width
+
+
+def lip_ids(regions_or_masks: Regions | Mapping[str, np.ndarray], n_base: int) -> np.ndarray:
+    """The lip vertex ids (below ``n_base``) of a :class:`Regions` or a mask dict; ValueError if absent."""
+    return _lips(regions_or_masks, n_base)
+
+
 def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping[str, np.ndarray],
-                       teeth: bool | None = None, cavity: bool = True) -> FlameModelData:
+                       teeth: bool | None = None, cavity: bool = True, tongue: bool = False) -> FlameModelData:
     """Append the mouth cavity (and teeth arcs) rigged to the neck and jaw joints.
 
     data: a model with joints 1 (neck) and 2 (jaw). regions_or_masks: a :class:`Regions` or a
     mask dict holding ``lips`` (ids below ``n_base_vertices``). teeth: add the teeth arcs; None =
     only when the model has no teeth groups yet. cavity: add the cavity (False: the teeth arcs
-    alone, FLAME with teeth as GaussianAvatars rigs it). Returns a new model; ``data`` is
+    alone, FLAME with teeth as GaussianAvatars rigs it). tongue: with the cavity, also the tongue
+    (``mouth_tongue``, rigged to the jaw). Returns a new model; ``data`` is
     unchanged. Raises ValueError if the mouth cannot be located, the model already has a mouth
     interior, or nothing would be added.
     """
@@ -128,22 +190,8 @@ def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping
     if not cavity and not teeth:
         raise ValueError("neither the cavity nor the teeth would be added")
     n_base = data.n_base_vertices
-    lips = _lips(regions_or_masks, n_base)
     v = data.v_template
-    jaw_w = data.lbs_weights[lips, JAW_JOINT]
-    lo, hi = float(jaw_w.min()), float(jaw_w.max())
-    if hi - lo < 1e-6:
-        raise ValueError("the lips have uniform jaw skinning weights; upper and lower lip cannot be told apart")
-    thr = 0.5 if lo < 0.5 <= hi else 0.5 * (lo + hi)
-    upper_lip, lower_lip = lips[jaw_w < thr], lips[jaw_w >= thr]
-    lp = v[lips]
-    width = float(lp[:, 0].max() - lp[:, 0].min())
-    if width <= 0:
-        raise ValueError("the lips region has zero width")
-    y_slit = 0.5 * (float(v[upper_lip, 1].min()) + float(v[lower_lip, 1].max()))
-    x_c = 0.5 * float(lp[:, 0].max() + lp[:, 0].min())
-    z_f = float(lp[:, 2].min()) - 0.02 * width
-    origin = np.array([x_c, y_slit, z_f])
+    origin, width = mouth_frame(v, _lips(regions_or_masks, n_base), data.lbs_weights)
 
     def place(unit: np.ndarray, rx: float, ry: float, depth: float, dz: float = 0.0) -> np.ndarray:
         return origin + np.stack([unit[:, 0] * rx, unit[:, 1] * ry, -unit[:, 2] * depth + dz], -1)
@@ -158,6 +206,13 @@ def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping
                                          ("teeth_lower", -0.02, -0.18, JAW_JOINT, -0.05 * width)):
             unit, f = _arc(y0, y1)
             parts.append((name, place(unit, 0.38 * width, width, 0.45 * width, dz), f[:, [0, 2, 1]], joint))
+    if cavity and tongue:
+        unit, f = _cap()
+        # unit z is forward here; place() maps its third coordinate backwards, hence the sign
+        pts = place(unit * np.array([1.0, 1.0, -1.0]), TONGUE_RADII[0] * width, TONGUE_RADII[1] * width,
+                    TONGUE_RADII[2] * width, -TONGUE_CENTRE[2] * width)
+        pts[:, 1] += TONGUE_CENTRE[1] * width
+        parts.append(("mouth_tongue", pts, f, JAW_JOINT))
 
     V, J = data.n_vertices, data.n_joints
     new_v, new_f, joints = [], [], []
@@ -173,6 +228,8 @@ def add_mouth_interior(data: FlameModelData, regions_or_masks: Regions | Mapping
     n_new = verts.shape[0]
     _, nearest = cKDTree(v[:n_base]).query(verts)
     tag = ("sage-mouth-teeth-v1" if teeth else "sage-mouth-v1") if cavity else "sage-teeth-arcs-v1"
+    if cavity and tongue:
+        tag += "+sage-tongue-v1"
     return FlameModelData(
         v_template=np.concatenate([v, verts], 0),
         faces=np.concatenate([data.faces] + new_f, 0).astype(np.int64),

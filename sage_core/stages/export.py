@@ -155,7 +155,8 @@ def workspace_flame_source(ws: Workspace, data: Any, avatar: Any) -> Any:
                 ids = regions.vertex_ids("lips")
                 lips = sorted({int(i) for i in ids if 0 <= int(i) < base.n_base_vertices})
     cavity = "mouth_upper" in avatar.model_data.vertex_groups
-    return FlameSource(src.name, full, prefix, base, lips, cavity)
+    tongue = "mouth_tongue" in avatar.model_data.vertex_groups
+    return FlameSource(src.name, full, prefix, base, lips, cavity, tongue)
 
 
 def check_export_options(*, viewer: list[str], mesh: bool, bundle: bool, gaussian_avatars: bool, web: bool,

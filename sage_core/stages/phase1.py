@@ -32,7 +32,7 @@ def ingest_summary(ws: str | Path | Workspace) -> dict[str, Any]:
 
 
 def workspace_regime(ws: str | Path | Workspace) -> str | None:
-    """The regime the workspace was ingested with (None before ingest): its defaults apply to phase 1."""
+    """The regime the workspace was ingested with (None before ingest): its defaults apply to phases 1 and 2."""
     regime = ingest_summary(ws).get("regime")
     return regime if isinstance(regime, str) else None
 

@@ -96,7 +96,7 @@ def pipeline_configs(
     render_backend: str | None = None,
 ) -> dict[str, Any]:
     """Every stage config :func:`run_pipeline` will run with, resolved and checked (ConfigError
-    before anything runs). Phase 1 takes the defaults of the regime ingest will record; eval and
+    before anything runs). Phases 1 and 2 take the defaults of the regime ingest will record; eval and
     export take the avatar stage (phase 2, or phase 1 with ``skip_phase2``)."""
     from ..config import load_config_file, resolve_config
 
@@ -115,7 +115,7 @@ def pipeline_configs(
     cfgs = {"ingest": config("ingest"), "init-mesh": config("init-mesh")}
     cfgs["phase1"] = config("phase1", regime=cfgs["ingest"].regime)
     if not skip_phase2:
-        cfgs["phase2"] = config("phase2")
+        cfgs["phase2"] = config("phase2", regime=cfgs["ingest"].regime)
     cfgs["eval"] = config("eval", {"split": "all", "stage": av_stage})
     cfgs["export"] = config("export", {"stage": av_stage})
     return cfgs

@@ -35,11 +35,12 @@ from .loop import run_steps
 
 Progress = Callable[..., None]
 
-def build_model(data: IngestedData, mouth_interior: bool, cavity: bool = True) -> tuple[FlameModelData, Regions | None]:
+def build_model(data: IngestedData, mouth_interior: bool, cavity: bool = True, tongue: bool = False) -> tuple[FlameModelData, Regions | None]:
     """The ingested FLAME model, with the mouth interior appended when asked and possible.
 
     cavity: with ``mouth_interior``, the cavity and (when the model has none) the teeth; False: only
-    the teeth, when the model has none (FLAME with teeth, as GaussianAvatars rigs it). Returns the
+    the teeth, when the model has none (FLAME with teeth, as GaussianAvatars rigs it); tongue: with
+    the cavity, also the tongue (:func:`sage_core.flame.add_mouth_interior`). Returns the
     model and its regions (None when the capture came without region masks; then the mouth
     interior cannot be located and is not added).
     """
@@ -51,7 +52,7 @@ def build_model(data: IngestedData, mouth_interior: bool, cavity: bool = True) -
     wanted = cavity and not has_mouth_interior(model) or not cavity and not has_teeth(model)
     if mouth_interior and wanted:
         try:
-            model = add_mouth_interior(model, regions, cavity=cavity)
+            model = add_mouth_interior(model, regions, cavity=cavity, tongue=tongue and cavity)
         except ValueError as e:
             raise InputError(data.masks_path or data.root, f"cannot place the mouth interior: {e}") from None
         regions = Regions(masks, model.faces, model.n_vertices, model.vertex_groups)
@@ -127,7 +128,7 @@ def run_init_mesh(
 ) -> dict[str, Any]:
     """Run the stage; returns its metrics. Resumes from the newest checkpoint in ``checkpoint_dir``."""
     out_dir = Path(out_dir)
-    model_data, regions = build_model(data, cfg.mouth_interior, cfg.mouth_cavity)
+    model_data, regions = build_model(data, cfg.mouth_interior, cfg.mouth_cavity, cfg.mouth_tongue)
     model = FlameModel(model_data).to(device)
     verts = canonical_vertices(model, data.params, data.canonical_timestep).detach().cpu().numpy().astype(np.float64)
     faces_all = np.asarray(model_data.faces, np.int64)

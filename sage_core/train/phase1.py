@@ -936,6 +936,10 @@ def run_phase1(
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     avatar = build_avatar(data, init_dir, cfg, device, gen)
+    if cfg.attributes == "free" and cfg.free.mouth_prior:
+        from .mouth_start import seed_free_mouth_colors
+
+        seed_free_mouth_colors(avatar, init_dir)
     views, mirror_index = one_shot_pseudo_views(data, avatar, cfg)
     trainer = Phase1Trainer(avatar, data, cfg, device, gen, pseudo_views=views, mirror_index=mirror_index)
     total = cfg.iterations

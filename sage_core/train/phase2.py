@@ -37,15 +37,20 @@ probability, so the appearance term also holds the avatar to its own phase-1 ren
 
 Mouth-interior prior (``mouth.enabled``, SAGE's composited mouth prior): the surfels bound to
 mouth-interior and teeth triangles that no training view sees at rest (:meth:`Phase2Trainer.seen_faces`)
-get fixed colours, ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
-jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), stored in the avatar
+get prior colours: with ``mouth.prior`` learned (the default) the pretrained prior's albedo at their
+canonical centre (:mod:`sage_core.avatar.mouth_prior`, :func:`learned_mouth_colors`); with table the
+fixed ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
+jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`). They are stored in the avatar
 (:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
 of the appearance term.
 
-Unseen fill (``unseen_fill.enabled``, off by default): the other surfels that no training view sees at rest
-(less than ``SEEN_MIN_WEIGHT`` pixels of blending weight, hair excluded) get the mean albedo of
-their nearest seen surfels of the same region label as their colour prior
-(:meth:`Phase2Trainer.unseen_fill_colors`).
+Unseen fill (``unseen_fill.enabled``; off by default, on in the single-camera regimes): the other
+surfels that no training view sees at rest (less than ``SEEN_MIN_WEIGHT`` pixels of blending weight)
+get, as their colour prior, the continuation of the albedos of the seen surfels of their region
+group over the surfel graph (:mod:`sage_core.train.unseen_fill`, :func:`unseen_fill_groups`; the hair
+only with ``unseen_fill.hair``, never from skin-coloured sources), and as their opacity floor the
+median opacity of those sources with a gain on their scales that closes the gaps between them
+(``unseen_fill.cover``; :meth:`Phase2Trainer.unseen_fill_colors`).
 
 Wrinkle shading (``wrinkles.enabled``, on by default; :mod:`sage_core.avatar.wrinkles`): after the
 last step every surfel gets a darkening amplitude, stored in the avatar and applied at render time in
@@ -74,7 +79,7 @@ import numpy as np
 import torch
 
 from ..avatar.corrected import CorrectedPosing
-from ..avatar.init import REGION_HAIR, face_region_labels
+from ..avatar.init import REGION_EYES, REGION_FACE, REGION_HAIR, REGION_MOUTH, REGION_NECK, REGION_OTHER, face_region_labels
 from ..avatar.model import Avatar
 from ..avatar.posing import wrinkle_meshes
 from ..avatar.wrinkles import FaceDistortionStats, face_compression, wrinkle_amplitude
@@ -126,6 +131,15 @@ SEEN_MIN_WEIGHT = 0.5
 """Pixels of blending weight over the training views at rest below which a surfel counts as unseen."""
 
 
+def unseen_fill_groups(hair: bool) -> tuple[tuple[int, ...], ...]:
+    """Region labels the unseen fill continues together (one surfel graph and one set of sources per
+    group): eyes, face, neck and mouth each alone; with ``hair`` the hair and the rest of the scalp
+    (``other``: the back of the head below the scalp mask, the ears) as one group, else ``other``
+    alone and the hair left out."""
+    alone = ((REGION_FACE,), (REGION_EYES,), (REGION_NECK,), (REGION_MOUTH,))
+    return (((REGION_HAIR, REGION_OTHER),) if hair else ((REGION_OTHER,),)) + alone
+
+
 def mouth_prior_table(avatar: Avatar, init_dir: str | Path | None, cavity: list[float], teeth: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-face prior colours of the mouth interior: ((F, 3) colours, (F,) bool faces with a prior).
 
@@ -151,6 +165,24 @@ def mouth_prior_table(avatar: Avatar, init_dir: str | Path | None, cavity: list[
             colors[m] = torch.tensor([float(v) for v in rgb], device=avatar.device)
             has |= m
     return colors, has
+
+
+def learned_mouth_colors(avatar: Avatar, init_dir: str | Path | None, fallback: torch.Tensor) -> torch.Tensor:
+    """(N, 3) per-surfel colours of the pretrained mouth prior (:mod:`sage_core.avatar.mouth_prior`)
+    for the mouth-interior surfels, ``fallback`` (N, 3) for the others. Needs ``init_dir/regions.json``
+    (present whenever :func:`mouth_prior_table` found mouth faces)."""
+    from ..avatar.mouth_prior import avatar_prior_colors
+    from ..flame.regions import Regions
+
+    path = Path(init_dir) / "regions.json"  # type: ignore[arg-type]
+    regions = Regions.from_dict(json.loads(path.read_text()))
+    try:
+        cols, on = avatar_prior_colors(avatar, regions)
+    except ValueError as e:
+        raise InputError(path, f"cannot place the mouth prior: {e}") from None
+    out = fallback.clone()
+    out[on] = cols[on].to(out)
+    return out
 
 
 def build_sampler(avatar: Avatar, data: IngestedData, cfg: Phase2Config, seed: int = 0) -> ExpressionSampler:
@@ -274,6 +306,9 @@ class Phase2Trainer:
         b = avatar.surfels.binding
         on = torch.zeros(len(avatar.surfels), dtype=torch.bool, device=avatar.device)
         rgb = self.prior_colors[b].clone()
+        learned = cfg.mouth.prior == "learned" and bool(mouth_faces.any())
+        if learned:
+            rgb = learned_mouth_colors(avatar, init_dir, rgb)
         weights: torch.Tensor | None = None
         if bool(mouth_faces.any()):
             self.prior_faces &= ~self.seen_faces()
@@ -282,13 +317,18 @@ class Phase2Trainer:
             else:
                 weights = self.surfel_view_weights()
                 on = mouth_faces[b] & ~(weights >= SEEN_MIN_WEIGHT)
-            if cfg.mouth.occlusion_jaw > 0 and bool(on.any()):
+            if not learned and cfg.mouth.occlusion_jaw > 0 and bool(on.any()):
                 rgb[on] *= self.prior_visibility(on, cfg.mouth.occlusion_jaw)[:, None].to(rgb)
+        self.unseen_fill_result: Any = None
         if cfg.unseen_fill.enabled:
             weights = self.surfel_view_weights() if weights is None else weights
             fill, fill_rgb = self.unseen_fill_colors(weights, on, cfg.unseen_fill.neighbours)
             rgb[fill] = fill_rgb.to(rgb)
             on = on | fill
+            res = self.unseen_fill_result
+            if cfg.unseen_fill.cover and res.opacity is not None and bool(fill.any()):
+                floor = torch.stack([torch.where(fill, res.opacity, torch.zeros_like(res.opacity)), res.scale_gain.to(res.opacity)], -1)
+                avatar.surfels.set_unseen_floor(floor)
         if bool(mouth_faces.any()) or bool(on.any()):
             avatar.surfels.set_color_prior(torch.cat([rgb, on.to(rgb)[:, None]], -1))
         self.rest_teacher: RestTeacher | None = None
@@ -365,33 +405,35 @@ class Phase2Trainer:
 
     @torch.no_grad()
     def unseen_fill_colors(self, weights: torch.Tensor, taken: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Colours for the surfels no training view sees at rest.
+        """Colours for the surfels no training view sees at rest (:mod:`sage_core.train.unseen_fill`).
 
         weights: (N,) :meth:`surfel_view_weights`; taken: (N,) bool surfels that already have a prior.
-        A surfel with less than ``SEEN_MIN_WEIGHT`` pixels of weight, not hair and not taken, gets the
-        mean albedo of its ``k`` nearest seen surfels (canonical centres) of the same region label
-        (eyes, face, neck, ...), so that what an expression or a change of gaze reveals (the sclera
-        under the lids, skin in folds) continues what the views showed. Returns ((N,) bool surfels
-        filled, (M, 3) their colours)."""
+        A surfel with less than ``SEEN_MIN_WEIGHT`` pixels of weight, not taken, in a region that
+        ``unseen_fill.hair`` lets fill (without it, every region but the hair), takes the harmonic
+        continuation over its group's surfel graph (``k`` neighbours) of the albedos of the group's
+        seen surfels (eyes, face, neck, mouth each alone; the hair with the rest of the scalp, its
+        skin-coloured sources left out, and those of them seen only at grazing angles filled too). Sets :attr:`unseen_fill_result` (with the opacity floor and
+        scale gain of ``unseen_fill.cover``).
+        Returns ((N,) bool surfels filled, (M, 3) their colours)."""
+        from .unseen_fill import fill_unseen
+
         av = self.avatar
         s = av.surfels
-        seen = weights.to(av.device) >= SEEN_MIN_WEIGHT
-        fill = ~seen & ~taken & ~s.hair_mask()
-        if not bool(fill.any()):
-            return fill, torch.zeros(0, 3, device=av.device)
-        canon = av.canonical_state(with_sdf=False)
-        colors = av.posed(self.inputs(self.data.canonical_timestep), None, canonical=canon, shade=False).colors
-        out = torch.zeros_like(colors)
-        region = s.region_id
-        for r in torch.unique(region[fill]).tolist():
-            src = (seen & (region == r)).nonzero().squeeze(-1)
-            dst = fill & (region == r)
-            if src.numel() == 0:  # no seen surfel of that region: left as it is
-                fill &= region != r
-                continue
-            near = nearest_indices(canon.means[dst], canon.means[src], min(int(k), int(src.numel())))
-            out[dst] = colors[src[near]].mean(1)
-        return fill, out[fill]
+        c = self.cfg.unseen_fill
+        canon = av.canonical_state(with_sdf=av.attributes == "mlp")
+        p = av.posed(self.inputs(self.data.canonical_timestep), None, canonical=canon, shade=False)
+        facing = getattr(self, "view_facing", None)
+        if facing is not None and tuple(facing.shape) != tuple(weights.shape):
+            facing = None
+        res = fill_unseen(
+            canon.means, p.colors, weights.to(av.device), s.region_id, p.opacities if c.cover else None,
+            canon.scales if c.cover else None, facing,
+            groups=unseen_fill_groups(c.hair), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
+            cover_regions=(REGION_HAIR, REGION_OTHER), taken=taken,
+            seen_min=SEEN_MIN_WEIGHT, source_min=c.source_min, neighbours=int(k), grazing_cos=c.grazing_cos,
+        )  # fmt: skip
+        self.unseen_fill_result = res
+        return res.filled, res.colors[res.filled]
 
     def seen_surfels(self, min_weight: float = SEEN_MIN_WEIGHT) -> torch.Tensor:
         """(N,) bool surfels that the training views at rest see: :meth:`surfel_view_weights` at least
@@ -402,9 +444,14 @@ class Phase2Trainer:
         """(N,) float64 blending weight of every surfel summed over the foreground pixels (the mesh
         raster's mask eroded by one pixel) of the training views at rest (at most
         ``rest_teacher.max_views``). The weight of surfel i is the gradient of Σ_p mask_p·C_p with respect
-        to its colour, one backward pass per view; over all surfels it sums to Σ_p mask_p·A_p."""
+        to its colour, one backward pass per view; over all surfels it sums to Σ_p mask_p·A_p. Also sets
+        :attr:`view_facing`: the same sum with each view's weight times |cos| of the angle between the
+        surfel's normal and the direction to that view's camera."""
+        from ..geometry.rotations import quat_to_matrix
+
         av, c = self.avatar, self.cfg
         total = torch.zeros(len(av.surfels), dtype=torch.float64, device=av.device)
+        facing = torch.zeros_like(total)
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
         for fr in evenly_spaced_frames(self.frames, c.rest_teacher.max_views):
             cam = RenderCamera.from_camera(fr.camera, self.device)
@@ -417,6 +464,12 @@ class Phase2Trainer:
                                     near=c.near, far=c.far, return_statistics=False, backend=self.render_backend)  # fmt: skip
             (grad,) = torch.autograd.grad((img.color[..., 0] * inner).sum(), cols)
             total += grad[:, 0].detach().to(total)
+            with torch.no_grad():
+                n = quat_to_matrix(p.quats.detach() / p.quats.detach().norm(dim=-1, keepdim=True))[..., 2]
+                to_cam = cam.w2c[:3, :3].T.to(p.means) @ -cam.w2c[:3, 3].to(p.means) - p.means.detach()
+                cos = (n * to_cam).sum(-1).abs() / to_cam.norm(dim=-1).clamp_min(1e-12)
+                facing += grad[:, 0].detach().to(total) * cos.to(total)
+        self.view_facing = facing
         return total
 
     @torch.no_grad()

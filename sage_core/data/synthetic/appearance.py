@@ -24,6 +24,7 @@ from .shading import AMBIENT, DIFFUSE, LIGHT_DIR, Render, Specular, _eye_albedo,
 
 if TYPE_CHECKING:
     from .hair import PosedHair
+    from .mouth import PosedMouth
 
 _SKIN_TONES = np.array(
     [[0.93, 0.76, 0.66], [0.85, 0.64, 0.52], [0.72, 0.52, 0.40], [0.55, 0.38, 0.28], [0.95, 0.80, 0.72], [0.80, 0.60, 0.47]]
@@ -160,7 +161,7 @@ def highlights(spec: Specular, template_pos: np.ndarray, part_w: np.ndarray, nor
 def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appearance,
                 crease: np.ndarray | None = None, background: tuple[float, float, float] = (1.0, 1.0, 1.0),
                 supersample: int = 1, geometry: bool = False, specular: Specular | None = None,
-                hair: PosedHair | None = None) -> Render:
+                hair: PosedHair | None = None, mouth: PosedMouth | None = None) -> Render:
     """Render the posed head.
 
     vertices: (V, 3) posed world vertices of ``head``'s topology; crease: (V,) from
@@ -168,12 +169,12 @@ def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appe
     geometry: also return depth and normals (rasterized once more at the native resolution);
     specular: view-dependent highlights (None = Lambert + ambient only). A detailed appearance
     (``app.detail``) renders through :func:`.detail_render.render_detailed`, with the posed hair
-    volume ``hair`` when given.
+    volume ``hair`` and the posed mouth interior ``mouth`` (:mod:`.mouth`) when given.
     """
     if app.detail is not None:
         from .detail_render import render_detailed
 
-        return render_detailed(head, vertices, camera, app, crease, background, supersample, geometry, specular, hair)
+        return render_detailed(head, vertices, camera, app, crease, background, supersample, geometry, specular, hair, mouth)
     faces = head.faces
     V = head.n_vertices
     crease = np.zeros(V) if crease is None else crease

@@ -14,7 +14,8 @@ Layout of ``OUT``::
 
 ``appearance="detailed"``: the albedo carries pixel-scale detail (:mod:`.detail`) and the truth
 has a hair volume off the scalp (:mod:`.hair`, rigid with the skull; in the images, masks and
-``gt/hair/``, not in ``model/``). Monocular and one-shot captures may add held-out views all
+``gt/hair/``, not in ``model/``) and a mouth interior in the lip pocket (:mod:`.mouth`: teeth,
+gums and tongue; in the images and masks, described in ``gt/info.json``). Monocular and one-shot captures may add held-out views all
 around the head (``novel_around``; neutral face only), grouped in ``gt/info.json``.
 
 ``tracking="exact"``: the written model and parameters are the ground truth. ``"fitted"``: the
@@ -58,6 +59,7 @@ from .motion import (
     sample_identity,
     shift_camera,
 )
+from .mouth import MouthVolume, PosedMouth, build_mouth, pose_mouth, sample_mouth_style
 from .tracking import TrackedHead, add_pose_noise, fit_frames, make_tracked_head, pose_truth, vertex_errors, written_vertices
 
 Progress = Callable[[int, int, str], None]
@@ -75,6 +77,7 @@ class _Subject:
     hair: HairVolume | None = None
     canonical: np.ndarray | None = None  # (V, 3) canonical head (detailed subjects)
     hair_canonical: np.ndarray | None = None  # (H, 3) hair volume on it
+    mouth: MouthVolume | None = None  # teeth, gums and tongue (detailed subjects)
 
     @property
     def written_head(self) -> HeadModel:
@@ -88,10 +91,18 @@ class _Subject:
         assert self.canonical is not None and self.hair_canonical is not None
         return pose_hair(self.hair, self.canonical, self.hair_canonical, vertices)
 
+    def posed_mouth(self, vertices: np.ndarray) -> PosedMouth | None:
+        """The mouth interior in the posed head ``vertices`` (V, 3) (upper part with the skull, lower
+        part with the jaw), or None."""
+        if self.mouth is None:
+            return None
+        assert self.canonical is not None
+        return pose_mouth(self.mouth, self.canonical, vertices)
+
     def render(self, vertices: np.ndarray, camera: Camera, crease: np.ndarray | None, supersample: int) -> Render:
-        """The subject (head and hair volume) posed at ``vertices`` (V, 3), seen by ``camera``."""
+        """The subject (head, hair volume and mouth interior) posed at ``vertices`` (V, 3), seen by ``camera``."""
         return render_head(self.head, vertices, camera, self.app, crease, supersample=supersample, specular=self.specular,
-                           hair=self.posed_hair(vertices))
+                           hair=self.posed_hair(vertices), mouth=self.posed_mouth(vertices))
 
 
 @dataclass
@@ -305,6 +316,7 @@ def make_subject(cfg: SynthConfig) -> _Subject:
     subject = _Subject(head, shape, static_offset, app)
     if cfg.appearance == "detailed":
         _add_detail(subject, np.random.default_rng([cfg.seed, 6]))
+        _add_mouth(subject, np.random.default_rng([cfg.seed, 8]))
     if cfg.tracking == "exact":
         return subject
     subject.tracked = make_tracked_head(head, cfg.expr_keep, cfg.corrective_scale, cfg.crease_depth_mm)
@@ -323,6 +335,13 @@ def _add_detail(subject: _Subject, rng: np.random.Generator) -> None:
     subject.hair = build_hair(head, style)
     subject.canonical = canonical_vertices(subject)
     subject.hair_canonical = subject.hair.place(subject.canonical, head.faces)
+
+
+def _add_mouth(subject: _Subject, rng: np.random.Generator) -> None:
+    """Give a detailed ``subject`` its mouth interior (teeth, gums, tongue; drawn from ``rng``, a
+    stream of its own so everything else stays as it was)."""
+    assert subject.canonical is not None
+    subject.mouth = build_mouth(subject.head, subject.canonical, sample_mouth_style(rng))
 
 
 def write_capture(out_dir: str | Path, cfg: SynthConfig, progress: Progress | None = None,
@@ -466,6 +485,10 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
                         "description": "hair volume off the scalp (not in model/): canonical.ply beside gt/canonical.ply, "
                                        "{ti:05d}.ply posed per timestep like gt/meshes (gt/novel/hair for gt/novel), "
                                        "rigid with the skull"}
+    if subject.mouth is not None:
+        info["mouth"] = {"style": subject.mouth.style.to_dict(),
+                         "description": "mouth interior inside the lip pocket (not in model/): upper teeth and gums rigid "
+                                        "with the skull, lower teeth, gums and tongue rigid with the jaw; shows where the lips part"}
     if subject.tracked is not None:
         info["model"]["expression_components"] = list(EXPRESSION_NAMES[: subject.tracked.n_keep])
         info["tracking"] = _tracking_info(subject.tracked, seq, n_train, nseq)

@@ -1,17 +1,18 @@
-"""Shaded rendering of a detailed synthetic subject (head plus hair volume) by the ground-truth
-mesh rasterizer.
+"""Shaded rendering of a detailed synthetic subject (head plus hair volume and mouth interior) by
+the ground-truth mesh rasterizer.
 
-The head and the hair volume are rasterized together (one z-buffer, supersampled). The albedo is
-evaluated at the template (texture) position with the footprint on the surface, so the detail of
-:mod:`.detail` is band-limited to what the pixel can hold: the footprint is half the world size of
-a sub-pixel at the sample's depth, widened by the obliquity of the surface (the geometric mean of
-the two axes of the sub-pixel's ellipse on it). Pixels whose sub-pixels all hit the same part get
-one albedo, at their mean attributes with the footprint of the whole pixel (the Gaussian equivalent
-of its box, σ = pixel / √12); silhouette and part-boundary pixels one per sub-pixel, averaged.
-Shading, per sub-pixel, is that of the smooth head (Lambert + ambient under the world light,
-optional Blinn-Phong highlights) plus, with highlights, an anisotropic sheen on hair strands
-(Kajiya-Kay: the strength follows ``sqrt(1 - (t·h)²)`` for the strand tangent t and the half
-vector h).
+The head, the hair volume and the mouth interior (:mod:`.mouth`: teeth, gums, tongue with their
+own per-vertex albedo; the pocket lining in the subject's cavity colour) are rasterized together
+(one z-buffer, supersampled). The albedo is evaluated at the template (texture) position with the
+footprint on the surface, so the detail of :mod:`.detail` is band-limited to what the pixel can
+hold: the footprint is half the world size of a sub-pixel at the sample's depth, widened by the
+obliquity of the surface (the geometric mean of the two axes of the sub-pixel's ellipse on it).
+Pixels whose sub-pixels all hit the same part get one albedo, at their mean attributes with the
+footprint of the whole pixel (the Gaussian equivalent of its box, σ = pixel / √12); silhouette and
+part-boundary pixels one per sub-pixel, averaged. Shading, per sub-pixel, is that of the smooth
+head (Lambert + ambient under the world light, optional Blinn-Phong highlights) plus, with
+highlights, an anisotropic sheen on hair strands (Kajiya-Kay: the strength follows
+``sqrt(1 - (t·h)²)`` for the strand tangent t and the half vector h).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from ..cameras import Camera
 from ._fields import smoothstep
 from .detail import FaceAnchors, hair_strands, skin_detail
 from .hair import PosedHair
+from .mouth import MouthStyle, PosedMouth
 from .head import (
     _EYE_R,
     PART_LEFT_EYE,
@@ -58,7 +60,7 @@ def face_anchors(head: HeadModel) -> FaceAnchors:
 
 def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appearance, crease: np.ndarray | None,
                     background: tuple[float, float, float], supersample: int, geometry: bool, specular: Specular | None,
-                    hair: PosedHair | None) -> Render:
+                    hair: PosedHair | None, mouth: PosedMouth | None = None) -> Render:
     """See :func:`.appearance.render_head` (same arguments; ``app.detail`` is set)."""
     st = app.detail
     assert st is not None
@@ -70,7 +72,7 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
     part[head.part == PART_MOUTH, _MOUTH] = 1.0
     part[head.part == PART_SKIN, _SKIN] = 1.0
     nrm = vertex_normals(vertices, head.faces)
-    cols = [head.v_template, head.eye_dir, part, head.mouth_depth[:, None], crease[:, None], nrm, np.zeros((V, 5))]
+    cols = [head.v_template, head.eye_dir, part, head.mouth_depth[:, None], crease[:, None], nrm, np.zeros((V, 6))]
     attrs = np.concatenate(cols, 1)
     verts, faces = np.asarray(vertices, np.float64), head.faces
     rot = np.eye(3)
@@ -81,11 +83,23 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
         hpart[:, _HAIR] = 1.0
         hn = vertex_normals(hair.vertices, hv.faces)
         hattrs = np.concatenate([hv.tex, np.zeros((H, 3)), hpart, np.zeros((H, 2)), hn, hv.force[:, None], hv.frame[:, None].astype(np.float64),
-                                 hv.tangent], 1)
+                                 hv.tangent, np.zeros((H, 1))], 1)
         attrs = np.concatenate([attrs, hattrs], 0)
         verts = np.concatenate([verts, hair.vertices], 0)
         faces = np.concatenate([faces, hv.faces + V], 0)
         rot = hair.rotation
+    if mouth is not None:
+        # column 20 flags an albedo given per vertex (in columns 0:3)
+        mv = mouth.volume
+        M = mv.n_vertices
+        mpart = np.zeros((M, 4))
+        mpart[:, _MOUTH] = 1.0
+        mn = vertex_normals(mouth.vertices, mv.faces)
+        mattrs = np.concatenate([mv.albedo, np.zeros((M, 3)), mpart, np.zeros((M, 2)), mn, np.zeros((M, 5)), np.ones((M, 1))], 1)
+        n_before = verts.shape[0]
+        attrs = np.concatenate([attrs, mattrs], 0)
+        verts = np.concatenate([verts, mouth.vertices], 0)
+        faces = np.concatenate([faces, mv.faces + n_before], 0)
     frag = rasterize(verts, faces, camera, supersample)
     H_, W_ = frag.face.shape
     m = frag.mask
@@ -102,7 +116,8 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
         fl = 0.5 * (camera.K[0, 0] + camera.K[1, 1]) * supersample
         fp = 0.5 * frag.depth[m] / fl / np.sqrt(np.maximum(np.abs(cosv), 0.1))
         alb, cov, tan = _pixel_albedo(a, which, fp, ys, xs, camera, supersample, app, head,
-                                      hair.volume.bun_frame if hair is not None else None)
+                                      hair.volume.bun_frame if hair is not None else None,
+                                      mouth.volume.style if mouth is not None else None)
         shade = AMBIENT + DIFFUSE * np.clip(n @ LIGHT_DIR, 0.0, None)
         out = alb * shade[:, None]
         if specular is not None:
@@ -128,18 +143,21 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
 
 
 def _pixel_albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, ys: np.ndarray, xs: np.ndarray, camera: Camera, supersample: int,
-                  app: Appearance, head: HeadModel, bun_frame: tuple | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  app: Appearance, head: HeadModel, bun_frame: tuple | None, mouth_style: MouthStyle | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_albedo` of the M foreground sub-pixel samples (at ys, xs of the supersampled grid),
     evaluated once per pixel where all of a pixel's sub-pixels hit the same part: at the mean of
     their attributes, with the footprint of the whole pixel (the prefilter then does what the
     pixel's box would: a Gaussian of σ = pixel / √12); per sub-pixel elsewhere (silhouettes, part
-    boundaries)."""
+    boundaries, and where the mouth interior's own-albedo surfaces meet the pocket lining)."""
     s = supersample
     if s == 1:
-        return _albedo(a, which, fp, app, head, bun_frame)
+        return _albedo(a, which, fp, app, head, bun_frame, mouth_style)
     n_px = camera.width * camera.height
     pix = (ys // s) * camera.width + (xs // s)
-    key = which * 2 + (a[:, 16] > 0.5)  # part, and the bun's strand frame apart from the scalp's
+    # part, the bun's strand frame apart from the scalp's, and the mouth interior's own albedo
+    # (teeth, gums, tongue) apart from the pocket lining
+    key = which * 4 + (a[:, 16] > 0.5) * 2 + (a[:, 20] > 0.5)
     count = np.bincount(pix, minlength=n_px)
     kmin = np.full(n_px, 1 << 20)
     kmax = np.full(n_px, -1)
@@ -158,19 +176,20 @@ def _pixel_albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, ys: np.ndarr
         # the pixel integrates the light of its area: a box, whose Gaussian equivalent has σ = pixel / √12
         # (a sub-pixel footprint is half a sub-pixel, so σ = 2·s·fp / √12)
         fp_px = (2.0 / math.sqrt(12.0)) * s * np.bincount(ps, weights=fp[shared], minlength=n_px)[upix] / (s * s)
-        pa, pc, pt = _albedo(a_px, kmin[upix] // 2, fp_px, app, head, bun_frame)
+        pa, pc, pt = _albedo(a_px, kmin[upix] // 4, fp_px, app, head, bun_frame, mouth_style)
         k = slot[ps]
         alb[shared], cov[shared], tan[shared] = pa[k], pc[k], pt[k]
     own = ~shared
     if own.any():
-        alb[own], cov[own], tan[own] = _albedo(a[own], which[own], fp[own], app, head, bun_frame)
+        alb[own], cov[own], tan[own] = _albedo(a[own], which[own], fp[own], app, head, bun_frame, mouth_style)
     return alb, cov, tan
 
 
-def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, head: HeadModel, bun_frame: tuple | None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, head: HeadModel, bun_frame: tuple | None,
+            mouth_style: MouthStyle | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Albedo (M, 3), hair coverage (M,) and template strand tangents (M, 3) of the M samples with
-    interpolated attributes ``a`` and parts ``which``; bun_frame: the hair volume's bun frame."""
+    interpolated attributes ``a`` and parts ``which``; bun_frame: the hair volume's bun frame;
+    mouth_style: the mouth interior's style (its cavity colours the pocket lining), or None."""
     st = app.detail
     assert st is not None
     M = a.shape[0]
@@ -185,7 +204,12 @@ def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, h
         alb[e] = _eye_albedo(a[e, 3:6], app)
     mo = which == _MOUTH
     if mo.any():
-        alb[mo] = np.array([0.45, 0.12, 0.12])[None] * (1.0 - 0.75 * np.clip(a[mo, 10], 0, 1))[:, None]
+        if mouth_style is None:
+            alb[mo] = np.array([0.45, 0.12, 0.12])[None] * (1.0 - 0.75 * np.clip(a[mo, 10], 0, 1))[:, None]
+        else:
+            alb[mo] = mouth_style.cavity_albedo(a[mo, 10])
+            own = mo & (a[:, 20] > 0.5)
+            alb[own] = a[own, 0:3]
     hair_px = which == _HAIR
     bun = hair_px & (frame > 0.5)
     # skin, and the hair sheet where it may still show skin (near the hairline)

@@ -1,0 +1,199 @@
+"""The unseen fill: unseen surfels continued from the seen surfels of their own region.
+
+Synthetic surfel clouds on a sphere stand in for a head: the front (z > 0) is seen, the back is not;
+the upper half is "hair", the lower front "face", so the hair's seen part borders the face's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sage_core.avatar.init import REGION_FACE, REGION_HAIR, REGION_NECK
+from sage_core.train.unseen_fill import fill_unseen, harmonic_fill, knn_graph, skin_like_sources
+
+SKIN = torch.tensor([0.80, 0.60, 0.50])
+HAIR = torch.tensor([0.10, 0.08, 0.06])
+
+
+def _sphere(n: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    v = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    return (v / v.norm(dim=1, keepdim=True)).float() * 0.1
+
+
+def _head(n: int = 1500, seed: int = 0):
+    """points (N, 3), colours, view weights, regions: hair above y = 0, face below in front, neck behind."""
+    x = _sphere(n, seed)
+    region = torch.where(x[:, 1] > 0, REGION_HAIR, torch.where(x[:, 2] > 0, REGION_FACE, REGION_NECK))
+    front = x[:, 2] > 0.0
+    weights = torch.where(front, 5.0 + 5.0 * x[:, 2] / 0.1, torch.zeros(n))
+    colors = torch.where((region == REGION_HAIR)[:, None], HAIR, SKIN).clone()
+    # what the network extrapolates behind the head: a ghost of the face (its colours mirrored back)
+    colors[~front] = torch.tensor([0.9, 0.2, 0.2])
+    opacity = torch.where(front, torch.full((n,), 0.9), torch.full((n,), 0.2))
+    return x, colors, weights, region, opacity
+
+
+def test_unseen_take_their_own_regions_colours_and_seen_are_unchanged() -> None:
+    x, c, w, r, op = _head()
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,), (REGION_FACE,), (REGION_NECK,)), hair_regions=(REGION_HAIR,),
+                      skin_regions=(REGION_FACE,), neighbours=8)
+    seen = w >= 0.5
+    assert torch.equal(res.colors[seen], c[seen])
+    assert torch.equal(res.opacity[seen], op[seen])
+    assert not bool(res.filled[seen].any())
+    back_hair = ~seen & (r == REGION_HAIR)
+    assert bool(res.filled[back_hair].all())
+    assert torch.allclose(res.colors[back_hair], HAIR.expand_as(res.colors[back_hair]), atol=1e-6)
+    # the neck has no seen surfel: nothing to continue, left as it was
+    neck = r == REGION_NECK
+    assert not bool(res.filled[neck].any())
+    assert torch.equal(res.colors[neck], c[neck])
+    # opacity raised to the seen hair's median
+    assert torch.allclose(res.opacity[back_hair], torch.full_like(res.opacity[back_hair], 0.9))
+    assert res.per_group[str(REGION_HAIR)]["filled"] == float(back_hair.sum())
+
+
+def test_hair_never_takes_skin_coloured_sources() -> None:
+    """A fringe of skin-coloured hair-region surfels (a forehead the region mask calls hair) at the
+    front borders the back: without the exclusion the back would turn skin coloured near it."""
+    x, c, w, r, op = _head(2000, 1)
+    seen = w >= 0.5
+    forehead = seen & (r == REGION_HAIR) & (x[:, 1] < 0.05)
+    c[forehead] = SKIN + 0.02
+    # skin_ratio=0: no skin continued near the seen skin (tested below), only the exclusion
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
+                      skin_ratio=0.0)
+    assert bool(res.skin_like[forehead].all())
+    assert not bool(res.skin_like[seen & (r == REGION_HAIR) & ~forehead].any())
+    back_hair = ~seen & (r == REGION_HAIR)
+    got = res.colors[back_hair]
+    assert float((got - HAIR).abs().max()) < 1e-6, "a back hair surfel took a skin colour"
+    # the forehead itself (seen) keeps its colour
+    assert torch.equal(res.colors[forehead], c[forehead])
+
+
+def test_skin_is_continued_only_where_the_seen_skin_is_much_nearer_than_the_hair() -> None:
+    """With the default skin_ratio (0.7) an unseen surfel of the hair group continues the skin
+    exactly when its nearest seen skin-like surfel is nearer than 0.7 times its nearest hair source
+    (the cheeks by the ears); every other one takes the hair."""
+    from scipy.spatial import cKDTree
+
+    x, c, w, r, op = _head(2000, 1)
+    seen = w >= 0.5
+    forehead = seen & (r == REGION_HAIR) & (x[:, 1] < 0.05)
+    c[forehead] = SKIN + 0.02
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,))
+    back_hair = ~seen & (r == REGION_HAIR)
+    assert bool(res.filled[back_hair].all())
+    hair_src = res.sources.numpy()
+    d_h, _ = cKDTree(x[hair_src].numpy()).query(x[back_hair].numpy(), k=1)
+    d_s, _ = cKDTree(x[forehead].numpy()).query(x[back_hair].numpy(), k=1)
+    near_skin = torch.as_tensor(d_s < 0.7 * d_h)
+    assert 0 < int(near_skin.sum()) < int(back_hair.sum())
+    got = res.colors[back_hair]
+    # the far ones are pure hair; the near ones a continuation of the skin fringe (its colour range)
+    assert float((got[~near_skin] - HAIR).abs().max()) < 1e-6
+    assert float((got[near_skin] - (SKIN + 0.02)).abs().max()) < 1e-5
+
+
+def test_regions_do_not_leak_and_taken_surfels_are_left_alone() -> None:
+    x, c, w, r, op = _head(1500, 2)
+    # put a mouth prior on part of the back hair: it must be neither filled nor a source
+    taken = (r == REGION_HAIR) & (x[:, 2] < -0.05)
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,), (REGION_FACE,)), hair_regions=(REGION_HAIR,),
+                      skin_regions=(REGION_FACE,), taken=taken)
+    assert not bool(res.filled[taken].any())
+    assert torch.equal(res.colors[taken], c[taken])
+    # the face region's unseen surfels (none here: the face is in front) and the hair's only take
+    # their region's colours
+    filled_hair = res.filled & (r == REGION_HAIR)
+    assert bool(filled_hair.any())
+    assert float((res.colors[filled_hair] - HAIR).abs().max()) < 1e-6
+
+
+def test_only_named_regions_are_filled() -> None:
+    x, c, w, r, op = _head(800, 3)
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_FACE,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,))
+    assert not bool(res.filled[r == REGION_HAIR].any())
+    assert torch.equal(res.colors[r == REGION_HAIR], c[r == REGION_HAIR])
+
+
+def test_grazing_surfels_keep_their_colour_but_pass_nothing_on() -> None:
+    x, c, w, r, op = _head(1500, 4)
+    graze = (w >= 0.5) & (w < 2.0)
+    assert not bool(graze.any())
+    # make a band of hair surfels near the silhouette weakly seen and white (blended with the background)
+    band = (r == REGION_HAIR) & (x[:, 2] > 0) & (x[:, 2] < 0.02)
+    w[band] = 1.0
+    c[band] = torch.tensor([1.0, 1.0, 1.0])
+    res = fill_unseen(x, c, w, r, op, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
+                      source_min=2.0)
+    assert torch.equal(res.colors[band], c[band])
+    assert not bool(res.sources[band].any())
+    back_hair = (w < 0.5) & (r == REGION_HAIR)
+    assert float((res.colors[back_hair] - HAIR).abs().max()) < 1e-6
+
+
+def test_harmonic_fill_interpolates_between_sources() -> None:
+    # a path graph 0 - 1 - 2 - 3 - 4 with the ends known: the middle is linear
+    import scipy.sparse as sp
+
+    e = np.array([[0, 1], [1, 2], [2, 3], [3, 4]])
+    a = sp.coo_matrix((np.ones(8), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(5, 5)).tocsr()
+    vals = np.zeros((5, 1))
+    vals[0], vals[4] = 0.0, 1.0
+    known = np.array([True, False, False, False, True])
+    out, reached = harmonic_fill(a, vals, known)
+    assert reached.all()
+    assert np.allclose(out[:, 0], [0.0, 0.25, 0.5, 0.75, 1.0])
+    # a node in another component without a known node is not reached
+    a2 = sp.block_diag([a, sp.csr_matrix((1, 1))]).tocsr()
+    out2, reached2 = harmonic_fill(a2, np.vstack([vals, [[0.3]]]), np.r_[known, False])
+    assert not reached2[5] and out2[5, 0] == pytest.approx(0.3)
+
+
+def test_knn_graph_is_symmetric_and_connects_neighbours() -> None:
+    pts = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [10, 0, 0], [11, 0, 0]], dtype=float)
+    a = knn_graph(pts, 1)
+    assert (a != a.T).nnz == 0
+    assert a[0, 1] == 1 and a[3, 4] == 1 and a[0, 3] == 0
+
+
+def test_skin_like_split() -> None:
+    rng = np.random.default_rng(0)
+    hair = np.array([0.1, 0.08, 0.06]) + 0.02 * rng.standard_normal((60, 3))
+    skin = np.array([0.8, 0.6, 0.5]) + 0.02 * rng.standard_normal((30, 3))
+    got = skin_like_sources(np.vstack([hair, skin]), np.array([0.8, 0.6, 0.5]))
+    assert not got[:60].any() and got[60:].all()
+    # one colour throughout (hair like skin, or a bald scalp): nothing is excluded
+    assert not skin_like_sources(skin, np.array([0.8, 0.6, 0.5])).any()
+    # a small minority of dark pixels does not turn the majority into "skin"
+    few = np.vstack([hair[:5], skin])
+    assert not skin_like_sources(few, np.array([0.8, 0.6, 0.5])).any()
+    # lighter and darker hair (shading, strands) are both hair: nearer the hair than the skin
+    mixed = np.vstack([hair, hair + 0.2, skin])
+    got = skin_like_sources(mixed, np.array([0.8, 0.6, 0.5]))
+    assert not got[:120].any() and got[120:].all()
+
+
+def test_skin_coloured_hair_seen_only_at_grazing_angles_is_refilled() -> None:
+    x, c, w, r, op = _head(1500, 5)
+    seen = w >= 0.5
+    facing = w * 0.9
+    # a skin-coloured blotch on the seen hair, seen only at grazing angles
+    blotch = seen & (r == REGION_HAIR) & (x[:, 2] < 0.03) & (x[:, 0] > 0.0)
+    c[blotch] = SKIN
+    facing[blotch] = 0.1 * w[blotch]
+    # another one seen frontally: real skin (a forehead), kept
+    kept = seen & (r == REGION_HAIR) & (x[:, 2] < 0.03) & (x[:, 0] <= 0.0)
+    c[kept] = SKIN
+    res = fill_unseen(x, c, w, r, op, None, facing, groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,),
+                      skin_regions=(REGION_FACE,), skin_ratio=0.0)
+    assert bool(blotch.any()) and bool(res.filled[blotch].all())
+    assert float((res.colors[blotch] - HAIR).abs().max()) < 1e-6
+    assert torch.equal(res.colors[kept], c[kept]) and not bool(res.filled[kept].any())
+    assert res.per_group[str(REGION_HAIR)]["grazing_skin_refilled"] == float(blotch.sum())
+
