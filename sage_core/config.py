@@ -225,7 +225,7 @@ class FreeSurfelConfig:
     init_opacity: float = _f(0.5, "Initial opacity of free surfels.", gt=0, lt=1, alias="init_opacity")
     position_threshold: float = _f(1.0, "Local offset length (in triangle scales) below which the position term is zero (GA: 1).", ge=0, alias="local_position_threshold")
     scale_threshold: float = _f(0.6, "Local scale (relative to the triangle scale) below which the scale term is zero (GA: 0.6).", ge=0, alias="local_scale_threshold")
-    mouth_prior: bool = _f(True, "Mouth-interior surfels start from the pretrained mouth prior's albedo (sage_core.avatar.mouth_prior) instead of grey; the training views refine what they see.", alias="mouth_prior")
+    mouth_prior: bool = _f(False, "Mouth-interior surfels start from the pretrained mouth prior's albedo (sage_core.avatar.mouth_prior) instead of grey; the training views refine what they see.", alias="mouth_prior")
 
 
 @dataclass
@@ -496,7 +496,7 @@ class MouthPriorConfig:
     """Phase 2: prior colours of the mouth interior no training view sees (SAGE's mouth prior)."""
 
     enabled: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): see prior.", alias="mouth_prior")
-    prior: str = _f("learned", "Where the prior colours come from: learned (the pretrained mouth-interior prior shipped with sage, albedo grids over subject-independent mouth coordinates fitted on synthetic mouths; sage_core.avatar.mouth_prior) or table (earlier versions: one cavity_color and one teeth_color, darkened by occlusion_jaw).", choices=("learned", "table"), alias="mouth_prior_source")
+    prior: str = _f("table", "Where the prior colours come from: table (one cavity_color and one teeth_color, darkened by occlusion_jaw) or learned (the pretrained mouth-interior prior shipped with sage, albedo grids over subject-independent mouth coordinates fitted on synthetic mouths; sage_core.avatar.mouth_prior). table is the default: on the open-jaw test frames of the tiny multiview capture the learned prior's mouth error was 15 % higher (docs/results.md).", choices=("learned", "table"), alias="mouth_prior_source")
     cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.", ge=0, le=1, length=3, alias="mouth_cavity_color")
     teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.", ge=0, le=1, length=3, alias="teeth_color")
     visibility: str = _f("surfels", "Which mouth surfels take the prior: surfels (the default: those bound to mouth triangles that themselves contribute less than half a pixel to the training views at rest, so mouth surfels that show at rest, e.g. on the lips, keep their fitted colour) or faces (those bound to mouth-interior or teeth triangles that no training view sees at rest, whether or not the surfels show). On the second small-suite subject faces cost 1.2 dB on the novel view and raised LPIPS on held-out expressions from 0.0609 to 0.0669 (docs/results.md).", choices=("faces", "surfels"), alias="mouth_prior_visibility")
