@@ -325,6 +325,19 @@ class Phase1Schedule(Schedule):
 
 
 @dataclass
+class RelocateConfig:
+    """Phase 1: surfel relocation (sage_core.train.relocate): a fixed budget moved from surfels that
+    no training view sees to where the renders are furthest from the images, on the SDF's surface."""
+
+    enabled: bool = _f(False, "Relocate surfels during phase 1 (the paper keeps every surfel where it was spread; relocation lets them reach surface the FLAME mesh lacks, such as hair off the scalp).", added=True)
+    every: int = _f(250, "Steps between relocations.", ge=1, added=True)
+    until: float = _f(0.6, "No relocation after this fraction of the iterations.", ge=0, le=1, added=True)
+    fraction: float = _f(0.05, "At most this fraction of the surfels moves at each relocation.", gt=0, le=1, added=True)
+    views: int = _f(6, "Training frames scanned for the contribution of every surfel and for the error.", ge=1, added=True)
+    floor: float = _f(0.05, "A surfel contributing less alpha than this many pixels, summed over the scanned frames, may move.", ge=0, added=True)
+
+
+@dataclass
 class SmoothnessConfig:
     """Phase 1: where the SDF normal smoothness term (weight ``loss.smooth``) is measured."""
 
@@ -399,6 +412,7 @@ class Phase1Config:
     loss: Phase1Losses = _sub(Phase1Losses, "Loss weights.")
     schedule: Phase1Schedule = _sub(Phase1Schedule, "Start steps and intervals.")
     neus: Phase1NeuSConfig = _sub(Phase1NeuSConfig, "NeuS rays of the SDF terms.")
+    relocate: RelocateConfig = _sub(RelocateConfig, "Surfel relocation.")
     smooth: SmoothnessConfig = _sub(SmoothnessConfig, "SDF normal smoothness samples.")
     symmetry: SymmetryConfig = _sub(SymmetryConfig, "Symmetry samples.")
     light_albedo: LightAlbedoConfig = _sub(LightAlbedoConfig, "Smooth-albedo light prior.")
