@@ -329,7 +329,7 @@ class RelocateConfig:
     """Phase 1: surfel relocation (sage_core.train.relocate): a fixed budget moved from surfels that
     no training view sees to where the renders are furthest from the images, on the SDF's surface."""
 
-    enabled: bool = _f(False, "Relocate surfels during phase 1 (the paper keeps every surfel where it was spread; relocation lets them reach surface the FLAME mesh lacks, such as hair off the scalp).", added=True)
+    enabled: bool = _f(True, "Relocate surfels during phase 1 (the paper keeps every surfel where it was spread; relocation lets them reach surface the FLAME mesh lacks, such as hair off the scalp). On by default in the multiview regimes, off in sv-hr and one-shot (docs/method.md, docs/results.md).")
     every: int = _f(250, "Steps between relocations.", ge=1, added=True)
     until: float = _f(0.6, "No relocation after this fraction of the iterations.", ge=0, le=1, added=True)
     fraction: float = _f(0.05, "At most this fraction of the surfels moves at each relocation.", gt=0, le=1, added=True)
@@ -693,8 +693,10 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 # Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
-    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
-    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
+    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,
+                        "relocate.enabled": False}},
+    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,
+                        "relocate.enabled": False}},
 }
 
 # Rules that tie several fields of one config together: (check, fields named in the error, what is

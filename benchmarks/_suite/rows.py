@@ -22,10 +22,11 @@ FREE_PHASE1: tuple[str, ...] = (
     "--set", "w_distortion=0",
     "--set", "w_mask=0",
     "--set", "shading=none",
+    "--set", "relocate.enabled=false",
 )  # fmt: skip
 """Phase-1 options of free per-surfel attributes trained on the photometric loss only (no SDF
-terms, no 2DGS regularizers, no alpha mask term) with colours fixed in head space (no world
-light), on SAGE's surfel layout and rebinding: the ``free_mvsf`` row."""
+terms, no 2DGS regularizers, no alpha mask term, no relocation) with colours fixed in head space
+(no world light), on SAGE's surfel layout and rebinding: the ``free_mvsf`` row."""
 
 GA_PHASE1: tuple[str, ...] = (
     *FREE_PHASE1,
