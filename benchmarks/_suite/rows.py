@@ -98,6 +98,8 @@ ROWS: dict[str, RowSpec] = {
                 None, ("--correction", "off"), "phase2", ("all",), True, True),
         RowSpec("no_wrinkles", "w/o wrinkle shading", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
                 None, ("--set", "wrinkle_shading=false"), "phase2", ("all",), True, False),
+        RowSpec("no_relocation", "w/o relocation", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
+                ("--attributes", "mlp", "--set", "relocate.enabled=false"), (), "phase2", ("all",), True, False),
         RowSpec("no_light", "w/o world light (colour in head space)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
                 ("--attributes", "mlp", "--set", "shading=none"), (), "phase2", ("all",), True, False),
         RowSpec("ga_mvsf", "GaussianAvatars (per-face init, densification)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest",),
