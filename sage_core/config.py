@@ -330,9 +330,9 @@ class RelocateConfig:
     no training view sees to where the renders are furthest from the images, on the SDF's surface."""
 
     enabled: bool = _f(True, "Relocate surfels during phase 1 (the paper keeps every surfel where it was spread; relocation lets them reach surface the FLAME mesh lacks, such as hair off the scalp). On by default in the multiview regimes, off in sv-hr and one-shot (docs/method.md, docs/results.md).")
-    every: int = _f(250, "Steps between relocations.", ge=1, added=True)
-    until: float = _f(0.6, "No relocation after this fraction of the iterations.", ge=0, le=1, added=True)
-    fraction: float = _f(0.05, "At most this fraction of the surfels moves at each relocation.", gt=0, le=1, added=True)
+    every: int = _f(150, "Steps between relocations.", ge=1, added=True)
+    until: float = _f(0.8, "No relocation after this fraction of the iterations.", ge=0, le=1, added=True)
+    fraction: float = _f(0.08, "At most this fraction of the surfels moves at each relocation.", gt=0, le=1, added=True)
     views: int = _f(6, "Training frames scanned for the contribution of every surfel and for the error.", ge=1, added=True)
     floor: float = _f(0.05, "A surfel contributing less alpha than this many pixels, summed over the scanned frames, may move.", ge=0, added=True)
 
