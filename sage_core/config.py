@@ -246,7 +246,7 @@ class ShapeNetConfig:
 
     hidden: int = _f(64, "Shape network width.", ge=1, alias="shape_hidden")
     layers: int = _f(2, "Shape network hidden layers.", ge=1, alias="shape_layers")
-    detail_grid: bool = _f(False, "The shape network also reads the appearance hash grid's features (appearance.grid), beside the SDF grid's: surfel size, anisotropy and orientation can then vary at the scale of the colour detail.", added=True)
+    detail_grid: bool = _f(True, "The shape network also reads the appearance hash grid's features (appearance.grid), beside the SDF grid's: surfel size, anisotropy and orientation can then vary at the scale of the colour detail (docs/results.md, \"Detail on heads with real detail\").")
 
 
 @dataclass
