@@ -5,7 +5,7 @@ Usage:
     python benchmarks/suite.py --size tiny|small|full --out DIR [--rows a,b,...] [--device auto]
                                [--seed 0] [--head detailed|smooth] [--subjects 2] [--lpips-weights PATH]
 
-Rows (ids): ceiling, sage, sage_exact, no_mlp, no_phase2, no_correction, no_wrinkles, no_light, ga_mvsf, ga_mvmf, free_mvsf,
+Rows (ids): ceiling, sage, sage_exact, no_mlp, no_phase2, no_correction, no_wrinkles, no_relocation, no_light, ga_mvsf, ga_mvmf, free_mvsf,
 sv_hr, one_shot (``ceiling`` trains nothing: the capture's ground truth on its tracked FLAME fit).
 Each size runs every stage with the preset of its name: ``tiny`` (128x186 captures, minutes per row
 on a CPU), ``small`` (256x372, 20k surfels; a CPU in hours) and ``full`` (the default presets,

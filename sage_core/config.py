@@ -248,7 +248,7 @@ class ShapeNetConfig:
 
     hidden: int = _f(64, "Shape network width.", ge=1, alias="shape_hidden")
     layers: int = _f(2, "Shape network hidden layers.", ge=1, alias="shape_layers")
-    detail_grid: bool = _f(False, "The shape network also reads the appearance hash grid's features (appearance.grid), beside the SDF grid's: surfel size, anisotropy and orientation can then vary at the scale of the colour detail.", added=True)
+    detail_grid: bool = _f(True, "The shape network also reads the appearance hash grid's features (appearance.grid), beside the SDF grid's: surfel size, anisotropy and orientation can then vary at the scale of the colour detail (docs/results.md, \"Detail on heads with real detail\").")
 
 
 @dataclass
@@ -327,6 +327,19 @@ class Phase1Schedule(Schedule):
 
 
 @dataclass
+class RelocateConfig:
+    """Phase 1: surfel relocation (sage_core.train.relocate): a fixed budget moved from surfels that
+    no training view sees to where the renders are furthest from the images, on the SDF's surface."""
+
+    enabled: bool = _f(True, "Relocate surfels during phase 1 (the paper keeps every surfel where it was spread; relocation lets them reach surface the FLAME mesh lacks, such as hair off the scalp). On by default in the multiview regimes, off in sv-hr and one-shot (docs/method.md, docs/results.md).")
+    every: int = _f(150, "Steps between relocations.", ge=1, added=True)
+    until: float = _f(0.8, "No relocation after this fraction of the iterations.", ge=0, le=1, added=True)
+    fraction: float = _f(0.08, "At most this fraction of the surfels moves at each relocation.", gt=0, le=1, added=True)
+    views: int = _f(6, "Training frames scanned for the contribution of every surfel and for the error.", ge=1, added=True)
+    floor: float = _f(0.05, "A surfel contributing less alpha than this many pixels, summed over the scanned frames, may move.", ge=0, added=True)
+
+
+@dataclass
 class SmoothnessConfig:
     """Phase 1: where the SDF normal smoothness term (weight ``loss.smooth``) is measured."""
 
@@ -401,6 +414,7 @@ class Phase1Config:
     loss: Phase1Losses = _sub(Phase1Losses, "Loss weights.")
     schedule: Phase1Schedule = _sub(Phase1Schedule, "Start steps and intervals.")
     neus: Phase1NeuSConfig = _sub(Phase1NeuSConfig, "NeuS rays of the SDF terms.")
+    relocate: RelocateConfig = _sub(RelocateConfig, "Surfel relocation.")
     smooth: SmoothnessConfig = _sub(SmoothnessConfig, "SDF normal smoothness samples.")
     symmetry: SymmetryConfig = _sub(SymmetryConfig, "Symmetry samples.")
     light_albedo: LightAlbedoConfig = _sub(LightAlbedoConfig, "Smooth-albedo light prior.")
@@ -686,9 +700,11 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 # Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
-    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05},
+    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,
+                         "relocate.enabled": False},
               "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True}},
-    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05},
+    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,
+                            "relocate.enabled": False},
                  "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True}},
 }
 

@@ -76,7 +76,9 @@ def test_steps_lower_the_loss(init_ws, mode, one_thread):
 
 def test_resume_repeats_the_loss_curve(init_ws, one_thread):
     n = 6
-    over = {"iterations": n, "rebind_every": 2}
+    # rebinding and relocation both every 2 steps: their state (bindings, moved rows, optimiser rows) resumes too
+    over = {"iterations": n, "rebind_every": 2, "relocate.enabled": True, "relocate.every": 2, "relocate.until": 1.0,
+            "relocate.floor": 1e9, "relocate.views": 2}
     ref = _trainer(init_ws, "mlp", **over)
     straight = [ref.step() for _ in range(n)]
 
@@ -93,6 +95,7 @@ def test_resume_repeats_the_loss_curve(init_ws, one_thread):
         for k in a:
             assert b[k] == pytest.approx(a[k], rel=1e-6, abs=1e-7), k
     assert torch.equal(ref.avatar.surfels.binding, second.avatar.surfels.binding)
+    assert any(h.get("relocated", 0) > 0 for h in straight)
 
 
 def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
@@ -220,3 +223,62 @@ def test_appearance_init_opacity_sets_the_opacity_logit_bias(p):
     v = torch.nn.functional.normalize(torch.randn(10, 3, generator=g), dim=-1)
     _, alpha = net(x, v, v, torch.randn(10, 4, generator=g))
     torch.testing.assert_close(alpha, torch.full((10,), p), rtol=0, atol=1e-6)
+
+
+def test_relocation_sources_are_idle_facing_surfels_outside_mouth_and_eyes():
+    from sage_core.avatar.init import REGION_EYES, REGION_MOUTH
+    from sage_core.train import relocate
+
+    regions = torch.tensor([0, REGION_MOUTH, 0, REGION_EYES, 0, 0, 0])
+    contrib = torch.tensor([0.01, 0.0, 0.03, 0.0, 0.02, 5.0, 0.0])
+    facing = torch.tensor([True, True, True, True, True, True, False])
+    assert relocate.sources(regions, contrib, facing, 0.05, 10).tolist() == [0, 4, 2]  # least contributing first
+    assert relocate.sources(regions, contrib, facing, 0.05, 2).tolist() == [0, 4]
+    assert relocate.due(250, 250, 900) and not relocate.due(0, 250, 900) and not relocate.due(1000, 250, 900)
+
+
+@pytest.mark.parametrize("mode", ["mlp", "free"])
+def test_relocated_surfels_sit_flat_on_the_target_points(init_ws, mode, one_thread):
+    from sage_core.train import relocate
+
+    tr = _trainer(init_ws, mode, iterations=4)
+    tr.step()
+    av = tr.avatar
+    s = av.surfels
+    faces = torch.tensor([10, 200, 700])
+    pts = av.canonical_vertices[av.faces[faces]].mean(1)  # (3, 3) the triangles' centroids
+    nrm = av.R_c[faces][..., 2]
+    ids = torch.tensor([0, 5, 9])
+    assert relocate.move(tr, ids, pts, nrm) == 3
+    centres = s.canonical_positions(av.R_c, av.T_c, av.k_c)
+    assert torch.allclose(centres[ids], pts, atol=1e-6)
+    assert torch.equal(s.binding[ids], faces)
+    state = tr.optimizer.state[s.mu_loc]
+    assert all(float(v[ids].abs().sum()) == 0 for v in state.values() if isinstance(v, torch.Tensor) and v.dim() > 0)
+    if mode == "free":
+        assert torch.allclose(torch.sigmoid(s.opacity.data[ids]), torch.full((3, 1), 0.5).reshape(s.opacity.data[ids].shape))
+    out = tr.step()
+    assert all(np.isfinite(v) for v in out.values())
+
+
+def test_relocation_moves_idle_surfels_to_where_the_error_is(init_ws, one_thread):
+    """With every facing surfel idle (floor above any contribution) a relocation moves its whole budget
+    onto the SDF surface (within a few millimetres of the canonical mesh) and training goes on."""
+    from sage_core.avatar.binding import nearest_triangles
+    from sage_core.train import relocate
+
+    tr = _trainer(init_ws, "mlp", iterations=10, **{"relocate.floor": 1e9, "relocate.fraction": 0.02, "relocate.views": 2})
+    for _ in range(2):
+        tr.step()
+    before = tr.avatar.surfels.binding.clone()
+    r = relocate.relocate(tr)
+    assert r.sources == int(0.02 * len(tr.avatar.surfels)) and 0 < r.moved <= r.sources
+    av = tr.avatar
+    moved = torch.nonzero(av.surfels.binding != before).reshape(-1)
+    assert moved.numel() > 0
+    centres = av.surfels.canonical_positions(av.R_c, av.T_c, av.k_c)[moved].detach()
+    _, dist = nearest_triangles(centres, av.canonical_vertices, av.faces)
+    # on the SDF's surface (NeuS depth), which the 40 pretraining steps fitted to the mesh roughly
+    assert float(dist.median()) < 0.01 and float(dist.max()) < 0.03
+    out = tr.step()
+    assert all(np.isfinite(v) for v in out.values())

@@ -359,7 +359,7 @@ def render_markdown(results: dict[str, Any]) -> str:
               "Val = novel view (the held-out frontal camera at the training timesteps); Frontal / All = self-reenactment",
               "on the test split (held-out novel expressions) seen by the frontal camera / all cameras. PSNR is the",
               "standard per-image value (docs/formats.md §8), SSIM 11×11 Gaussian, LPIPS AlexNet v0.1 on [−1, 1].", ""]  # fmt: skip
-    mv_ids = ("ceiling", "sage", "sage_exact", "no_mlp", "no_phase2", "no_correction", "no_wrinkles", "no_light", "ga_mvsf", "ga_mvmf", "free_mvsf")
+    mv_ids = ("ceiling", "sage", "sage_exact", "no_mlp", "no_phase2", "no_correction", "no_wrinkles", "no_relocation", "no_light", "ga_mvsf", "ga_mvmf", "free_mvsf")
     lines += _capture_lines(_rows(results, mv_ids))
     lines += _rendering_table(_rows(results, mv_ids))
     regime_rows = _rows(results, ("sv_hr", "one_shot"))

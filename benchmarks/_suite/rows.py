@@ -22,10 +22,11 @@ FREE_PHASE1: tuple[str, ...] = (
     "--set", "w_distortion=0",
     "--set", "w_mask=0",
     "--set", "shading=none",
+    "--set", "relocate.enabled=false",
 )  # fmt: skip
 """Phase-1 options of free per-surfel attributes trained on the photometric loss only (no SDF
-terms, no 2DGS regularizers, no alpha mask term) with colours fixed in head space (no world
-light), on SAGE's surfel layout and rebinding: the ``free_mvsf`` row."""
+terms, no 2DGS regularizers, no alpha mask term, no relocation) with colours fixed in head space
+(no world light), on SAGE's surfel layout and rebinding: the ``free_mvsf`` row."""
 
 GA_PHASE1: tuple[str, ...] = (
     *FREE_PHASE1,
@@ -98,6 +99,8 @@ ROWS: dict[str, RowSpec] = {
                 None, ("--correction", "off"), "phase2", ("all",), True, True),
         RowSpec("no_wrinkles", "w/o wrinkle shading", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh", "phase1"),
                 None, ("--set", "wrinkle_shading=false"), "phase2", ("all",), True, False),
+        RowSpec("no_relocation", "w/o relocation", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
+                ("--attributes", "mlp", "--set", "relocate.enabled=false"), (), "phase2", ("all",), True, False),
         RowSpec("no_light", "w/o world light (colour in head space)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest", "init-mesh"),
                 ("--attributes", "mlp", "--set", "shading=none"), (), "phase2", ("all",), True, False),
         RowSpec("ga_mvsf", "GaussianAvatars (per-face init, densification)", "MV-SF", "multiview", "mv-sf", "sage", ("ingest",),

@@ -71,6 +71,7 @@ from ..render import RenderCamera
 from ..render.volume import render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
+from . import relocate
 from ._groups import adam, surfel_param_groups
 from .densify import DensityControl, DensifySchedule, scene_extent
 from .canonical_warp import CanonicalWarp, make_warp
@@ -480,6 +481,11 @@ class Phase1Trainer:
         self.step_count += 1
         if self.density is not None:
             terms.update(self._density_step())
+        rc = c.relocate
+        if rc.enabled and not polish and relocate.due(self.step_count, rc.every, int(rc.until * c.iterations)):
+            r = relocate.relocate(self)
+            terms["relocated"] = torch.tensor(float(r.moved))
+            self._not_mouth = av.surfels.region_id != REGION_MOUTH
         rebind = c.schedule.rebind_every
         if rebind > 0 and self.step_count % rebind == 0 and self.step_count < c.iterations:
             n = av.surfels.rebind(av.canonical_vertices, av.faces, frames=(av.R_c, av.T_c, av.k_c), optimizer=self.optimizer)
