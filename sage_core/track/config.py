@@ -89,7 +89,7 @@ class TrackConfig:
     w_focal: float = _opt(0.01, "Weight of the prior pulling the log focal length to its initial value.", ge=0)
     scalp_offsets: bool = _opt(True, "Fit static offsets along the normals on the model's scalp region (hair volume; needs "
                                      "FLAME_masks with a 'scalp' region).")
-    w_offset_smooth: float = _opt(20.0, "Weight of the smoothness (graph Laplacian) of the scalp offsets.", ge=0)
+    w_offset_smooth: float = _opt(20.0, "Weight of the smoothness of the scalp offsets (squared differences along mesh edges, centimetres).", ge=0)
     w_offset: float = _opt(0.01, "Weight of the size prior of the scalp offsets (squared, in centimetres).", ge=0)
     threads: int = _opt(1, "Threads of each face model (detector, landmarks, segmentation).", ge=1)
 

@@ -15,7 +15,7 @@ Three stages, all with Adam on every frame together:
    smoothing for videos;
    plus the silhouette term: the mesh's outline vertices in every image (found by rasterizing it with
    the project's mesh rasterizer, a few images per step in turn) against the signed distance to the
-   person mask's outline; and the scalp offsets with a Laplacian smoothness prior;
+   person mask's outline; and the scalp offsets with a smoothness prior (squared differences along the mesh's edges);
 3. **refine**: adds the photometric term on minibatches of images rasterized at the current fit (the
    images against the mesh coloured with the running mean of the colours every image sees at each
    vertex, through barycentrics that follow the vertices).
@@ -35,14 +35,15 @@ from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..render.mesh_raster import rasterize_mesh
 from .config import TrackConfig
 from .embedding import LandmarkEmbedding
-from .flame_subset import FlameSubset
+from .flame_subset import FlameSubset, JointBasis
 from .losses import (charbonnier, facing, pixel_barycentrics, project, sample_map, signed_distance, triangle_normals,
                      visibility_weight)
-from .mesh_utils import edge_faces, laplacian
+from .mesh_utils import edge_faces, edges
 
 Progress = Callable[..., None]
 TRANS_UNIT = 0.1  # metres per unit of the translation parameter
 OFFSET_UNIT = 0.01  # metres per unit of the scalp offset parameter
+OUTLINE_PERIOD = 10  # steps between two rasterizations of an image's outline (when the budget allows)
 
 
 @dataclass
@@ -151,6 +152,7 @@ class Fitter:
         V = flame.n_vertices
         self.n_shape = _active(flame.shapedirs, cfg.shape_components)
         self.n_expr = _active(flame.exprdirs, cfg.expr_components)
+        self.joints = JointBasis(flame, self.n_shape, self.n_expr)
         z = lambda *s: torch.zeros(*s, dtype=self.dtype, device=self.device)  # noqa: E731
         self.params = {
             "shape": torch.nn.Parameter(z(self.n_shape)),
@@ -185,7 +187,13 @@ class Fitter:
             from .shading import vertex_normals
 
             self.hair_normals = vertex_normals(n, self.faces)[self.hair].detach()
-            self.lap = laplacian(self.faces.cpu().numpy(), V, problem.hair).to(dtype=self.dtype, device=self.device)
+            e = edges(self.faces.cpu().numpy())
+            inside = np.zeros(V, bool)
+            inside[problem.hair] = True
+            e = e[inside[e[:, 0]] | inside[e[:, 1]]]  # edges within the region or along its border (where the offset is 0)
+            slot = np.full(V, len(problem.hair), np.int64)
+            slot[problem.hair] = np.arange(len(problem.hair))
+            self.hair_edges = torch.as_tensor(slot[e], dtype=torch.long, device=self.device)
         # per-image silhouette maps at the fit resolution
         self.sil_exclude = torch.as_tensor(problem.silhouette_exclude if problem.silhouette_exclude is not None
                                            else np.zeros(V, bool), device=self.device)
@@ -256,7 +264,7 @@ class Fitter:
     def _rebuild_subset(self) -> None:
         """The posed-subset model over the landmark triangles' vertices and every image's outline vertices."""
         ids = torch.unique(torch.cat([self.tri.reshape(-1), self.outline[self.outline >= 0]]))
-        self.sub = FlameSubset(self.flame, ids)
+        self.sub = FlameSubset(self.flame, ids, self.joints)
         self.sub_lookup = torch.full((self.flame.n_vertices,), -1, dtype=torch.long, device=self.device)
         self.sub_lookup[ids] = torch.arange(ids.numel(), device=self.device)
 
@@ -460,8 +468,9 @@ class Fitter:
         if self.hair is not None:
             off = P["offset"]
             loss = loss + c.w_offset * (off ** 2).mean()
-            full = torch.zeros(self.flame.n_vertices, dtype=self.dtype, device=self.device).index_add(0, self.hair, off)
-            loss = loss + c.w_offset_smooth * ((self.lap @ full[:, None]) ** 2).mean()
+            padded = torch.cat([off, off.new_zeros(1)])  # slot len(hair) = outside the region: offset 0
+            diff = padded[self.hair_edges[:, 0]] - padded[self.hair_edges[:, 1]]
+            loss = loss + c.w_offset_smooth * (diff ** 2).mean()
         return loss
 
     # -- rasterized terms ------------------------------------------------------------------------
@@ -576,9 +585,14 @@ class Fitter:
         if use_sil and self.outline.shape[1] == 0:
             self.refresh_outlines(len(self.sil_images))
         loss = torch.zeros(())
+        # every image is re-rasterized about every OUTLINE_PERIOD steps, at most outline_refresh per step
+        per_step = min(float(c.outline_refresh), len(self.sil_images) / OUTLINE_PERIOD)
+        credit = 0.0
         for step in range(steps):
             if use_sil and step > 0:
-                self.refresh_outlines(c.outline_refresh)
+                credit += per_step
+                self.refresh_outlines(int(credit))
+                credit -= int(credit)
             frac = step / max(steps - 1, 1)
             for g in opt.param_groups:
                 g["lr"] = g["base"] * (1.0 - 0.9 * frac)
@@ -586,16 +600,16 @@ class Fitter:
             verts = self.posed_subset()
             lm, px = self.landmark_terms(verts)
             loss = c.w_landmark * lm + self.priors()
-            stats = {"landmark_px": float(px.mean()) if px.numel() else float("nan")}
+            stats = {"landmark_px": float(px.detach().mean()) if px.numel() else float("nan")}
             if use_sil:
                 sil = self.silhouette_term(verts)
                 loss = loss + c.w_silhouette * sil
-                stats["silhouette"] = float(sil)
+                stats["silhouette"] = float(sil.detach())
             if use_photo:
                 perm = torch.randperm(len(photo_imgs), generator=self.gen)[: c.refine_batch]
                 photo = self.photometric_term([photo_imgs[int(i)] for i in perm])
                 loss = loss + c.w_photo * photo
-                stats["photometric"] = float(photo)
+                stats["photometric"] = float(photo.detach())
             loss.backward()
             opt.step()
             if self.progress is not None:

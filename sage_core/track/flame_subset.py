@@ -15,31 +15,49 @@ from ..flame import FlameModel
 from ..geometry.rotations import axis_angle_to_matrix
 
 
+class JointBasis:
+    """The joints' template and blendshapes of a model, regressed once (shared by many subsets).
+
+    model: the full model; n_shape, n_expr: the leading blendshape columns kept (None: all).
+    """
+
+    def __init__(self, model: FlameModel, n_shape: int | None = None, n_expr: int | None = None) -> None:
+        V = model.n_vertices
+        self.n_shape = model.n_shape if n_shape is None else min(int(n_shape), model.n_shape)
+        self.n_expr = model.n_expr if n_expr is None else min(int(n_expr), model.n_expr)
+        jr = model.j_regressor
+        self.template = jr @ model.v_template  # (J, 3)
+        self.shapedirs = torch.einsum("jv,vck->jck", jr, model.shapedirs.view(V, 3, -1)[..., : self.n_shape])
+        self.exprdirs = torch.einsum("jv,vck->jck", jr, model.exprdirs.view(V, 3, -1)[..., : self.n_expr])
+
+
 class FlameSubset(torch.nn.Module):
     """The rows ``vertex_ids`` of a FLAME model.
 
     model: the full model (its buffers are sliced, not copied as parameters). vertex_ids: (n,) long.
+    joints: the model's :class:`JointBasis` (regressed here when None); its column counts decide how
+    many shape and expression coefficients count (later ones are ignored, as if zero).
     """
 
-    def __init__(self, model: FlameModel, vertex_ids: torch.Tensor) -> None:
+    def __init__(self, model: FlameModel, vertex_ids: torch.Tensor, joints: JointBasis | None = None) -> None:
         super().__init__()
+        joints = JointBasis(model) if joints is None else joints
         ids = torch.as_tensor(vertex_ids, dtype=torch.long, device=model.v_template.device)
         V = model.n_vertices
         self.register_buffer("ids", ids)
         self.register_buffer("v_template", model.v_template[ids])
-        self.register_buffer("shapedirs", model.shapedirs.view(V, 3, -1)[ids])  # (n, 3, S)
-        self.register_buffer("exprdirs", model.exprdirs.view(V, 3, -1)[ids])  # (n, 3, E)
+        self.register_buffer("shapedirs", model.shapedirs.view(V, 3, -1)[ids, :, : joints.n_shape])  # (n, 3, S)
+        self.register_buffer("exprdirs", model.exprdirs.view(V, 3, -1)[ids, :, : joints.n_expr])  # (n, 3, E)
         P = model.posedirs.shape[0]
         self.register_buffer("posedirs", model.posedirs.view(P, V, 3)[:, ids].reshape(P, -1))  # (P, n·3)
         self.register_buffer("lbs_weights", model.lbs_weights[ids])
-        jr = model.j_regressor
-        self.register_buffer("j_regressor", jr)
-        self.register_buffer("j_template", jr @ model.v_template)  # (J, 3)
-        self.register_buffer("j_shapedirs", torch.einsum("jv,vck->jck", jr, model.shapedirs.view(V, 3, -1)))
-        self.register_buffer("j_exprdirs", torch.einsum("jv,vck->jck", jr, model.exprdirs.view(V, 3, -1)))
+        self.register_buffer("j_regressor", model.j_regressor)
+        self.register_buffer("j_template", joints.template)
+        self.register_buffer("j_shapedirs", joints.shapedirs)
+        self.register_buffer("j_exprdirs", joints.exprdirs)
         self.parents = list(model.parents)
-        self.n_shape = model.n_shape
-        self.n_expr = model.n_expr
+        self.n_shape = joints.n_shape
+        self.n_expr = joints.n_expr
 
     def forward(self, shape: torch.Tensor, expr: torch.Tensor, rotation: torch.Tensor, neck_pose: torch.Tensor,
                 jaw_pose: torch.Tensor, eyes_pose: torch.Tensor, translation: torch.Tensor,
@@ -48,7 +66,7 @@ class FlameSubset(torch.nn.Module):
 
         shape: (S',) shared; expr: (B, E'); rotation, neck_pose, jaw_pose, translation: (B, 3);
         eyes_pose: (B, 6); static_offset: (V, 3) over all model vertices, or None. Coefficients are
-        zero-padded or cut to the model's counts, as FlameModel does.
+        zero-padded or cut to the subset's counts (FlameModel pads or cuts to the model's).
         """
         B = expr.shape[0]
         n = self.ids.shape[0]

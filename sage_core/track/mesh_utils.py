@@ -1,11 +1,10 @@
-"""Topology helpers for the fit: the neck opening, vertex rings, the scalp region and its Laplacian."""
+"""Topology helpers for the fit: edges, the neck opening, vertex rings, the scalp region."""
 
 from __future__ import annotations
 
 from collections import defaultdict
 
 import numpy as np
-import torch
 
 
 def edges(faces: np.ndarray) -> np.ndarray:
@@ -72,30 +71,6 @@ def neck_line_vertices(vertices: np.ndarray, faces: np.ndarray, flame_topology: 
     x = vertices[loop, 0]
     z = vertices[loop, 2]
     return int(loop[np.argmax(x)]), int(loop[np.argmin(x)]), int(loop[np.argmax(z)])
-
-
-def laplacian(faces: np.ndarray, n_vertices: int, rows: np.ndarray) -> torch.Tensor:
-    """Uniform graph Laplacian restricted to ``rows`` (R,) against all vertices: (R, V) sparse.
-
-    (L x)_i = x_i − mean of x over the neighbours of vertex rows[i].
-    """
-    e = edges(faces)
-    nbr: dict[int, list[int]] = defaultdict(list)
-    for a, b in e:
-        nbr[int(a)].append(int(b))
-        nbr[int(b)].append(int(a))
-    r_idx, c_idx, vals = [], [], []
-    for i, v in enumerate(rows):
-        ns = nbr.get(int(v), [])
-        r_idx.append(i)
-        c_idx.append(int(v))
-        vals.append(1.0)
-        for n in ns:
-            r_idx.append(i)
-            c_idx.append(n)
-            vals.append(-1.0 / len(ns))
-    idx = torch.tensor([r_idx, c_idx], dtype=torch.long)
-    return torch.sparse_coo_tensor(idx, torch.tensor(vals, dtype=torch.float32), (len(rows), n_vertices)).coalesce()
 
 
 def hair_region(groups: dict[str, np.ndarray], n_vertices: int) -> np.ndarray | None:
