@@ -65,8 +65,8 @@ class TrackConfig:
     rigid_steps: int = _opt(150, "Adam steps of the rigid pose (and focal) fit on the landmarks.", ge=0)
     steps: int = _opt(400, "Adam steps of the full fit (shape, expression, jaw, eyes, neck, pose, scalp offsets) on landmarks and silhouettes.", ge=0)
     refine_steps: int = _opt(60, "Adam steps with the photometric term added.", ge=0)
-    refine_batch: int = _opt(16, "Images rasterized per refinement step for the photometric term (all when fewer).", ge=1)
-    outline_refresh: int = _opt(8, "Images re-rasterized per step to update their outline vertices (the silhouette term).", ge=1)
+    refine_batch: int = _opt(8, "Images rasterized per refinement step for the photometric term (all when fewer).", ge=1)
+    outline_refresh: int = _opt(4, "Images re-rasterized per step to update their outline vertices (the silhouette term).", ge=1)
     fit_height: int = _opt(256, "Image height of the rasterized terms (pixels).", ge=32)
     lr: float = _opt(0.02, "Adam learning rate (poses in radians, translation in decimetres, coefficients as they are).", gt=0)
     w_landmark: float = _opt(1.0, "Weight of the landmark reprojection term (robust, in units of the face size).", ge=0)
@@ -81,12 +81,12 @@ class TrackConfig:
     w_silhouette: float = _opt(1.0, "Weight of the silhouette term (mesh outline against the segmentation's outline).", ge=0)
     silhouette_scale: float = _opt(0.01, "Robust scale of the silhouette distances (fraction of the face size).", gt=0)
     w_photo: float = _opt(1.0, "Weight of the photometric term (rasterized vertex colours against the images).", ge=0)
-    w_shape: float = _opt(1e-3, "Weight of the identity prior (squared coefficients).", ge=0)
-    w_expr: float = _opt(1e-3, "Weight of the expression prior (squared coefficients).", ge=0)
+    w_shape: float = _opt(0.01, "Weight of the identity prior (squared coefficients).", ge=0)
+    w_expr: float = _opt(0.01, "Weight of the expression prior (squared coefficients).", ge=0)
     w_pose: float = _opt(1.0, "Weight of the prior on jaw, neck and eye rotations (squared radians).", ge=0)
     w_smooth: float = _opt(5.0, "Weight of the temporal smoothing of videos (squared frame-to-frame differences).", ge=0)
     smooth_sequences: bool = _opt(False, "Also smooth folders of images over time (they may be unordered photos).")
-    w_focal: float = _opt(0.01, "Weight of the prior pulling the log focal length to its initial value.", ge=0)
+    w_focal: float = _opt(0.001, "Weight of the prior pulling the log focal length to its initial value.", ge=0)
     scalp_offsets: bool = _opt(True, "Fit static offsets along the normals on the model's scalp region (hair volume; needs "
                                      "FLAME_masks with a 'scalp' region).")
     w_offset_smooth: float = _opt(20.0, "Weight of the smoothness of the scalp offsets (squared differences along mesh edges, centimetres).", ge=0)
@@ -96,7 +96,7 @@ class TrackConfig:
 
 PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "default": {},
-    "tiny": {"calib_views": 3, "calib_size": 256, "rigid_steps": 60, "steps": 200, "refine_steps": 20, "refine_batch": 8,
+    "tiny": {"calib_views": 3, "calib_size": 256, "rigid_steps": 60, "steps": 200, "refine_steps": 20, "refine_batch": 4,
              "fit_height": 160, "max_height": 400},
 }
 """What each preset changes against the dataclass defaults (tiny: tests, seconds per capture)."""

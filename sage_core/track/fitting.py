@@ -42,8 +42,9 @@ from .mesh_utils import edge_faces, edges
 
 Progress = Callable[..., None]
 TRANS_UNIT = 0.1  # metres per unit of the translation parameter
+PIXEL_UNIT = 100.0  # pixels per unit of a camera-relative head position
 OFFSET_UNIT = 0.01  # metres per unit of the scalp offset parameter
-OUTLINE_PERIOD = 10  # steps between two rasterizations of an image's outline (when the budget allows)
+OUTLINE_PERIOD = 20  # steps between two rasterizations of an image's outline (when the budget allows)
 
 
 @dataclass
@@ -85,6 +86,9 @@ class FitProblem:
         landmark_offsets: fit one in-plane offset per landmark, shared by all images (the input sees
             the head from several directions, so a landmark's consistent disagreement with the
             embedding can be told from the shape).
+        camera_relative: one uncalibrated camera: the head's position is fitted relative to it (its
+            pixel position and a depth that scales with the focal length), so that a change of focal
+            length moves every head along its viewing ray instead of changing the images.
     """
 
     cameras: list[FitCamera]
@@ -95,6 +99,7 @@ class FitProblem:
     hair: np.ndarray | None = None
     silhouette_exclude: np.ndarray | None = None
     landmark_offsets: bool = False
+    camera_relative: bool = False
 
 
 @dataclass
@@ -223,6 +228,7 @@ class Fitter:
         self.outline = torch.full((len(self.sil_images), 0), -1, dtype=torch.long, device=self.device)
         self.outline_next = 0
         self._rebuild_subset()
+        self.z0 = 1.0  # reference depth of camera-relative head positions (set by init_rigid)
         self.losses: dict[str, float] = {}
 
     # -- model and cameras -------------------------------------------------------------------------
@@ -254,12 +260,34 @@ class Fitter:
         R = w2c[:, :3, :3]
         return -(R.transpose(1, 2) @ w2c[:, :3, 3:])[..., 0]
 
+    def root_joint(self, expr: torch.Tensor) -> torch.Tensor:
+        """(B, 3) rest position of joint 0 (the rotation's pivot) for the fitted identity and expressions (B, E)."""
+        j = self.joints
+        J0 = j.template[0] + torch.einsum("ck,k->c", j.shapedirs[0], self.params["shape"][: j.n_shape])
+        J0 = J0[None] + torch.einsum("ck,bk->bc", j.exprdirs[0], expr[:, : j.n_expr])
+        off = self.static_offset()
+        return J0 if off is None else J0 + (self.flame.j_regressor[0] @ off)[None]
+
+    def world_translation(self, trans: torch.Tensor, expr: torch.Tensor) -> torch.Tensor:
+        """FLAME translations (B, 3) in metres from the translation parameters (B, 3): world decimetres,
+        or with ``camera_relative`` the root joint's pixel offset from the principal point (in
+        PIXEL_UNIT) and log depth relative to ``z0``, the depth scaling with the focal length."""
+        if not self.p.camera_relative:
+            return trans * TRANS_UNIT
+        K, w2c = self.cameras()
+        ratio = torch.exp(self.params["log_focal"][0]) if bool(self.focal_mask[0]) else trans.new_ones(())
+        z = self.z0 * ratio * torch.exp(trans[:, 2])
+        p = torch.stack([z * trans[:, 0] * PIXEL_UNIT / K[0, 0, 0], z * trans[:, 1] * PIXEL_UNIT / K[0, 1, 1], z], -1)
+        R, t = w2c[0, :3, :3], w2c[0, :3, 3]
+        X = (p - t) @ R  # camera -> world: R^T (p - t)
+        return X - self.root_joint(expr)
+
     def pose_kwargs(self, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         P = self.params
         sel = (lambda x: x) if rows is None else (lambda x: x[rows])  # noqa: E731
         return {"shape": P["shape"], "expr": sel(P["expr"]), "rotation": sel(P["rotation"]),
                 "neck_pose": sel(P["neck_pose"]), "jaw_pose": sel(P["jaw_pose"]), "eyes_pose": sel(P["eyes_pose"]),
-                "translation": sel(P["translation"]) * TRANS_UNIT}
+                "translation": self.world_translation(sel(P["translation"]), sel(P["expr"]))}
 
     def _rebuild_subset(self) -> None:
         """The posed-subset model over the landmark triangles' vertices and every image's outline vertices."""
@@ -308,11 +336,18 @@ class Fitter:
             tr = Rw.T @ (tvec[:, 0] - tw) - J0 + R0 @ J0
             if t not in best or err < best[t][0]:
                 best[t] = (err, R0, tr)
+        if self.p.camera_relative and best:
+            Kc, Wc = K_all[0].double().cpu().numpy(), w2c_all[0].double().cpu().numpy()
+            cam_pos = {t: Wc[:3, :3] @ (J0 + tr) + Wc[:3, 3] for t, (_, _, tr) in best.items()}
+            self.z0 = float(np.median([p[2] for p in cam_pos.values()]))
+            for t, p in cam_pos.items():
+                best[t] = (best[t][0], best[t][1], np.array([p[0] / p[2] * Kc[0, 0] / PIXEL_UNIT, p[1] / p[2] * Kc[1, 1] / PIXEL_UNIT,
+                                                             np.log(p[2] / self.z0)]))
         with torch.no_grad():
             for t, (_, R0, tr) in best.items():
                 aa = matrix_to_axis_angle(torch.as_tensor(R0, dtype=torch.float64)[None])[0]
                 self.params["rotation"][t] = aa.to(self.params["rotation"])
-                self.params["translation"][t] = self._t(tr / TRANS_UNIT)
+                self.params["translation"][t] = self._t(tr if self.p.camera_relative else tr / TRANS_UNIT)
             known = sorted(best)
             for t in range(self.p.n_timesteps):  # timesteps without a PnP pose take the nearest one's
                 if t not in best and known:
@@ -668,7 +703,7 @@ class Fitter:
             return FitResult(
                 shape=np32(shape), expr=np32(expr), rotation=np32(P["rotation"]), neck_pose=np32(P["neck_pose"]),
                 jaw_pose=np32(P["jaw_pose"]), eyes_pose=np32(P["eyes_pose"]),
-                translation=np32(P["translation"] * TRANS_UNIT), static_offset=None if off is None else np32(off),
+                translation=np32(self.world_translation(P["translation"], P["expr"])), static_offset=None if off is None else np32(off),
                 cameras=cams, reprojection_px=rep, reprojection_max_px=rep_max, losses=dict(self.losses),
                 rig_scale=float(torch.exp(P["log_rig_scale"][0])) if self.p.fit_rig_scale else 1.0,
             )

@@ -333,7 +333,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
-                         silhouette_exclude=exclude, landmark_offsets=lmk_offsets)
+                         silhouette_exclude=exclude, landmark_offsets=lmk_offsets, camera_relative=source.kind != "multiview")
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
     fit = fitter.run()
     timings["fit"] = time.time() - t0
