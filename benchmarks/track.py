@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's sage_core, whatever is installed
 REGIME_OF = {"multiview": "mv-mf", "monocular": "sv-hr", "oneshot": "one-shot"}
 
 

@@ -110,15 +110,13 @@ def test_embedding_file_round_trip_and_errors(tmp_path, head):
 
 
 def test_fit_recovers_the_head_from_ideal_landmarks(head, one_thread):
-    """Landmarks projected from the true meshes (without hair volume) of two timesteps in four cameras:
-    the landmark stages alone bring the face within a millimetre of the truth (the back of the head is the
-    silhouettes' job)."""
+    """Landmarks on 160 random triangles of the head, projected from the true meshes (without hair
+    volume) of two timesteps into four cameras: the landmark stages alone bring every vertex within a
+    millimetre of the truth."""
     model, cap = head
     fm = FlameModel(model)
     rng = np.random.default_rng(0)
-    face = np.asarray(model.vertex_groups.get("face", []))
-    tri_ok = np.flatnonzero(np.isin(model.faces, face).all(1)) if face.size else np.arange(model.n_faces)
-    tris = rng.choice(tri_ok, 160, replace=False)
+    tris = rng.choice(model.n_faces, 160, replace=False)
     b = rng.dirichlet(np.ones(3), 160)
     emb = LandmarkEmbedding(np.arange(160), tris, b)
     cams = [cap.cameras[c] for c in (5, 7, 9, 11)]
@@ -135,13 +133,14 @@ def test_fit_recovers_the_head_from_ideal_landmarks(head, one_thread):
             full[:160] = uv
             images.append(FitImage(t, ci, full, float(np.ptp(uv, 0).max())))
     problem = FitProblem([FitCamera(c.K, c.w2c, c.width, c.height) for c in cams], images, 2)
-    cfg = resolve_track_config("tiny", None, {"rigid_steps": 60, "steps": 250, "refine_steps": 0, "lr": 0.02})
+    # the priors are there for biased detections; exact landmarks need only faint ones
+    cfg = resolve_track_config("tiny", None, {"rigid_steps": 60, "steps": 250, "refine_steps": 0, "w_shape": 1e-5,
+                                              "w_expr": 1e-5, "w_pose": 1e-3})
     fit = Fitter(fm, emb, problem, cfg)
     res = fit.run()
     with torch.no_grad():
         got = fit.full_vertices()
-    region = torch.as_tensor(face) if face.size else torch.arange(model.n_vertices)
-    err = (got - verts)[:, region].norm(dim=-1).mean(1) * 1000
+    err = (got - verts).norm(dim=-1).mean(1) * 1000
     assert float(err.max()) < 1.0, err
     assert np.nanmax(res.reprojection_px) < 0.5
 

@@ -59,7 +59,7 @@ def neck_line_vertices(vertices: np.ndarray, faces: np.ndarray, flame_topology: 
 
     The neck opening is the largest boundary loop of the mesh; left and right are its extreme
     vertices along x, front its vertex furthest along +z (the face's side). ``flame_topology``: the
-    model has FLAME's own face table, whose published points (3193, 3296, 3285) are used.
+    model has FLAME's own 5023-vertex topology, whose published points (3193, 3296, 3285) are used.
     """
     if flame_topology:
         return 3193, 3296, 3285

@@ -363,7 +363,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
                                    eyes_pose=tt(fit.eyes_pose[chunk]), translation=tt(fit.translation[chunk]),
                                    static_offset=off).vertices.cpu())
         verts = torch.cat(verts_all)
-    neck_ids = neck_line_vertices(model.v_template, model.faces, model.face_table == "flame")
+    neck_ids = neck_line_vertices(model.v_template, model.faces, model.face_table == "flame" and model.n_base_vertices == 5023)
     from ..render.mesh_raster import rasterize_mesh
 
     faces_t = flame.faces.cpu()
