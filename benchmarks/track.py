@@ -225,6 +225,8 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--regimes", default="multiview,monocular,oneshot")
     ap.add_argument("--synth-preset", default="default", choices=("tiny", "small", "default"))
+    ap.add_argument("--multiview-preset", default=None, choices=("tiny", "small", "default"),
+                    help="synth preset of the multiview capture (default: --synth-preset; 'small' renders 96 images instead of 224)")
     ap.add_argument("--track-preset", default="default", choices=("tiny", "default"))
     ap.add_argument("--video", action="store_true", help="also render and track the head-turn video")
     ap.add_argument("--video-seconds", type=float, default=20.0)
@@ -237,7 +239,8 @@ def main(argv: list[str] | None = None) -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     command = "python benchmarks/track.py " + " ".join(argv if argv is not None else sys.argv[1:])
     machine = _machine()
-    cases = [track_case(a.out, r, a.synth_preset, a.track_preset, a.threads) for r in a.regimes.split(",") if r]
+    cases = [track_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset, a.track_preset,
+                        a.threads) for r in a.regimes.split(",") if r]
     video = None
     if a.video:
         w, h = (int(x) for x in a.video_size.split("x"))

@@ -78,7 +78,6 @@ def test_signed_distance_of_a_disc():
 def test_outline_vertices_lie_on_the_rendered_outline(head):
     from scipy.ndimage import distance_transform_edt
 
-    model, cap = head
     fm, v, K, w2c, cam = _mesh_view(head)
     fit = Fitter(fm, LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3)),
                  FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [], 1), resolve_track_config("tiny"))

@@ -374,7 +374,7 @@ class Fitter:
                 continue
             for n in ns:
                 c = int(self.obs_c[n])
-                ok, rvec, tvec = cv2.solvePnP(pts, self.obs[n].double().cpu().numpy(), K_all[c], None, flags=cv2.SOLVEPNP_EPNP)
+                ok, _, tvec = cv2.solvePnP(pts, self.obs[n].double().cpu().numpy(), K_all[c], None, flags=cv2.SOLVEPNP_EPNP)
                 if not ok or tvec[2, 0] <= 0:
                     continue
                 R, tw = w2c_all[c][:3, :3], w2c_all[c][:3, 3]
@@ -669,8 +669,8 @@ class Fitter:
         return self.result()
 
     def result(self) -> FitResult:
+        """The fitted parameters (numpy), cameras and per-image landmark errors."""
         with torch.no_grad():
-            _, px = self.landmark_terms(self.posed_subset())
             K, w2c = self.cameras()
             P = self.params
             n_img = len(self.p.images)

@@ -170,8 +170,6 @@ def track_capture(
     Raises ConfigError (options, regime, an occupied OUT) or InputError (a file or image) before
     writing anything.
     """
-    import torch
-
     from ..flame import FlameModel, load_flame_model, load_masks
     from ._litert import litert_available
     from .faces import FaceObserver
