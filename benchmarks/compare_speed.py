@@ -163,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
             for s in stages
         },
     }  # fmt: skip
+    from _suite.portable import portable_doc
+
+    doc = portable_doc(doc, [args.out.resolve()] if args.out is not None else [])  # no path of this machine: trees and workspaces by name
     md = markdown(doc)
     print(md)
     if args.out is not None:

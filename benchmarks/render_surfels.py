@@ -11,7 +11,7 @@ median total, per case). ``--threads`` sets torch's thread count in every case p
 cpp backend follows); ``--profile`` runs one extra, untimed step under torch.profiler per case and
 lists the top operators by self CPU time.
 
-Scene (rendering.md §3.5): N random surfels filling the view at depth 3 ± 0.3, scales 0.005–0.025,
+Scene (docs/rendering.md §3.2): N random surfels filling the view at depth 3 ± 0.3, scales 0.005–0.025,
 opacity 0.1–0.9, RGB features, focal length 1.2·S for an S×S image. The loss touches every output
 (colour, depth, median, normals, depth-normal, distortion) so the backward is the full one.
 Each case runs in a fresh subprocess; its peak memory is the VmHWM (peak resident set) that
@@ -150,7 +150,7 @@ def _markdown(meta: dict, rows: list[dict]) -> str:
         "",
         f"Machine: {meta['cpu_count']} CPUs, torch {meta['torch']} ({meta['threads']} threads), device {meta['device']}, "
         f"load average before/after {meta['load_before']} / {meta['load_after']} (the machine was shared).",
-        "Scene: rendering.md §3.5 (depth 3 ± 0.3, scales 0.005–0.025, opacity 0.1–0.9, f = 1.2·S); forward + full "
+        "Scene: docs/rendering.md §3.2 (depth 3 ± 0.3, scales 0.005–0.025, opacity 0.1–0.9, f = 1.2·S); forward + full "
         f"backward over every output; median of {meta['repeats']} runs after one warm-up.",
         "Peak memory: peak resident set of a fresh process per case minus its resident set before rendering.",
         "Forward, backward and total are medians taken separately; best total is the fastest run.",

@@ -3,7 +3,7 @@ trains and evaluates every row on the same data and seed, and writes the results
 
 Usage:
     python benchmarks/suite.py --size tiny|small|full --out DIR [--rows a,b,...] [--device auto]
-                               [--seed 0] [--lpips-weights PATH]
+                               [--seed 0] [--head detailed|smooth] [--subjects 2] [--lpips-weights PATH]
 
 Rows (ids): ceiling, sage, sage_exact, no_mlp, no_phase2, no_correction, no_wrinkles, no_light, ga_mvsf, ga_mvmf, free_mvsf,
 sv_hr, one_shot (``ceiling`` trains nothing: the capture's ground truth on its tracked FLAME fit).
@@ -12,13 +12,19 @@ on a CPU), ``small`` (256x372, 20k surfels; a CPU in hours) and ``full`` (the de
 550x802, a GPU).
 The captures are tracked (``sage synth --tracking fitted``: FLAME parameters fitted to a ground
 truth the written model cannot fully express, plus pose noise); ``sage_exact`` trains SAGE MV-SF
-on the exact multiview capture (``--tracking exact``) so both are visible.
+on the exact multiview capture (``--tracking exact``) so both are visible. The synthetic heads are
+detailed (``sage synth --appearance detailed``: pixel-scale skin and hair detail, hair volume off the
+scalp) and every row runs on ``--subjects`` subjects (capture seeds ``--seed``, ``--seed``+1, …);
+the tables show the mean over the subjects, and a per-subject table. ``--head smooth --subjects 1``
+reproduces the captures and numbers of earlier versions (the smooth head, one subject).
 Every stage runs through the real ``sage`` CLI in a subprocess, one workspace per row under
 ``DIR/ws/<row>``; rows copy the finished stages they share with the SAGE row (``cp -a`` of the
 stage folders keeps their manifests, so the workspace accepts them as complete). A rerun skips
 every stage that is already complete with the same settings. Results go to
 ``docs/benchmarks/suite_<size>.json`` (rows of an earlier run that were not rerun are kept) and
-``docs/results.md`` is regenerated from every ``suite_*.json``.
+``docs/results.md`` is regenerated from every ``suite_*.json``; both name no path of this machine
+(paths relative to ``--out``, written ``OUT`` in commands; the LPIPS weights by file name:
+:mod:`_suite.portable`).
 
 Hidden options for checking the machinery: ``--smoke`` (a few steps per stage on a reduced
 capture, labelled as not representative) and ``--override STAGE:key=value`` (added to every run
@@ -49,7 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", required=True, type=Path, help="Folder for the captures, the row workspaces and the logs.")
     ap.add_argument("--rows", default=",".join(ROW_IDS), help=f"Comma-separated subset of: {', '.join(ROW_IDS)} (default: all).")
     ap.add_argument("--device", default="auto", help="Device of every stage: auto, cpu or cuda[:N].")
-    ap.add_argument("--seed", type=int, default=0, help="Seed of the synthetic captures and of every stage.")
+    ap.add_argument("--seed", type=int, default=0, help="Seed of every stage and of the first subject's captures (further subjects: seed+1, ...).")
+    ap.add_argument("--head", default="detailed", choices=("detailed", "smooth"), help="Synthetic heads: detailed (pixel-scale skin and hair detail, hair volume) or smooth (earlier versions' head).")
+    ap.add_argument("--subjects", type=int, default=2, help="Synthetic subjects (different seeds) every row runs on; the tables show their mean.")
     ap.add_argument("--lpips-weights", type=Path, default=None, help="LPIPS AlexNet v0.1 weights (default: where sage finds them: $SAGE_LPIPS_WEIGHTS, then ~/.cache/sage/lpips_alex_v0.1.pth; LPIPS is reported unavailable without them).")
     ap.add_argument("--smoke", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--override", action="append", default=None, help=argparse.SUPPRESS)
@@ -89,6 +97,7 @@ def write_docs(doc: dict, docs_dir: Path) -> tuple[Path, Path]:
 
 def main(argv: list[str] | None = None) -> int:
     from _suite.execute import collect_row, execute
+    from _suite.portable import portable_doc
     from _suite.report import SCHEMA, machine_info
     from _suite.rows import ROWS, SIZES, Settings, parse_overrides, plan, smoke_size
 
@@ -111,18 +120,22 @@ def main(argv: list[str] | None = None) -> int:
         lpips = find_lpips_weights(args.lpips_weights)
     except Exception as e:  # noqa: BLE001
         ap.error(str(e))
+    if args.subjects < 1:
+        ap.error("--subjects must be at least 1")
     size = SIZES[args.size]
     if args.smoke:
         size = smoke_size(size)
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    settings = Settings(size, out, args.device, args.seed, lpips.resolve() if lpips else None, overrides)
+    settings = Settings(size, out, args.device, args.seed, lpips.resolve() if lpips else None, overrides, head=args.head,
+                        subjects=args.subjects)
     steps, needs = plan(settings, rows)
 
     docs_dir = args.docs if args.docs is not None else (out / "docs" if size.smoke else REPO / "docs")
     json_path = docs_dir / "benchmarks" / f"suite_{size.name}.json"
     previous = _load(json_path) or {}
-    same = previous.get("size") == size.name and bool(previous.get("smoke")) == size.smoke
+    same = (previous.get("size") == size.name and bool(previous.get("smoke")) == size.smoke
+            and previous.get("head", "smooth") == settings.head and previous.get("subject_seeds", [args.seed]) == settings.subject_seeds)
     prev_steps = (previous.get("steps") or {}) if same else {}
     machine = machine_info(args.device)
     poll_gpu = str(machine.get("device", "")).startswith("cuda")
@@ -143,10 +156,13 @@ def main(argv: list[str] | None = None) -> int:
         "schema": SCHEMA,
         "size": size.name,
         "smoke": size.smoke,
+        "head": settings.head,
+        "subject_seeds": settings.subject_seeds,
         "suite_command": suite_cmd,
         "generated_at": now_iso(),
         "machine": machine,
-        "settings": {"preset": size.preset, "synth_preset": size.synth_preset, "seed": args.seed, "device": args.device,
+        "settings": {"preset": size.preset, "synth_preset": size.synth_preset, "seed": args.seed, "head": settings.head,
+                     "subject_seeds": settings.subject_seeds, "device": args.device,
                      "lpips_weights": str(settings.lpips_weights) if settings.lpips_weights else None,
                      "overrides": {k: list(v) for k, v in overrides.items()}, "out": str(out)},  # fmt: skip
         "runs": [{"started_at": started, "finished_at": now_iso(), "wall_s": round(time.time() - t0, 1), "rows": rows, "command": suite_cmd,
@@ -154,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         "steps": records,
         "rows": row_docs,
     }
-    jp, mp = write_docs(doc, docs_dir)
+    jp, mp = write_docs(portable_doc(doc, [out], [settings.lpips_weights] if settings.lpips_weights else []), docs_dir)
     failed = [rid for rid, r in row_docs.items() if r["errors"]]
     log(f"wrote {jp} and {mp} ({time.time() - t0:.0f} s)")
     if failed:

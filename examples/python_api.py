@@ -7,7 +7,8 @@ Run ``sage demo`` first (it leaves a trained workspace in ./sage-demo), then::
 It writes ``frames/frame_000.png`` ... : the avatar seen by the workspace's reference camera, its
 expression blended from neutral towards a smile-like mix of the first FLAME expression components
 with the jaw opening, and ``frames/normal_000.png`` ... with the world normals of the same frames.
-Any workspace of ``sage run``, a bundle folder of ``sage export --bundle`` or an avatar file works.
+Any workspace of ``sage run``, a bundle folder of ``sage export --bundle`` (with ``--flame-model
+PATH``, the FLAME model file the bundle names) or an avatar file works.
 ``--motion FILE`` renders the first frames of a FLAME sequence instead (``sage demo`` writes one:
 ``sage-demo/motion/demo_motion.npz``).
 """
@@ -27,6 +28,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--strength", type=float, default=1.5, help="size of the expression coefficients at the last frame")
     p.add_argument("--jaw", type=float, default=0.25, help="jaw opening (radians) at the last frame")
     p.add_argument("--motion", type=Path, default=None, help="FLAME sequence (.npz, folder or capture) to render instead")
+    p.add_argument("--flame-model", type=Path, default=None, help="the FLAME model file a bundle names (bundles do not carry it)")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:N] (default: cpu)")
     return p.parse_args(argv)
 
@@ -40,7 +42,7 @@ def main(argv: list[str] | None = None) -> list[Path]:
 
     import sage_core as sage  # torch is loaded only when the first avatar name is used
 
-    avatar = sage.load_avatar(args.avatar, device=args.device)
+    avatar = sage.load_avatar(args.avatar, device=args.device, flame_model=args.flame_model)
     camera = sage.reference_camera(args.avatar, args.camera)
 
     # a few FLAME expression components, blended in over the frames (expr: (E,) coefficients)

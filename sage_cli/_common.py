@@ -104,15 +104,17 @@ LONG_STAGE_S = 2 * 3600.0
 """A stage expected to train longer than this on a CPU gets a hint naming the preset that fits."""
 
 
-def estimate_lines(title: str, estimate_s: float, s_per_step: float, device: str | None, preset: str | None) -> list[str]:
-    """What the CLI prints when a training loop reports its duration estimate: one line with the
-    estimate, and on a CPU a warning naming the preset when it is ``default`` (the paper's GPU
-    settings) or the stage would take longer than :data:`LONG_STAGE_S`, with the preset that fits."""
+def estimate_lines(title: str, estimate_s: float, s_per_step: float, device: str | None, preset: str | None,
+                   basis: str = "its first steps") -> list[str]:
+    """What the CLI prints when a training loop reports its first duration estimate: one line with the
+    estimate and its basis, and on a CPU a warning naming the preset when it is ``default`` (the
+    paper's GPU settings) or the stage would take longer than :data:`LONG_STAGE_S`, with the preset
+    that fits."""
     from sage_core.config import PRESETS
     from sage_core.runtime import format_duration
 
     where = f"on this device ({device})" if device else "on this device"
-    lines = [f"[bold]{title}[/]: about {format_duration(estimate_s)} {where} ({s_per_step:.2f} s/step, from its first steps)"]
+    lines = [f"[bold]{title}[/]: about {format_duration(estimate_s)} {where} ({s_per_step:.2f} s/step over {basis}; updated as it runs)"]
     if device != "cpu" or preset is None:
         return lines
     size = {"tiny": 0, "small": 1, "default": 2}
@@ -124,14 +126,20 @@ def estimate_lines(title: str, estimate_s: float, s_per_step: float, device: str
     return lines
 
 
+ESTIMATE_CHANGE = 0.25
+"""An updated duration estimate is printed when it moves the expected end by more than this share of
+the remaining time printed before (every update goes to the log)."""
+
+
 class ProgressDisplay:
     """A rich progress bar fed by the engine's ``progress(done, total, message=..., **stats)`` callback
 (:class:`sage_cli._stage.StageDisplay` feeds it the stages' events; the stage functions write the
 progress lines of the log file).
 
-    A call carrying ``estimate_s`` (and ``s_per_step``; :meth:`sage_core.runtime.Estimate.as_stats`)
-    prints the stage's expected duration once, with :func:`estimate_lines`; ``device`` and ``preset``
-    say which hint applies.
+    A call carrying ``estimate_s`` (and ``s_per_step``, ``estimate_basis``; :meth:`sage_core.runtime.Estimate.as_stats`)
+    prints the stage's expected duration with its basis, with :func:`estimate_lines`, and later
+    updates that move it by more than :data:`ESTIMATE_CHANGE`; ``device`` and ``preset`` say which
+    hint applies.
     """
 
     def __init__(self, title: str, enabled: bool = True, device: str | None = None, preset: str | None = None) -> None:
@@ -142,6 +150,7 @@ progress lines of the log file).
         self._progress: Progress | None = None
         self._task: Any = None
         self._log = logging.getLogger("sage")
+        self._shown: tuple[float, float] | None = None  # (expected end, remaining) of the estimate last printed
 
     def __enter__(self) -> "ProgressDisplay":
         if self.enabled:
@@ -167,12 +176,7 @@ progress lines of the log file).
 
     def __call__(self, done: int, total: int | None = None, message: str = "", **stats: Any) -> None:
         if "estimate_s" in stats:
-            lines = estimate_lines(message or self.title, float(stats["estimate_s"]), float(stats.get("s_per_step", float("nan"))),
-                                   self.device, self.preset)  # fmt: skip
-            for line in lines:
-                self._log.info("%s", line.replace("[bold]", "").replace("[/]", "").replace("[yellow]", ""))
-                if self.enabled or "warning" in line:
-                    console.print(line, soft_wrap=True)
+            self._estimate(message or self.title, stats)
             return
         info = message
         if stats:
@@ -181,6 +185,36 @@ progress lines of the log file).
         rate = f"{done / elapsed:.1f} it/s" if done else ""
         if self._progress is not None:
             self._progress.update(self._task, completed=done, total=total, info=info, rate=rate)
+
+    def _estimate(self, title: str, stats: dict[str, Any]) -> None:
+        """Print a loop's first estimate (:func:`estimate_lines`); an update only when it moves the
+        expected end by more than :data:`ESTIMATE_CHANGE` of the remaining time printed before. All
+        go to the log."""
+        from sage_core.runtime import format_duration
+
+        total_s, s_per_step = float(stats["estimate_s"]), float(stats.get("s_per_step", float("nan")))
+        remaining = float(stats.get("remaining_s", 0.0))
+        basis = str(stats.get("estimate_basis", "its first steps"))
+        end = time.time() + remaining
+        if stats.get("estimate_first", True) or self._shown is None:
+            lines = estimate_lines(title, total_s, s_per_step, self.device, self.preset, basis)
+        else:
+            lines = [f"[bold]{title}[/]: now about {format_duration(remaining)} to go, {format_duration(total_s)} in all "
+                     f"({s_per_step:.2f} s/step over {basis})"]  # fmt: skip
+            shown_end, shown_remaining = self._shown
+            if abs(end - shown_end) <= ESTIMATE_CHANGE * max(shown_remaining, 1.0):
+                self._log.info("%s", _plain(lines[0]))
+                return
+        self._shown = (end, remaining)
+        for line in lines:
+            self._log.info("%s", _plain(line))
+            if self.enabled or "warning" in line:
+                console.print(line, soft_wrap=True)
+
+
+def _plain(line: str) -> str:
+    """A line without its rich markup."""
+    return line.replace("[bold]", "").replace("[/]", "").replace("[yellow]", "")
 
 
 MISSING = "—"

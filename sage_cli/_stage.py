@@ -1,8 +1,9 @@
 """Showing a stage run from the CLI: the engine's stage events drawn as rich output.
 
 :class:`StageDisplay` consumes :class:`sage_core.stages.StageEvent` objects: notes and the skip line
-are printed, ``running`` opens a progress bar (it/s, loss, PSNR, ETA; closed when the stage finishes
-or fails), ``estimate`` prints the duration estimate. ``rules=True`` (``sage run``, ``sage demo``)
+are printed, ``running`` prints what the stage runs on (device, threads and why, rasterizer) and
+opens a progress bar (it/s, loss, PSNR, ETA; closed when the stage finishes or fails), ``estimate``
+prints the duration estimate and the updates that move it. ``rules=True`` (``sage run``, ``sage demo``)
 puts a rule with the stage's name above each stage.
 """
 
@@ -50,6 +51,8 @@ class StageDisplay:
             console.print(f"[green]{ev.stage}[/]: {ev.message}")
         elif kind == "running":
             self._close()
+            if self.verbose:
+                console.print(f"[bold]{ev.title or ev.stage}[/]: {running_line(ev.metrics)}", soft_wrap=True)
             if ev.metrics.get("resumed"):
                 console.print(f"[yellow]{ev.stage}[/]: resuming an interrupted run")
             self._bar = ProgressDisplay(ev.title or ev.stage, enabled=self.verbose, device=ev.metrics.get("device"), preset=self.preset)
@@ -59,3 +62,18 @@ class StageDisplay:
                 self._bar(ev.step or 0, ev.total, ev.message, **ev.metrics)
         elif kind == "finished":
             self._close()
+
+
+def running_line(metrics: dict[str, Any]) -> str:
+    """What a stage runs on, from its ``running`` event: ``cpu · 2 threads (2 of 2 cores idle) · cpp
+    rasterizer``."""
+    parts = [str(metrics.get("device") or "?")]
+    basis = metrics.get("threads_basis")
+    if basis:
+        parts.append(str(basis))
+    elif metrics.get("threads"):
+        n = int(metrics["threads"])
+        parts.append(f"{n} thread{'s' if n != 1 else ''}")
+    if metrics.get("render_backend"):
+        parts.append(f"{metrics['render_backend']} rasterizer")
+    return " · ".join(parts)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from sage_core import __version__
+from sage_core._version import __version__
 
 app = typer.Typer(
     name="sage",
@@ -57,8 +57,25 @@ def _register() -> None:
 _register()
 
 
+def _stop_on_first_interrupt() -> None:
+    """Ctrl-C raises KeyboardInterrupt once; a second one while the stage is stopping is ignored,
+    so the clean-up and the "interrupted" message finish instead of ending in a traceback."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def first(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, first)
+
+
 def main() -> None:
     """Console-script entry point."""
+    _stop_on_first_interrupt()
     app()
 
 

@@ -60,13 +60,15 @@ def _settings(avatar: Avatar) -> Any:
     return s if s is not None else RenderSettings()
 
 
-def load_avatar(path: str | Path, *, stage: str = "auto", device: str | torch.device = "cpu") -> Avatar:
+def load_avatar(path: str | Path, *, stage: str = "auto", device: str | torch.device = "cpu",
+                flame_model: str | Path | None = None) -> Avatar:
     """Load a trained avatar, ready to pose and render (in eval mode).
 
     path: a workspace (the avatar of ``stage``: "auto" takes phase 2 when it finished, else phase 1;
     "phase1" or "phase2"), an exported bundle folder (``sage export WS --bundle``) or an avatar file
     (``WS/phase1/avatar.pt``). The avatar's ``render_settings`` (near/far planes, background and, for
     phase 2, the surfel correction) are those the stage trained with; :func:`render_avatar` uses them.
+    flame_model: the FLAME model file a bundle names when it does not carry the model.
     InputError / StageError name the path when nothing loadable is there.
     """
     from .avatar.model import Avatar
@@ -77,7 +79,7 @@ def load_avatar(path: str | Path, *, stage: str = "auto", device: str | torch.de
         avatar = Avatar.load(p, device)
         settings = RenderSettings()
     elif is_bundle(p):
-        b = load_bundle(p, device)
+        b = load_bundle(p, device, flame_model=flame_model)
         avatar, settings = b.avatar, b.render
     elif p.is_dir():
         from .data.dataset import IngestedData

@@ -22,6 +22,14 @@ def temp_path(path: Path) -> Path:
     return path.with_name(f".{path.stem}.{os.getpid()}.{time.monotonic_ns()}.tmp{path.suffix}")
 
 
+def named(e: OSError, target: Path, tmp: Path) -> OSError:
+    """``e`` naming ``target`` (not the temp file, and not nothing, as a failed write or fsync on a
+    full disk reports it)."""
+    if e.filename is None or str(e.filename) == str(tmp):
+        return type(e)(e.errno, e.strerror or str(e), str(target))
+    return e
+
+
 @contextmanager
 def atomic_writer(path: str | Path) -> Iterator[IO[bytes]]:
     """``with atomic_writer(p) as fh: ...`` writes a binary stream that appears at ``p`` only when
@@ -35,6 +43,8 @@ def atomic_writer(path: str | Path) -> Iterator[IO[bytes]]:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, target)
+    except OSError as e:
+        raise named(e, target, tmp) from None
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -50,6 +60,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, target)
+    except OSError as e:
+        raise named(e, target, tmp) from None
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -1,9 +1,12 @@
 """Per-stage configuration dataclasses, presets, and their load / merge / save / hash.
 
-Precedence (design.md "Stage contract"): preset < config file < command-line flags. A config
-file is YAML or JSON; it may hold one section per stage (``ingest:``, ``init_mesh:``, …) or, when
-it is given to a single stage, that stage's keys at the top level. Nested fields are addressed
-with dots in flags and as nested mappings in files. Unknown keys are errors, never ignored.
+Precedence (docs/workspace.md "Stage contract"): preset < config file < command-line flags. A
+config file is YAML or JSON; it may hold one section per stage (``ingest:``, ``init_mesh:``, …) or,
+when it is given to a single stage, that stage's keys at the top level. Nested fields are addressed
+with dots in flags and as nested mappings in files. Unknown keys are errors, never ignored. The
+phase configs group their fields in sections shared where both phases have them (:class:`NeuSConfig`,
+:class:`LossWeights`, :class:`Schedule`); their flat key names of earlier versions stay accepted
+(:func:`legacy_aliases`) and keep the config hash (:func:`canonical_form`).
 
 Every field carries its documentation in ``metadata["help"]`` and what it allows (``choices``,
 ``ge``/``gt``/``le``/``lt`` bounds, list ``length``; see :func:`_f`); :data:`CONFIG_RULES` ties
@@ -17,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +29,21 @@ from typing import Any, Callable, TypeVar
 from .errors import ConfigError
 
 PRESETS = ("tiny", "small", "default")
+
+REGIMES: tuple[str, ...] = ("mv-sf", "mv-mf", "sv-hr", "one-shot")
+"""The reconstruction regimes of ``sage ingest``."""
+
+REGIME_SPELLINGS: dict[str, str] = {"oneshot": "one-shot", "one_shot": "one-shot", "monocular": "sv-hr", "svhr": "sv-hr"}
+"""Other spellings accepted for a regime: ``sage synth``'s names of the captures of those regimes
+(``oneshot``, ``monocular``) and the unhyphenated forms."""
+
+
+def canonical_regime(name: str) -> str:
+    """A regime name as ``sage ingest`` spells it (``oneshot`` -> ``one-shot``); unknown names are
+    returned as given (the caller reports them)."""
+    key = str(name).strip().lower()
+    return REGIME_SPELLINGS.get(key, key)
+
 
 RENDER_BACKENDS = ("auto", "torch", "cpp", "triton")
 """Values of the ``render_backend`` field of the stages that render surfels."""
@@ -40,6 +59,9 @@ def _f(
     le: float | None = None,
     lt: float | None = None,
     length: int | None = None,
+    alias: str | None = None,
+    added: bool = False,
+    spellings: dict[str, str] | None = None,
     **kw: Any,
 ) -> Any:
     """A dataclass field with its help text and its allowed values.
@@ -47,10 +69,18 @@ def _f(
     choices: the allowed strings of an enum-like field. ge / gt / le / lt: inclusive / exclusive
     lower and upper bounds of a numeric field (of every element of a list field). length: the
     number of elements of a list field. ``None`` passes the checks of an optional field. The
-    checks run once, in :func:`resolve_config` (:func:`validate_config`).
+    checks run once, in :func:`resolve_config` (:func:`validate_config`). alias: the field's flat
+    key name in the stage config of earlier versions (accepted in files, flags and saved configs,
+    and the key of the field in the config hash; see :func:`legacy_aliases`). added: a field added
+    after workspaces were written whose default keeps the earlier behaviour; at its default it is
+    left out of the config hash, so stages finished before it existed stay up to date. spellings:
+    other names of the choices, mapped to them when the value is set.
     """
     meta: dict[str, Any] = {"help": help}
-    for key, val in (("choices", choices), ("ge", ge), ("gt", gt), ("le", le), ("lt", lt), ("length", length)):
+    if added:
+        meta["added"] = True
+    for key, val in (("choices", choices), ("ge", ge), ("gt", gt), ("le", le), ("lt", lt), ("length", length), ("alias", alias),
+                     ("spellings", spellings)):
         if val is not None:
             meta[key] = tuple(val) if key == "choices" else val
     if isinstance(default, (list, dict)):
@@ -58,8 +88,10 @@ def _f(
     return field(default=default, metadata=meta, **kw)
 
 
-def _sub(cls: type, help: str) -> Any:
-    return field(default_factory=cls, metadata={"help": help})
+def _sub(cls: type, help: str, **defaults: Any) -> Any:
+    """A nested config section of type ``cls``; ``defaults`` override the defaults of its fields
+    in this place (one section class serves both phases with their own defaults)."""
+    return field(default_factory=lambda: cls(**defaults), metadata={"help": help})
 
 
 # --------------------------------------------------------------------------------------------
@@ -71,12 +103,13 @@ def _sub(cls: type, help: str) -> Any:
 class IngestConfig:
     """``sage ingest``: read a VHAP/GaussianAvatars capture into the workspace."""
 
-    regime: str = _f("mv-sf", "Reconstruction regime: mv-sf (one multiview timestep), mv-mf (all training timesteps), sv-hr (one camera, head turns), one-shot (one image).", choices=("mv-sf", "mv-mf", "sv-hr", "one-shot"))
+    regime: str = _f("mv-sf", "Reconstruction regime: mv-sf (one multiview timestep), mv-mf (all training timesteps), sv-hr (one camera, head turns; also spelled monocular), one-shot (one image; also oneshot).", choices=REGIMES, spellings=REGIME_SPELLINGS)
     timestep: int | None = _f(None, "Training timestep for mv-sf (default: the train timestep closest to a neutral face with the mouth slightly open).", ge=0)
     camera: int | None = _f(None, "Camera index for sv-hr and one-shot when the capture has several cameras.", ge=0)
     height: int | None = _f(None, "Resize images to this height (width keeps the aspect). Exclusive with downsample.", ge=8)
     downsample: float | None = _f(None, "Divide the image size by this factor. Exclusive with height.", gt=0)
     background: str = _f("white", "Background of the stored images: white (as exported) or black (recomposited with the mask).", choices=("white", "black"))
+    follow_symlinks: bool = _f(False, "Read capture files through symbolic links whose target lies outside the capture folder (refused by default, like paths that climb out of it).", added=True)
 
 
 @dataclass
@@ -101,7 +134,7 @@ class SDFNetConfig:
 
 @dataclass
 class PretrainConfig:
-    """SDF pretraining on the canonical FLAME mesh (rendering.md §8)."""
+    """SDF pretraining on the canonical FLAME mesh (docs/rendering.md §10)."""
 
     steps: int = _f(3000, "Optimisation steps.", ge=1)
     batch_size: int = _f(8192, "Sample points per step, split evenly over surface / near-surface / uniform samples.", ge=3)
@@ -133,129 +166,248 @@ class InitMeshConfig:
 
 
 @dataclass
+class NeuSConfig:
+    """NeuS volume rendering of the canonical SDF along a ray (phase 1's SDF terms, phase 2's NeuS
+    teacher)."""
+
+    samples: int = _f(32, "Stratified NeuS samples per ray.", ge=1, alias="neus_samples")
+    importance: int = _f(32, "NeuS importance samples per ray.", ge=0, alias="neus_importance")
+    up_steps: int = _f(2, "NeuS up-sampling rounds.", ge=0, alias="neus_up_steps")
+
+
+@dataclass
+class Phase1NeuSConfig(NeuSConfig):
+    """Phase 1's NeuS rays: which pixels of a training frame become canonical rays each step, and the
+    initial s-variance."""
+
+    rays_per_step: int = _f(1024, "Foreground rays per step for NeuS.", ge=1, alias="rays_per_step")
+    background_rays: float = _f(0.25, "Extra NeuS rays per step from background pixels within neus.background_band pixels of the silhouette, as a fraction of neus.rays_per_step (frames with masks only). Without them the SDF never sees where the head ends and its zero level set, which the surfel centres follow (L_pt), can sit outside the silhouette.", ge=0, le=4, alias="neus_background_rays")
+    background_band: int = _f(6, "Width in pixels of the background band around the foreground mask from which the background NeuS rays are drawn.", ge=1, alias="neus_background_band")
+    variance: float = _f(0.4, "Initial NeuS s-variance (inv_s = exp(10 var) per box half extent).", ge=-2, le=2, alias="neus_variance")
+
+
+@dataclass
+class LossWeights:
+    """Weights of the loss terms both phases add (2DGS regularisers). A term whose weight is 0 is not
+    computed."""
+
+    normal_consistency: float = _f(0.05, "lambda_n: 2DGS normal consistency between the rendered normals and the normals of the rendered depth (phase 2: of the deformed renders).", ge=0, alias="w_normal_consistency")
+    distortion: float = _f(100.0, "lambda_d: 2DGS depth distortion, on the depth normalised between near and far (phase 2: of the deformed renders).", ge=0, alias="w_distortion")
+
+
+@dataclass
+class Schedule:
+    """When things happen during a phase, in steps."""
+
+    checkpoint_every: int = _f(1000, "Checkpoint interval in steps.", ge=1, alias="checkpoint_every")
+
+
+@dataclass
+class SurfelLayoutConfig:
+    """Phase 1: the initial surfels on the canonical mesh."""
+
+    count: int = _f(150000, "Number of surfels spread over the canonical mesh (no densification).", ge=1, alias="n_surfels")
+    layout: str = _f("sampled", "Initial surfels: sampled (surfels.count spread over the triangles by area, region and camera weights; SAGE) or per_face (one surfel at the centroid of every triangle with the triangle's scale, GaussianAvatars' initialisation; surfels.count is unused).", choices=("sampled", "per_face"), alias="init_layout")
+    scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.", gt=0, alias="init_scale_factor")
+    face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.", ge=0, alias="face_weight")
+    mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.", ge=0, alias="mouth_weight")
+    hair_weight: float = _f(0.5, "Surfel density multiplier on the hair.", ge=0, alias="hair_weight")
+    neck_weight: float = _f(0.5, "Surfel density multiplier on the neck.", ge=0, alias="neck_weight")
+    camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera.", ge=0, alias="camera_weight")
+
+
+@dataclass
+class FreeSurfelConfig:
+    """Phase 1 with ``attributes=free``: the per-surfel attributes and GaussianAvatars' local terms."""
+
+    sh_degree: int = _f(3, "SH degree of the free per-surfel colour (attributes=free); the presets match appearance.sh_degree so that the two attribute modes are compared at equal view dependence.", ge=0, le=3, alias="sh_degree")
+    init_opacity: float = _f(0.5, "Initial opacity of free surfels.", gt=0, lt=1, alias="init_opacity")
+    position_threshold: float = _f(1.0, "Local offset length (in triangle scales) below which the position term is zero (GA: 1).", ge=0, alias="local_position_threshold")
+    scale_threshold: float = _f(0.6, "Local scale (relative to the triangle scale) below which the scale term is zero (GA: 0.6).", ge=0, alias="local_scale_threshold")
+
+
+@dataclass
+class AppearanceNetConfig:
+    """Phase 1 with ``attributes=mlp``: the appearance network (colour and opacity of a surfel)."""
+
+    hidden: int = _f(64, "Appearance network width.", ge=1, alias="app_hidden")
+    layers: int = _f(2, "Appearance network hidden layers.", ge=1, alias="app_layers")
+    sh_degree: int = _f(3, "SH degree of the appearance network's view-direction encoding.", ge=0, le=3, alias="app_sh_degree")
+    init_opacity: float = _f(0.5, "Initial opacity of every surfel in mlp mode (the appearance network's opacity-logit bias is logit(appearance.init_opacity)). 0.5 (it was 0.88) lowered LPIPS on held-out expressions of both small benchmark subjects and on the SV-HR and one-shot novel views; at the tiny size PSNR moved by -0.06 to -0.12 dB (docs/results.md).", gt=0, lt=1, alias="app_init_opacity")
+    grid: bool = _f(True, "Give the appearance network its own hash grid (the grid_* fields) whose features at the surfel centre join the SDF feature z: colour detail then has capacity of its own instead of passing through the SDF network.", alias="app_grid")
+    grid_levels: int = _f(16, "Levels of the appearance hash grid.", ge=1, alias="app_grid_levels")
+    grid_log2_table: int = _f(19, "log2 of the table entries per level of the appearance hash grid.", ge=8, le=24, alias="app_grid_log2_table")
+    grid_max_res: int = _f(2048, "Finest resolution of the appearance hash grid (its coarsest is 16).", ge=16, alias="app_grid_max_res")
+
+
+@dataclass
+class ShapeNetConfig:
+    """Phase 1 with ``attributes=mlp``: the shape network (rotation and scale of a surfel)."""
+
+    hidden: int = _f(64, "Shape network width.", ge=1, alias="shape_hidden")
+    layers: int = _f(2, "Shape network hidden layers.", ge=1, alias="shape_layers")
+    detail_grid: bool = _f(False, "The shape network also reads the appearance hash grid's features (appearance.grid), beside the SDF grid's: surfel size, anisotropy and orientation can then vary at the scale of the colour detail.", added=True)
+
+
+@dataclass
+class DensifyConfig:
+    """Phase 1: adaptive density control of free surfels (the GaussianAvatars baseline)."""
+
+    enabled: bool = _f(False, "Adaptive density control of free surfels (3DGS clone/split/prune with GaussianAvatars' binding inheritance; sage_core.train.densify). SAGE never densifies; the benchmark's GaussianAvatars rows do.", alias="densify")
+    start: int = _f(500, "Densification starts after this step (GaussianAvatars: 1/60 of the run, 10,000 of 600,000 steps).", ge=0, alias="densify_from")
+    until: int = _f(30000, "Densification and opacity resets stop at this step (GaussianAvatars: the end of the run; 3DGS: half of it).", ge=0, alias="densify_until")
+    every: int = _f(100, "Steps between densifications (GaussianAvatars: 1/300 of the run).", ge=1, alias="densify_every")
+    grad_threshold: float = _f(2e-4, "Clone or split surfels whose mean gradient norm w.r.t. their projected centre (NDC units) reaches this (3DGS and GaussianAvatars: 0.0002).", gt=0, alias="densify_grad_threshold")
+    percent_dense: float = _f(0.01, "Surfels larger than this fraction of the scene extent are split, smaller ones cloned (3DGS and GaussianAvatars: 0.01).", gt=0, alias="densify_percent_dense")
+    prune_opacity: float = _f(0.005, "Densification prunes surfels whose opacity is below this (3DGS and GaussianAvatars: 0.005).", ge=0, lt=1, alias="prune_opacity")
+    opacity_reset_every: int = _f(3000, "Steps between opacity resets while densifying (GaussianAvatars: 1/10 of the run; 0: never). Surfels larger than 0.1 x the scene extent are pruned once the step is past this.", ge=0, alias="opacity_reset_every")
+    reset_at_start: bool = _f(True, "Also reset the opacities at densify.start (GaussianAvatars does on a white background, as the ingested captures are).", alias="opacity_reset_at_start")
+    position_lr_extent: bool = _f(True, "Multiply lr.position and lr.position_final by the scene extent (1.1 x the largest distance of a training camera from their mean), as 3DGS and GaussianAvatars scale their position rate.", alias="densify_position_lr_extent")
+
+
+@dataclass
+class Phase1Rates:
+    """Phase 1: Adam learning rates of the parameter groups (0 leaves a group fixed)."""
+
+    sdf: float = _f(1e-4, "Adam learning rate of the SDF MLP (paper: 1e-4).", ge=0, alias="lr_sdf")
+    grid: float = _f(1e-4, "Adam learning rate of the hash grid (paper: 1e-4).", ge=0, alias="lr_grid")
+    variance: float = _f(1e-3, "Adam learning rate of the NeuS s-variance.", ge=0, alias="lr_variance")
+    networks: float = _f(1e-4, "Adam learning rate of the appearance and shape networks (paper: 1e-4).", ge=0, alias="lr_networks")
+    app_grid: float = _f(1e-2, "Adam learning rate of the appearance hash table.", ge=0, alias="lr_app_grid")
+    position: float = _f(5e-3, "Initial learning rate of the surfel offsets mu_loc (k-normalised triangle units), decayed exponentially to lr.position_final.", ge=0, alias="lr_position")
+    position_final: float = _f(5e-5, "Final learning rate of mu_loc.", ge=0, alias="lr_position_final")
+    color: float = _f(2.5e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).", ge=0, alias="lr_color")
+    opacity: float = _f(5e-2, "Learning rate of free opacity logits.", ge=0, alias="lr_opacity")
+    scale: float = _f(1.7e-2, "Learning rate of free log scales s_loc.", ge=0, alias="lr_scale")
+    rotation: float = _f(1e-3, "Learning rate of free rotations q_loc.", ge=0, alias="lr_rotation")
+    exposure: float = _f(2e-3, "Adam learning rate of the log exposure gains.", ge=0, alias="lr_exposure")
+    light: float = _f(5e-3, "Adam learning rate of the SH light coefficients (shading=sh2).", ge=0, alias="lr_light")
+    pose_rotation: float = _f(1e-4, "Adam learning rate of the rotation and neck corrections (axis-angle, rad).", ge=0, alias="lr_pose_rotation")
+    pose_translation: float = _f(1e-5, "Adam learning rate of the translation corrections (m).", ge=0, alias="lr_pose_translation")
+
+
+@dataclass
+class Phase1Losses(LossWeights):
+    """Phase 1: weights of the loss terms (``sage_core.train.phase1.PHASE1_TERMS``). A term whose
+    weight is 0 is not computed."""
+
+    ssim: float = _f(0.2, "L_rgb = (1 - w) L1 + w (1 - SSIM).", ge=0, le=1, alias="ssim_weight")
+    mask: float = _f(3.0, "L1 between the surfel render's alpha and the foreground mask on real frames with masks: pulls the silhouette of the surfels onto the mask, where the photometric loss alone leaves a halo of about 0.2 alpha one pixel outside (docs/results.md).", ge=0, alias="w_mask")
+    pt: float = _f(1.0, "lambda_pt: mean |f(x_G)| at canonical surfel centres, in units of the SDF box half extent.", ge=0, alias="w_pt")
+    align: float = _f(0.1, "lambda_align: mean |1 - |t3 . n(x_G)||.", ge=0, alias="w_align")
+    neus_rgb: float = _f(1.0, "L1 of the NeuS rendering of sampled rays against the image.", ge=0, alias="w_neus_rgb")
+    neus_mask: float = _f(0.1, "Binary cross-entropy of the NeuS ray opacity (sum of the weights) against the foreground mask, on the foreground and background rays (NeuS 'with mask').", ge=0, alias="w_neus_mask")
+    depth: float = _f(0.1, "lambda_D: L1 between NeuS and surfel depth along canonical rays, in units of the SDF box half extent (MonoSDF depth weight).", ge=0, alias="w_depth")
+    normal: float = _f(0.05, "lambda_N: MonoSDF normal loss (L1 + angular) between NeuS and surfel normals (MonoSDF weight).", ge=0, alias="w_normal")
+    eikonal: float = _f(0.1, "Eikonal weight on NeuS samples and surfel centres.", ge=0, alias="w_eikonal")
+    smooth: float = _f(0.005, "SDF normal smoothness ||n(x) - n(x + delta)|| (MonoSDF).", ge=0, alias="w_smooth")
+    sym_sdf: float = _f(0.0, "Soft left-right symmetry of the canonical SDF: mean |f(x) - f(Sx)| (box half-extent units), S the reflection across the head's sagittal plane. Regime default for sv-hr and one-shot: 0.1.", ge=0, alias="w_sym_sdf")
+    sym_color: float = _f(0.0, "Soft left-right symmetry of the appearance network colour: mean |c(x) - c(Sx)|. Regime default for sv-hr and one-shot: 0.05.", ge=0, alias="w_sym_color")
+    exposure_prior: float = _f(0.01, "Weak prior mean((log gain)^2) holding the exposure gains near 1.", ge=0, alias="w_exposure_prior")
+    light_prior: float = _f(0.01, "Weak prior mean((mean irradiance - 1)^2) on the light's band-0 term (shading=sh2), fixing the albedo/light brightness scale.", ge=0, alias="w_light_prior")
+    light_albedo: float = _f(1.0, "Smooth-albedo light prior (shading=sh2; sage_core.train.light_prior): weight of the term that picks, among the lights the images cannot tell apart, the one under which neighbouring face and neck surfels of similar chromaticity have the most similar albedo. Its gradient reaches only the light (0: off). From one multiview timestep it let the light follow the capture's shading and raised held-out PSNR on the benchmark subjects (docs/results.md).", ge=0, alias="w_light_albedo")
+    pose_prior: float = _f(1.0, "Weight of mean(correction^2) (rad^2, and translations in SDF box half extents squared) keeping the pose corrections small.", ge=0, alias="w_pose_prior")
+    local_position: float = _f(0.0, "GaussianAvatars' position term: mean relu(|mu_loc| - free.position_threshold), local offsets in units of the triangle scale (GA: 0.01).", ge=0, alias="w_local_position")
+    local_scale: float = _f(0.0, "GaussianAvatars' scale term: mean |relu(exp(s_loc) - free.scale_threshold)| of the local scales (GA: 1).", ge=0, alias="w_local_scale")
+
+
+@dataclass
+class Phase1Schedule(Schedule):
+    """Phase 1: the first steps of the loss terms that start late, the polish, and the intervals."""
+
+    sdf_from: int = _f(0, "First step of the SDF terms (L_pt, L_align, L_D, L_N, NeuS).", ge=0, alias="sdf_from")
+    normal_consistency_from: int = _f(7000, "First step of the normal-consistency loss.", ge=0, alias="normal_consistency_from")
+    distortion_from: int = _f(3000, "First step of the distortion loss.", ge=0, alias="distortion_from")
+    pose_refine_from: int = _f(1000, "First step of the pose refinement (after the geometry has settled).", ge=0, alias="pose_refine_from")
+    polish_fraction: float = _f(0.2, "The last fraction of phase 1's iterations trains on the photometric loss alone, with only the weak priors on light, exposure and pose (no SDF terms: L_pt, L_align, NeuS, eikonal, smoothness, symmetry; no 2DGS normal consistency, distortion or mask term), so appearance sharpens on the settled geometry (0: off). With phase 2's correction.w_s=0 it lowered held-out LPIPS on three small benchmark subjects (docs/results.md).", ge=0, lt=1, alias="polish_fraction")
+    rebind_every: int = _f(1000, "Rebind surfels to their nearest canonical triangle every K steps (0: never).", ge=0, alias="rebind_every")
+    eval_every: int = _f(1000, "Validation PSNR every N steps for the progress display (0: only at the end).", ge=0, alias="eval_every")
+
+
+@dataclass
+class SmoothnessConfig:
+    """Phase 1: where the SDF normal smoothness term (weight ``loss.smooth``) is measured."""
+
+    points: int = _f(1024, "Surfel centres per step for the smoothness term.", ge=1, alias="smooth_points")
+    delta: float = _f(0.005, "Half width of the smoothness offset delta, relative to the SDF box half extent.", gt=0, alias="smooth_delta")
+
+
+@dataclass
+class SymmetryConfig:
+    """Phase 1: where the symmetry terms (weights ``loss.sym_sdf``, ``loss.sym_color``) are measured."""
+
+    points: int = _f(512, "Points per step for the symmetry terms (surfel centres and uniform points of the SDF box).", ge=1, alias="sym_points")
+    box_fraction: float = _f(0.25, "Fraction of the symmetry points drawn uniformly in the SDF box (the rest are surfel centres).", ge=0, le=1, alias="sym_box_fraction")
+
+
+@dataclass
+class LightAlbedoConfig:
+    """Phase 1: the smooth-albedo light prior (weight ``loss.light_albedo``)."""
+
+    neighbours: int = _f(128, "Smooth-albedo light prior: neighbours per face or neck surfel (canonical space).", ge=1, alias="light_albedo_neighbours")
+    pairs: int = _f(65536, "Smooth-albedo light prior: neighbour pairs drawn per step (all of them when fewer).", ge=1, alias="light_albedo_pairs")
+    chroma: float = _f(0.02, "Smooth-albedo light prior: chromaticity difference sigma of the pair weight exp(-|dchroma|^2/sigma^2).", gt=0, alias="light_albedo_chroma")
+
+
+@dataclass
+class PseudoViewConfig:
+    """Phase 1 on a one-shot capture: the synthesized pseudo views."""
+
+    prob: float = _f(0.5, "One-shot: probability that a step trains on a synthesized pseudo view instead of the input image (weighted photometric loss, no SDF ray terms).", ge=0, le=1, alias="pseudo_view_prob")
+    mirror: bool = _f(True, "One-shot: add the mirror pseudo-view (camera S·c2w·S, flipped image, mirrored mesh).", alias="pseudo_mirror")
+    mirror_weight: float = _f(0.5, "One-shot: loss weight of the mirror view relative to the input view.", ge=0, alias="pseudo_mirror_weight")
+    mirror_yaw_full_deg: float = _f(30.0, "One-shot: head yaw (deg) at which the mirror view reaches its full weight.", gt=0, le=180, alias="pseudo_mirror_yaw_full_deg")
+    mirror_yaw_floor: float = _f(0.25, "One-shot: fraction of the mirror view's weight kept for a frontal head.", ge=0, le=1, alias="pseudo_mirror_yaw_floor")
+    mirror_seen_weight: float = _f(0.1, "One-shot: per-pixel mirror weight where the input already sees that surface.", ge=0, le=1, alias="pseudo_mirror_seen_weight")
+    mirror_background_weight: float = _f(0.5, "One-shot: per-pixel mirror weight on the background.", ge=0, le=1, alias="pseudo_mirror_background_weight")
+    mirror_tolerance: float = _f(1e-3, "One-shot: mirror-partner tolerance relative to the template's bounding-box diagonal.", gt=0, alias="pseudo_mirror_tolerance")
+    ring_views: int = _f(8, "One-shot: textured-FLAME views on a yaw/pitch ring around the head (0: none).", ge=0, alias="pseudo_ring_views")
+    ring_yaw_deg: float = _f(60.0, "One-shot: largest yaw (deg) of the ring views.", ge=0, le=180, alias="pseudo_ring_yaw_deg")
+    ring_pitch_deg: float = _f(20.0, "One-shot: largest pitch (deg) of the ring views.", ge=0, lt=90, alias="pseudo_ring_pitch_deg")
+    ring_weight: float = _f(0.2, "One-shot: loss weight of each ring view.", ge=0, alias="pseudo_ring_weight")
+    ring_background_weight: float = _f(0.0, "One-shot: per-pixel ring weight on the background.", ge=0, le=1, alias="pseudo_ring_background_weight")
+    ring_supersample: int = _f(2, "One-shot: per-axis supersampling of the ring renders.", ge=1, le=8, alias="pseudo_ring_supersample")
+    texture_resolution: int = _f(4, "One-shot: barycentric texture samples per face edge of the back-projected texture.", ge=1, alias="pseudo_texture_resolution")
+    texture_mirror_confidence: float = _f(0.5, "One-shot: confidence of texels filled from their mirror partners.", ge=0, le=1, alias="pseudo_texture_mirror_confidence")
+    texture_inpaint_confidence: float = _f(0.0, "One-shot: confidence of inpainted texels (0: never supervise).", ge=0, le=1, alias="pseudo_texture_inpaint_confidence")
+
+
+@dataclass
 class Phase1Config:
-    """``sage phase1``: joint optimisation of the surfels, the canonical SDF and the attribute networks."""
+    """``sage phase1``: joint optimisation of the surfels, the canonical SDF and the attribute networks.
+
+    The flat key names of earlier versions (``w_light_albedo``, ``n_surfels``, ``rays_per_step``, ...)
+    are accepted as aliases of the nested fields (:func:`legacy_aliases`)."""
 
     attributes: str = _f("mlp", "Surfel attributes: mlp (appearance and shape networks, SAGE) or free (per-surfel colour, opacity, rotation, scale).", choices=("mlp", "free"))
     iterations: int = _f(30000, "Optimisation steps.", ge=1)
-    n_surfels: int = _f(150000, "Number of surfels spread over the canonical mesh (no densification).", ge=1)
-    sh_degree: int = _f(3, "SH degree of the free per-surfel colour (attributes=free); the presets match app_sh_degree so that the two attribute modes are compared at equal view dependence.", ge=0, le=3)
-    init_opacity: float = _f(0.5, "Initial opacity of free surfels.", gt=0, lt=1)
-    app_init_opacity: float = _f(0.5, "Initial opacity of every surfel in mlp mode (the appearance network's opacity-logit bias is logit(app_init_opacity)). 0.5 (it was 0.88) lowered LPIPS on held-out expressions of both small benchmark subjects and on the SV-HR and one-shot novel views; at the tiny size PSNR moved by -0.06 to -0.12 dB (docs/results.md).", gt=0, lt=1)
-    init_scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.", gt=0)
-    init_layout: str = _f("sampled", "Initial surfels: sampled (n_surfels spread over the triangles by area, region and camera weights; SAGE) or per_face (one surfel at the centroid of every triangle with the triangle's scale, GaussianAvatars' initialisation; n_surfels is unused).", choices=("sampled", "per_face"))
-    densify: bool = _f(False, "Adaptive density control of free surfels (3DGS clone/split/prune with GaussianAvatars' binding inheritance; sage_core.train.densify). SAGE never densifies; the benchmark's GaussianAvatars rows do.")
-    densify_from: int = _f(500, "First step of the density control.", ge=0)
-    densify_until: int = _f(15000, "Densification and opacity resets stop at this step.", ge=0)
-    densify_every: int = _f(100, "Steps between densifications.", ge=1)
-    densify_grad_threshold: float = _f(2e-4, "Clone or split surfels whose mean gradient norm w.r.t. their projected centre (NDC units) reaches this (3DGS: 0.0002).", gt=0)
-    densify_percent_dense: float = _f(0.01, "Surfels larger than this fraction of the scene extent are split, smaller ones cloned (3DGS: 0.01).", gt=0)
-    prune_opacity: float = _f(0.005, "Densification prunes surfels whose opacity is below this.", ge=0, lt=1)
-    opacity_reset_every: int = _f(3000, "Steps between opacity resets while densifying (0: never).", ge=0)
-    w_local_position: float = _f(0.0, "GaussianAvatars' position term: mean relu(|mu_loc| - local_position_threshold), local offsets in units of the triangle scale (GA: 0.01).", ge=0)
-    local_position_threshold: float = _f(1.0, "Local offset length (in triangle scales) below which the position term is zero (GA: 1).", ge=0)
-    w_local_scale: float = _f(0.0, "GaussianAvatars' scale term: mean |relu(exp(s_loc) - local_scale_threshold)| of the local scales (GA: 1).", ge=0)
-    local_scale_threshold: float = _f(0.6, "Local scale (relative to the triangle scale) below which the scale term is zero (GA: 0.6).", ge=0)
-    face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.", ge=0)
-    mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.", ge=0)
-    hair_weight: float = _f(0.5, "Surfel density multiplier on the hair.", ge=0)
-    neck_weight: float = _f(0.5, "Surfel density multiplier on the neck.", ge=0)
-    camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera.", ge=0)
-    app_hidden: int = _f(64, "Appearance network width.", ge=1)
-    app_layers: int = _f(2, "Appearance network hidden layers.", ge=1)
-    app_sh_degree: int = _f(3, "SH degree of the appearance network's view-direction encoding.", ge=0, le=3)
-    app_grid: bool = _f(True, "Give the appearance network its own hash grid (app_grid_* fields) whose features at the surfel centre join the SDF feature z: colour detail then has capacity of its own instead of passing through the SDF network.")
-    app_grid_levels: int = _f(16, "Levels of the appearance hash grid.", ge=1)
-    app_grid_log2_table: int = _f(19, "log2 of the table entries per level of the appearance hash grid.", ge=8, le=24)
-    app_grid_max_res: int = _f(2048, "Finest resolution of the appearance hash grid (its coarsest is 16).", ge=16)
-    lr_app_grid: float = _f(1e-2, "Adam learning rate of the appearance hash table.", ge=0)
-    shape_hidden: int = _f(64, "Shape network width.", ge=1)
-    shape_layers: int = _f(2, "Shape network hidden layers.", ge=1)
-    lr_sdf: float = _f(1e-4, "Adam learning rate of the SDF MLP (paper: 1e-4).", ge=0)
-    lr_grid: float = _f(1e-4, "Adam learning rate of the hash grid (paper: 1e-4).", ge=0)
-    lr_networks: float = _f(1e-4, "Adam learning rate of the appearance and shape networks (paper: 1e-4).", ge=0)
-    lr_variance: float = _f(1e-3, "Adam learning rate of the NeuS s-variance.", ge=0)
-    lr_position: float = _f(5e-3, "Initial learning rate of the surfel offsets mu_loc (k-normalised triangle units), decayed exponentially to lr_position_final.", ge=0)
-    lr_position_final: float = _f(5e-5, "Final learning rate of mu_loc.", ge=0)
-    lr_color: float = _f(2.5e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).", ge=0)
-    lr_opacity: float = _f(5e-2, "Learning rate of free opacity logits.", ge=0)
-    lr_scale: float = _f(1.7e-2, "Learning rate of free log scales s_loc.", ge=0)
-    lr_rotation: float = _f(1e-3, "Learning rate of free rotations q_loc.", ge=0)
-    ssim_weight: float = _f(0.2, "L_rgb = (1 - w) L1 + w (1 - SSIM).", ge=0, le=1)
-    w_pt: float = _f(1.0, "lambda_pt: mean |f(x_G)| at canonical surfel centres, in units of the SDF box half extent.", ge=0)
-    w_align: float = _f(0.1, "lambda_align: mean |1 - |t3 . n(x_G)||.", ge=0)
-    w_depth: float = _f(0.1, "lambda_D: L1 between NeuS and surfel depth along canonical rays, in units of the SDF box half extent (MonoSDF depth weight).", ge=0)
-    w_normal: float = _f(0.05, "lambda_N: MonoSDF normal loss (L1 + angular) between NeuS and surfel normals (MonoSDF weight).", ge=0)
-    w_eikonal: float = _f(0.1, "Eikonal weight on NeuS samples and surfel centres.", ge=0)
-    w_smooth: float = _f(0.005, "SDF normal smoothness ||n(x) - n(x + delta)|| (MonoSDF).", ge=0)
-    smooth_points: int = _f(1024, "Surfel centres per step for the smoothness term.", ge=1)
-    smooth_delta: float = _f(0.005, "Half width of the smoothness offset delta, relative to the SDF box half extent.", gt=0)
-    w_neus_rgb: float = _f(1.0, "L1 of the NeuS rendering of sampled rays against the image.", ge=0)
-    w_normal_consistency: float = _f(0.05, "2DGS normal consistency lambda_n.", ge=0)
-    normal_consistency_from: int = _f(7000, "First step of the normal-consistency loss.", ge=0)
-    w_distortion: float = _f(100.0, "2DGS depth distortion weight (on the normalised depth of near/far).", ge=0)
-    distortion_from: int = _f(3000, "First step of the distortion loss.", ge=0)
+    shading: str = _f("sh2", "Colour model: sh2 (the default in every regime: the colour is an albedo times the irradiance of a light fixed in the world, order-2 spherical harmonics of the surfel's outward world normal, so shading follows head turns and expressions; the NeuS colour is shaded the same way with its SDF normal mapped to the world) or none (view-independent colour fixed in head space). On the tracked benchmark captures sh2 scored +1.6 dB (SV-HR) and +0.5 dB (one-shot) on held-out views and expressions, with a lower LPIPS; on one multiview timestep within 0.1 dB of none (docs/results.md).", choices=("none", "sh2"))
+    exposure: str = _f("off", "Per-training-frame exposure gain on the surfel and NeuS renders: off, gain (one scalar per frame) or rgb (one gain per channel). Regime default for sv-hr and one-shot: gain.", choices=("off", "gain", "rgb"))
+    pose_refine: bool = _f(False, "Refine small per-frame corrections of the FLAME global rotation, neck pose and translation of the training timesteps (single-camera clips), from schedule.pose_refine_from on; they are saved in checkpoints and baked into the avatar's parameters.")
+    canonical_warp: str = _f("auto", "How training pixels become canonical rays for the SDF terms: auto (the exact rigid head map where a frame differs from canonical only by global rotation/translation, else the hit-triangle warp; rays missing the mesh are dropped), rigid (rigid frames only) or triangle (always the hit-triangle warp).", choices=("auto", "rigid", "triangle"))
     near: float = _f(0.2, "Near plane (m): culls surfels and sets the distortion's normalised depth.", gt=0)
     far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth (heads at about 1 m).", gt=0)
-    sdf_from: int = _f(0, "First step of the SDF terms (L_pt, L_align, L_D, L_N, NeuS).", ge=0)
-    polish_fraction: float = _f(0.2, "The last fraction of phase 1's iterations trains on the photometric loss alone, with only the weak priors on light, exposure and pose (no SDF terms: L_pt, L_align, NeuS, eikonal, smoothness, symmetry; no 2DGS normal consistency, distortion or mask term), so appearance sharpens on the settled geometry (0: off). With phase 2's correction_w_s=0 it lowered held-out LPIPS on three small benchmark subjects (docs/results.md).", ge=0, lt=1)
-    rays_per_step: int = _f(1024, "Foreground rays per step for NeuS.", ge=1)
-    neus_background_rays: float = _f(0.25, "Extra NeuS rays per step from background pixels within neus_background_band pixels of the silhouette, as a fraction of rays_per_step (frames with masks only). Without them the SDF never sees where the head ends and its zero level set, which the surfel centres follow (L_pt), can sit outside the silhouette.", ge=0, le=4)
-    neus_background_band: int = _f(6, "Width in pixels of the background band around the foreground mask from which the background NeuS rays are drawn.", ge=1)
-    w_neus_mask: float = _f(0.1, "Binary cross-entropy of the NeuS ray opacity (sum of the weights) against the foreground mask, on the foreground and background rays (NeuS 'with mask').", ge=0)
-    w_mask: float = _f(3.0, "L1 between the surfel render's alpha and the foreground mask on real frames with masks: pulls the silhouette of the surfels onto the mask, where the photometric loss alone leaves a halo of about 0.2 alpha one pixel outside (docs/results.md).", ge=0)
-    neus_samples: int = _f(32, "Stratified NeuS samples per ray.", ge=1)
-    neus_importance: int = _f(32, "NeuS importance samples per ray.", ge=0)
-    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.", ge=0)
-    neus_variance: float = _f(0.4, "Initial NeuS s-variance (inv_s = exp(10 var) per box half extent).", ge=-2, le=2)
-    rebind_every: int = _f(1000, "Rebind surfels to their nearest canonical triangle every K steps (0: never).", ge=0)
     background: float = _f(1.0, "Background grey level of the renders (the ingested images are on white).", ge=0, le=1)
-    eval_every: int = _f(1000, "Validation PSNR every N steps for the progress display (0: only at the end).", ge=0)
     mc_resolution: int = _f(256, "Marching-cubes resolution of the extracted SDF mesh.", ge=2)
-    checkpoint_every: int = _f(1000, "Checkpoint interval in steps.", ge=1)
-    canonical_warp: str = _f("auto", "How training pixels become canonical rays for the SDF terms: auto (the exact rigid head map where a frame differs from canonical only by global rotation/translation, else the hit-triangle warp; rays missing the mesh are dropped), rigid (rigid frames only) or triangle (always the hit-triangle warp).", choices=("auto", "rigid", "triangle"))
-    exposure: str = _f("off", "Per-training-frame exposure gain on the surfel and NeuS renders: off, gain (one scalar per frame) or rgb (one gain per channel). Regime default for sv-hr and one-shot: gain.", choices=("off", "gain", "rgb"))
-    lr_exposure: float = _f(2e-3, "Adam learning rate of the log exposure gains.", ge=0)
-    w_exposure_prior: float = _f(0.01, "Weak prior mean((log gain)^2) holding the exposure gains near 1.", ge=0)
-    w_sym_sdf: float = _f(0.0, "Soft left-right symmetry of the canonical SDF: mean |f(x) - f(Sx)| (box half-extent units), S the reflection across the head's sagittal plane. Regime default for sv-hr and one-shot: 0.1.", ge=0)
-    w_sym_color: float = _f(0.0, "Soft left-right symmetry of the appearance network colour: mean |c(x) - c(Sx)|. Regime default for sv-hr and one-shot: 0.05.", ge=0)
-    sym_points: int = _f(512, "Points per step for the symmetry terms (surfel centres and uniform points of the SDF box).", ge=1)
-    sym_box_fraction: float = _f(0.25, "Fraction of the symmetry points drawn uniformly in the SDF box (the rest are surfel centres).", ge=0, le=1)
-    pseudo_view_prob: float = _f(0.5, "One-shot: probability that a step trains on a synthesized pseudo view instead of the input image (weighted photometric loss, no SDF ray terms).", ge=0, le=1)
-    pseudo_mirror: bool = _f(True, "One-shot: add the mirror pseudo-view (camera S·c2w·S, flipped image, mirrored mesh).")
-    pseudo_mirror_weight: float = _f(0.5, "One-shot: loss weight of the mirror view relative to the input view.", ge=0)
-    pseudo_mirror_yaw_full_deg: float = _f(30.0, "One-shot: head yaw (deg) at which the mirror view reaches its full weight.", gt=0, le=180)
-    pseudo_mirror_yaw_floor: float = _f(0.25, "One-shot: fraction of the mirror view's weight kept for a frontal head.", ge=0, le=1)
-    pseudo_mirror_seen_weight: float = _f(0.1, "One-shot: per-pixel mirror weight where the input already sees that surface.", ge=0, le=1)
-    pseudo_mirror_background_weight: float = _f(0.5, "One-shot: per-pixel mirror weight on the background.", ge=0, le=1)
-    pseudo_mirror_tolerance: float = _f(1e-3, "One-shot: mirror-partner tolerance relative to the template's bounding-box diagonal.", gt=0)
-    pseudo_ring_views: int = _f(8, "One-shot: textured-FLAME views on a yaw/pitch ring around the head (0: none).", ge=0)
-    pseudo_ring_yaw_deg: float = _f(60.0, "One-shot: largest yaw (deg) of the ring views.", ge=0, le=180)
-    pseudo_ring_pitch_deg: float = _f(20.0, "One-shot: largest pitch (deg) of the ring views.", ge=0, lt=90)
-    pseudo_ring_weight: float = _f(0.2, "One-shot: loss weight of each ring view.", ge=0)
-    pseudo_ring_background_weight: float = _f(0.0, "One-shot: per-pixel ring weight on the background.", ge=0, le=1)
-    pseudo_ring_supersample: int = _f(2, "One-shot: per-axis supersampling of the ring renders.", ge=1, le=8)
-    pseudo_texture_resolution: int = _f(4, "One-shot: barycentric texture samples per face edge of the back-projected texture.", ge=1)
-    pseudo_texture_mirror_confidence: float = _f(0.5, "One-shot: confidence of texels filled from their mirror partners.", ge=0, le=1)
-    pseudo_texture_inpaint_confidence: float = _f(0.0, "One-shot: confidence of inpainted texels (0: never supervise).", ge=0, le=1)
-    pose_refine: bool = _f(False, "Refine small per-frame corrections of the FLAME global rotation, neck pose and translation of the training timesteps (single-camera clips), from pose_refine_from on; they are saved in checkpoints and baked into the avatar's parameters.")
-    pose_refine_from: int = _f(1000, "First step of the pose refinement (after the geometry has settled).", ge=0)
-    lr_pose_rotation: float = _f(1e-4, "Adam learning rate of the rotation and neck corrections (axis-angle, rad).", ge=0)
-    lr_pose_translation: float = _f(1e-5, "Adam learning rate of the translation corrections (m).", ge=0)
-    w_pose_prior: float = _f(1.0, "Weight of mean(correction^2) (rad^2, and translations in SDF box half extents squared) keeping the pose corrections small.", ge=0)
-    shading: str = _f("sh2", "Colour model: sh2 (the default in every regime: the colour is an albedo times the irradiance of a light fixed in the world, order-2 spherical harmonics of the surfel's outward world normal, so shading follows head turns and expressions; the NeuS colour is shaded the same way with its SDF normal mapped to the world) or none (view-independent colour fixed in head space). On the tracked benchmark captures sh2 scored +1.6 dB (SV-HR) and +0.5 dB (one-shot) on held-out views and expressions, with a lower LPIPS; on one multiview timestep within 0.1 dB of none (docs/results.md).", choices=("none", "sh2"))
-    lr_light: float = _f(5e-3, "Adam learning rate of the SH light coefficients (shading=sh2).", ge=0)
-    w_light_prior: float = _f(0.01, "Weak prior mean((mean irradiance - 1)^2) on the light's band-0 term (shading=sh2), fixing the albedo/light brightness scale.", ge=0)
-    w_light_albedo: float = _f(1.0, "Smooth-albedo light prior (shading=sh2; sage_core.train.light_prior): weight of the term that picks, among the lights the images cannot tell apart, the one under which neighbouring face and neck surfels of similar chromaticity have the most similar albedo. Its gradient reaches only the light (0: off). From one multiview timestep it let the light follow the capture's shading and raised held-out PSNR on the benchmark subjects (docs/results.md).", ge=0)
-    light_albedo_neighbours: int = _f(128, "Smooth-albedo light prior: neighbours per face or neck surfel (canonical space).", ge=1)
-    light_albedo_pairs: int = _f(65536, "Smooth-albedo light prior: neighbour pairs drawn per step (all of them when fewer).", ge=1)
-    light_albedo_chroma: float = _f(0.02, "Smooth-albedo light prior: chromaticity difference sigma of the pair weight exp(-|dchroma|^2/sigma^2).", gt=0)
     render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
+    surfels: SurfelLayoutConfig = _sub(SurfelLayoutConfig, "The initial surfels.")
+    appearance: AppearanceNetConfig = _sub(AppearanceNetConfig, "Appearance network (attributes=mlp).")
+    shape: ShapeNetConfig = _sub(ShapeNetConfig, "Shape network (attributes=mlp).")
+    free: FreeSurfelConfig = _sub(FreeSurfelConfig, "Free per-surfel attributes (attributes=free).")
+    densify: DensifyConfig = _sub(DensifyConfig, "Adaptive density control (attributes=free).")
+    lr: Phase1Rates = _sub(Phase1Rates, "Learning rates.")
+    loss: Phase1Losses = _sub(Phase1Losses, "Loss weights.")
+    schedule: Phase1Schedule = _sub(Phase1Schedule, "Start steps and intervals.")
+    neus: Phase1NeuSConfig = _sub(Phase1NeuSConfig, "NeuS rays of the SDF terms.")
+    smooth: SmoothnessConfig = _sub(SmoothnessConfig, "SDF normal smoothness samples.")
+    symmetry: SymmetryConfig = _sub(SymmetryConfig, "Symmetry samples.")
+    light_albedo: LightAlbedoConfig = _sub(LightAlbedoConfig, "Smooth-albedo light prior.")
+    pseudo: PseudoViewConfig = _sub(PseudoViewConfig, "One-shot pseudo views.")
 
 
 @dataclass
 class EvalConfig:
-    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (formats.md §8)."""
+    """``sage eval``: PSNR / SSIM / LPIPS of an avatar on the evaluation splits (docs/formats.md §8)."""
 
     stage: str = _f("auto", "Avatar to evaluate: auto (the latest finished of phase2, phase1), phase1 or phase2.", choices=("auto", "phase1", "phase2"))
     split: str = _f("test", "Split: test (self-reenactment), val (novel view) or all (both).", choices=("test", "val", "all", "novel"))
@@ -278,70 +430,139 @@ class ExportConfig:
 
 
 @dataclass
+class CorrectionConfig:
+    """Phase 2: the surfel correction from the local stretch while posing (SAGE §3)."""
+
+    enabled: bool = _f(True, "Surfel correction from the local stretch while posing (SAGE §3; correction.mode says how).", alias="correction")
+    mode: str = _f("affine", "How the correction reshapes a surfel: affine (the default: map its ellipse exactly by the neighbourhood's stretch beyond the binding; the identity at rest, an anisotropic stretch followed at any angle to the surfel) or curvature (the paper's: turn it towards the principal curvature directions as far as the stretch is anisotropic, then scale its axes by the stretch along them). w_s damps along the new axes in both. On the three small benchmark subjects affine lowered held-out LPIPS against curvature at the same radius (0.0426 -> 0.0421, 0.0594 -> 0.0589, 0.0451 -> 0.0442; docs/results.md).", choices=("affine", "curvature"), alias="correction_mode")
+    radius_edges: float | None = _f(None, "Ball-query radius of the correction's triangle neighbours, in median canonical edge lengths (the Gaussian weight's width is half of it). None (the default): 1.0 for attribute-network surfels, 2.0 for free surfels. On the small benchmark 1.0 lowered held-out LPIPS against 2.0 for the network avatar on three subjects, and cost the free-surfel avatar 0.5 dB; 0.5 leaves many triangles with too few neighbours to measure a stretch (docs/results.md).", gt=0, alias="correction_radius_edges")
+    max_neighbours: int = _f(16, "Neighbours kept per triangle.", ge=1, alias="correction_max_neighbours")
+    w_s: float = _f(0.0, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|). 0 (the default) keeps the stretch alone: at 1e-3 the damping shrank surfels on curved skin at rest and smoothed the texture that phase 1's polish sharpens (docs/results.md).", ge=0, alias="correction_w_s")
+    umbilic_tol: float = _f(1.0, "Curvature mode: |k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.", ge=0, alias="correction_umbilic_tol")
+    anisotropy_tol: float = _f(0.1, "Curvature mode: relative stretch anisotropy (s1 - s2)/s2 above which the curvature-aligned rotation applies in full; it fades to none under isotropic deformation, so surfels keep their fitted orientation at rest (0: always in full).", ge=0, alias="correction_anisotropy_tol")
+
+
+@dataclass
+class Phase2Rates:
+    """Phase 2: learning rates of the fine-tuned groups (0 leaves a group frozen) and their schedule."""
+
+    schedule: str = _f("cosine", "Learning-rate schedule of every group: cosine (falls from the set rate to 0 over the phase's iterations, so a longer phase ends as settled as a shorter one) or constant. On a tracked tiny capture a constant rate drifted: 3x the length lost 0.25 dB; cosine lost 0.08 dB (docs/results.md).", choices=("constant", "cosine"), alias="lr_schedule")
+    position: float = _f(0.0, "Learning rate of the surfel offsets mu_loc (0: the phase-1 positions are kept; the self-supervised terms otherwise move surfels off the fitted surface and cost quality at rest as well as under expressions; the paper fine-tunes them).", ge=0, alias="lr_position")
+    networks: float = _f(0.0, "Learning rate of the appearance network (0: frozen, the default; the paper fine-tunes it). On the tracked tiny-suite capture with 25,000 surfels, 1e-4 cost 0.6 dB on held-out expressions and 3.2 dB on the novel view: the self-supervised appearance terms pull f_app off its photometric fit (docs/results.md).", ge=0, alias="lr_networks")
+    shape: float = _f(3e-6, "Learning rate of the shape network (mlp attributes; 0: frozen). On the tracked small-suite capture 1e-5 drifted (3x the preset's length lost 0.27 dB); at 3e-6 3x the length is within 0.01 dB, and the preset's length scores as frozen in PSNR with a lower LPIPS (docs/results.md).", ge=0, alias="lr_shape")
+    color: float = _f(1e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).", ge=0, alias="lr_color")
+    opacity: float = _f(0.0, "Learning rate of free opacity logits (0: frozen; free surfels collapse when the self-supervised terms move their opacity, scale and rotation).", ge=0, alias="lr_opacity")
+    scale: float = _f(0.0, "Learning rate of free log scales (0: frozen; the correction adapts scales under deformation).", ge=0, alias="lr_scale")
+    rotation: float = _f(0.0, "Learning rate of free rotations (0: frozen; the correction adapts rotations under deformation).", ge=0, alias="lr_rotation")
+
+
+@dataclass
+class Phase2Losses(LossWeights):
+    """Phase 2: weights of the loss terms (``sage_core.train.phase2.PHASE2_TERMS``). A term whose
+    weight is 0 is not computed."""
+
+    appearance: float = _f(1.0, "lambda_a: squared error between the surfel colour and the teacher colour on sampled pixels.", ge=0, alias="w_appearance")
+    photometric: float = _f(0.0, "Weight of an optional L_rgb term on a captured training frame (0: phase 2 uses no images).", ge=0, alias="w_photometric")
+
+
+@dataclass
+class Phase2Schedule(Schedule):
+    """Phase 2: intervals."""
+
+    photometric_every: int = _f(1, "Add the photometric term every N steps (when loss.photometric > 0).", ge=1, alias="photometric_every")
+    curve_steps: int = _f(100, "Steps of the distortion curve written to distortion_curve.json.", ge=0, alias="curve_steps")
+
+
+@dataclass
+class RestTeacherConfig:
+    """Phase 2: the rest teacher (the phase-1 avatar's renders of the training views at rest)."""
+
+    max_views: int = _f(64, "Rest teacher: at most this many training views (evenly spaced).", ge=1, alias="teacher_max_views")
+    depth_tol: float = _f(0.01, "Rest teacher: relative depth slack of the visibility test.", ge=0, alias="teacher_depth_tol")
+
+
+@dataclass
+class PixelSamplingConfig:
+    """Phase 2: the pixels of the appearance term."""
+
+    per_step: int = _f(1024, "Pixels per step for the appearance term.", ge=1, alias="rays_per_step")
+    error_floor: float = _f(0.5, "Pixel sampling weight = e_n/mean(e_n) + e_d/mean(e_d) + error_floor (errors of the posed render).", ge=0, alias="error_floor")
+
+
+@dataclass
+class MouthPriorConfig:
+    """Phase 2: prior colours of the mouth interior no training view sees (SAGE's mouth prior)."""
+
+    enabled: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): the cavity cavity_color, the teeth teeth_color.", alias="mouth_prior")
+    cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.", ge=0, le=1, length=3, alias="mouth_cavity_color")
+    teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.", ge=0, le=1, length=3, alias="teeth_color")
+    visibility: str = _f("surfels", "Which mouth surfels take the prior: surfels (the default: those bound to mouth triangles that themselves contribute less than half a pixel to the training views at rest, so mouth surfels that show at rest, e.g. on the lips, keep their fitted colour) or faces (those bound to mouth-interior or teeth triangles that no training view sees at rest, whether or not the surfels show). On the second small-suite subject faces cost 1.2 dB on the novel view and raised LPIPS on held-out expressions from 0.0609 to 0.0669 (docs/results.md).", choices=("faces", "surfels"), alias="mouth_prior_visibility")
+    occlusion_jaw: float = _f(0.2, "Darken the mouth prior by its ambient visibility (1 - ambient occlusion) computed with the jaw opened this far (rad); 0: no darkening.", ge=0, alias="mouth_occlusion_jaw")
+
+
+@dataclass
+class UnseenFillConfig:
+    """Phase 2: colours of the other surfels no training view sees."""
+
+    enabled: bool = _f(False, "Surfels that no training view sees at rest (less than half a pixel of blending weight) and that the mouth prior does not colour take the mean albedo of their nearest seen surfels of the same region (eyes, face, neck, ...; hair excluded): what an expression or a change of gaze reveals, such as the sclera under the lids, continues what the views showed instead of the appearance network's extrapolation.", alias="unseen_fill")
+    neighbours: int = _f(8, "Seen surfels averaged per unseen surfel.", ge=1, alias="unseen_fill_neighbours")
+
+
+@dataclass
+class WrinkleConfig:
+    """Phase 2: wrinkle shading, stored in the avatar."""
+
+    enabled: bool = _f(True, "Wrinkle shading (after SAGE's darkening of high-distortion regions): darken surfels where an expression compresses the surface (region says which may, basis on which mesh; stored in the avatar). On the tracked MV-SF benchmark captures it added 0.24-0.26 dB and lowered LPIPS on held-out expressions (docs/results.md).", alias="wrinkle_shading")
+    strength: float = _f(0.3, "Wrinkle shading: darkening at full compression (0..1); with region=distortion, of the most distorted triangles.", ge=0, le=1, alias="wrinkle_strength")
+    full_compression: float = _f(0.25, "Wrinkle shading: relative one-ring area loss at which the darkening is full.", gt=0, le=1, alias="wrinkle_full_compression")
+    basis: str = _f("expression", "Wrinkle shading: the mesh the compression is measured on: expression (FLAME's expression-shaped mesh before pose correctives and skinning, against the canonical frame's, so that the area the skinning of the jaw, neck and eyes loses in its blend zones, e.g. under the chin when the jaw opens, does not darken) or posed (the posed mesh, the rule before this option). On three small benchmark subjects expression scored +0.04 to +0.05 dB over posed with a lower LPIPS (region=distortion; docs/results.md).", choices=("expression", "posed"), alias="wrinkle_basis")
+    region: str = _f("skin", "Wrinkle shading: which triangles may darken: skin (the default: every non-hair triangle outside the mouth prior, at full strength) or distortion (ramped by their mean distortion during phase 2, SAGE's rule). With the expression basis skin scored +0.14 to +0.18 dB over distortion with a lower LPIPS on three small benchmark subjects (docs/results.md).", choices=("distortion", "skin"), alias="wrinkle_region")
+    quantiles: list[float] = _f([0.5, 0.9], "Wrinkle shading: the triangle weight rises from 0 to 1 between these quantiles of the per-triangle mean distortion.", ge=0, le=1, length=2, alias="wrinkle_quantiles")
+
+
+@dataclass
+class ExpressionSamplingConfig:
+    """Phase 2: the sampled expressions and pose jitters of the deformed renders."""
+
+    target: float = _f(0.01, "Sampled expression component std: a 1-sigma coefficient moves its most-affected vertex by this many metres.", ge=0, alias="expr_target")
+    active: int = _f(8, "A synthetic expression activates between 1 and this many components.", ge=1, alias="expr_active")
+    clip_sigma: float = _f(2.5, "Synthetic coefficients and jitters are clipped at this many std.", gt=0, alias="expr_clip_sigma")
+    jaw_max: float = _f(0.4, "Largest sampled jaw opening (rad).", ge=0, alias="jaw_max")
+    eye_range: float = _f(0.2, "Largest sampled gaze angle (rad).", ge=0, alias="eye_range")
+    neck_std: float = _f(0.05, "Neck pose jitter std (rad).", ge=0, alias="neck_std")
+    rotation_std: float = _f(0.05, "Global rotation jitter std (rad), composed with the training frame's.", ge=0, alias="rotation_std")
+    translation_std: float = _f(0.005, "Global translation jitter std (m).", ge=0, alias="translation_std")
+    observed_weight: float = _f(0.3, "Probability of starting from one of the capture's training expressions.", ge=0, le=1, alias="observed_weight")
+    observed_noise: float = _f(0.2, "Noise on observed expressions, relative to the component std.", ge=0, alias="observed_noise")
+    rest_fraction: float = _f(0.0, "Probability that a step poses the training frame exactly as captured (no sampled expression or jitter): the appearance term then anchors the avatar to its own phase-1 renders.", ge=0, le=1, alias="rest_fraction")
+
+
+@dataclass
 class Phase2Config:
-    """``sage phase2``: self-supervised fine-tuning under sampled expressions, SDF and hash grid frozen."""
+    """``sage phase2``: self-supervised fine-tuning under sampled expressions, SDF and hash grid frozen.
+
+    The flat key names of earlier versions (``correction_mode``, ``w_appearance``, ``teacher_max_views``,
+    ...) are accepted as aliases of the nested fields (:func:`legacy_aliases`)."""
 
     iterations: int = _f(5000, "Optimisation steps.", ge=1)
-    correction: bool = _f(True, "Surfel correction from the local stretch while posing (SAGE §3; correction_mode says how).")
-    correction_radius_edges: float | None = _f(None, "Ball-query radius of the correction's triangle neighbours, in median canonical edge lengths (the Gaussian weight's width is half of it). None (the default): 1.0 for attribute-network surfels, 2.0 for free surfels. On the small benchmark 1.0 lowered held-out LPIPS against 2.0 for the network avatar on three subjects, and cost the free-surfel avatar 0.5 dB; 0.5 leaves many triangles with too few neighbours to measure a stretch (docs/results.md).", gt=0)
-    correction_max_neighbours: int = _f(16, "Neighbours kept per triangle.", ge=1)
-    correction_w_s: float = _f(0.0, "Curvature damping length w_s (m): s' = s*sigma/(1 + w_s*|kappa|). 0 (the default) keeps the stretch alone: at 1e-3 the damping shrank surfels on curved skin at rest and smoothed the texture that phase 1's polish sharpens (docs/results.md).", ge=0)
-    correction_umbilic_tol: float = _f(1.0, "Curvature mode: |k1 - k2| (1/m) above which the curvature-aligned rotation applies in full.", ge=0)
-    correction_mode: str = _f("affine", "How the correction reshapes a surfel: affine (the default: map its ellipse exactly by the neighbourhood's stretch beyond the binding; the identity at rest, an anisotropic stretch followed at any angle to the surfel) or curvature (the paper's: turn it towards the principal curvature directions as far as the stretch is anisotropic, then scale its axes by the stretch along them). w_s damps along the new axes in both. On the three small benchmark subjects affine lowered held-out LPIPS against curvature at the same radius (0.0426 -> 0.0421, 0.0594 -> 0.0589, 0.0451 -> 0.0442; docs/results.md).", choices=("affine", "curvature"))
-    correction_anisotropy_tol: float = _f(0.1, "Curvature mode: relative stretch anisotropy (s1 - s2)/s2 above which the curvature-aligned rotation applies in full; it fades to none under isotropic deformation, so surfels keep their fitted orientation at rest (0: always in full).", ge=0)
-    lr_schedule: str = _f("cosine", "Learning-rate schedule of every group: cosine (falls from the set rate to 0 over the phase's iterations, so a longer phase ends as settled as a shorter one) or constant. On a tracked tiny capture a constant rate drifted: 3x the length lost 0.25 dB; cosine lost 0.08 dB (docs/results.md).", choices=("constant", "cosine"))
-    lr_position: float = _f(0.0, "Learning rate of the surfel offsets mu_loc (0: the phase-1 positions are kept; the self-supervised terms otherwise move surfels off the fitted surface and cost quality at rest as well as under expressions; the paper fine-tunes them).", ge=0)
-    lr_networks: float = _f(0.0, "Learning rate of the appearance network (0: frozen, the default; the paper fine-tunes it). On the tracked tiny-suite capture with 25,000 surfels, 1e-4 cost 0.6 dB on held-out expressions and 3.2 dB on the novel view: the self-supervised appearance terms pull f_app off its photometric fit (docs/results.md).", ge=0)
-    lr_shape: float = _f(3e-6, "Learning rate of the shape network (mlp attributes; 0: frozen). On the tracked small-suite capture 1e-5 drifted (3x the preset's length lost 0.27 dB); at 3e-6 3x the length is within 0.01 dB, and the preset's length scores as frozen in PSNR with a lower LPIPS (docs/results.md).", ge=0)
-    lr_color: float = _f(1e-3, "Learning rate of free SH colour (DC; the rest uses 1/20).", ge=0)
-    lr_opacity: float = _f(0.0, "Learning rate of free opacity logits (0: frozen; free surfels collapse when the self-supervised terms move their opacity, scale and rotation).", ge=0)
-    lr_scale: float = _f(0.0, "Learning rate of free log scales (0: frozen; the correction adapts scales under deformation).", ge=0)
-    lr_rotation: float = _f(0.0, "Learning rate of free rotations (0: frozen; the correction adapts rotations under deformation).", ge=0)
-    w_normal_consistency: float = _f(0.05, "lambda_n: 2DGS normal consistency under deformation.", ge=0)
-    w_distortion: float = _f(100.0, "lambda_d: 2DGS depth distortion under deformation.", ge=0)
-    w_appearance: float = _f(1.0, "lambda_a: squared error between the surfel colour and the teacher colour on sampled pixels.", ge=0)
     teacher: str = _f("rest", "Appearance teacher: rest (the phase-1 avatar's own renders of the training views at rest, looked up through the mesh correspondence) or neus (canonical NeuS volume rendering of the warped ray).", choices=("rest", "neus"))
-    teacher_max_views: int = _f(64, "Rest teacher: at most this many training views (evenly spaced).", ge=1)
-    mouth_prior: bool = _f(True, "Teach the mouth interior that no training view sees prior colours (SAGE's mouth-interior prior): the cavity mouth_cavity_color, the teeth teeth_color.")
-    mouth_cavity_color: list[float] = _f([0.30, 0.12, 0.12], "Prior RGB of the unobserved mouth cavity.", ge=0, le=1, length=3)
-    teeth_color: list[float] = _f([0.85, 0.82, 0.75], "Prior RGB of unobserved teeth.", ge=0, le=1, length=3)
-    mouth_prior_visibility: str = _f("surfels", "Which mouth surfels take the prior: surfels (the default: those bound to mouth triangles that themselves contribute less than half a pixel to the training views at rest, so mouth surfels that show at rest, e.g. on the lips, keep their fitted colour) or faces (those bound to mouth-interior or teeth triangles that no training view sees at rest, whether or not the surfels show). On the second small-suite subject faces cost 1.2 dB on the novel view and raised LPIPS on held-out expressions from 0.0609 to 0.0669 (docs/results.md).", choices=("faces", "surfels"))
-    unseen_fill: bool = _f(False, "Surfels that no training view sees at rest (less than half a pixel of blending weight) and that the mouth prior does not colour take the mean albedo of their nearest seen surfels of the same region (eyes, face, neck, ...; hair excluded): what an expression or a change of gaze reveals, such as the sclera under the lids, continues what the views showed instead of the appearance network's extrapolation.")
-    unseen_fill_neighbours: int = _f(8, "unseen_fill: seen surfels averaged per unseen surfel.", ge=1)
-    mouth_occlusion_jaw: float = _f(0.2, "Darken the mouth prior by its ambient visibility (1 - ambient occlusion) computed with the jaw opened this far (rad); 0: no darkening.", ge=0)
-    teacher_depth_tol: float = _f(0.01, "Rest teacher: relative depth slack of the visibility test.", ge=0)
-    wrinkle_shading: bool = _f(True, "Wrinkle shading (after SAGE's darkening of high-distortion regions): darken surfels where an expression compresses the surface (wrinkle_region says which may, wrinkle_basis on which mesh; stored in the avatar). On the tracked MV-SF benchmark captures it added 0.24-0.26 dB and lowered LPIPS on held-out expressions (docs/results.md).")
-    wrinkle_strength: float = _f(0.3, "Wrinkle shading: darkening at full compression (0..1); with wrinkle_region=distortion, of the most distorted triangles.", ge=0, le=1)
-    wrinkle_full_compression: float = _f(0.25, "Wrinkle shading: relative one-ring area loss at which the darkening is full.", gt=0, le=1)
-    wrinkle_basis: str = _f("expression", "Wrinkle shading: the mesh the compression is measured on: expression (FLAME's expression-shaped mesh before pose correctives and skinning, against the canonical frame's, so that the area the skinning of the jaw, neck and eyes loses in its blend zones, e.g. under the chin when the jaw opens, does not darken) or posed (the posed mesh, the rule before this option). On three small benchmark subjects expression scored +0.04 to +0.05 dB over posed with a lower LPIPS (wrinkle_region=distortion; docs/results.md).", choices=("expression", "posed"))
-    wrinkle_region: str = _f("skin", "Wrinkle shading: which triangles may darken: skin (the default: every non-hair triangle outside the mouth prior, at full strength) or distortion (ramped by their mean distortion during phase 2, SAGE's rule). With the expression basis skin scored +0.14 to +0.18 dB over distortion with a lower LPIPS on three small benchmark subjects (docs/results.md).", choices=("distortion", "skin"))
-    wrinkle_quantiles: list[float] = _f([0.5, 0.9], "Wrinkle shading: the triangle weight rises from 0 to 1 between these quantiles of the per-triangle mean distortion.", ge=0, le=1, length=2)
-    w_photometric: float = _f(0.0, "Weight of an optional L_rgb term on a captured training frame (0: phase 2 uses no images).", ge=0)
-    photometric_every: int = _f(1, "Add the photometric term every N steps (when w_photometric > 0).", ge=1)
-    rays_per_step: int = _f(1024, "Pixels per step for the appearance term.", ge=1)
-    error_floor: float = _f(0.5, "Pixel sampling weight = e_n/mean(e_n) + e_d/mean(e_d) + error_floor (errors of the posed render).", ge=0)
-    neus_samples: int = _f(32, "Stratified NeuS samples per ray of the teacher.", ge=1)
-    neus_importance: int = _f(32, "NeuS importance samples per ray.", ge=0)
-    neus_up_steps: int = _f(2, "NeuS up-sampling rounds.", ge=0)
-    expr_target: float = _f(0.01, "Sampled expression component std: a 1-sigma coefficient moves its most-affected vertex by this many metres.", ge=0)
-    expr_active: int = _f(8, "A synthetic expression activates between 1 and this many components.", ge=1)
-    expr_clip_sigma: float = _f(2.5, "Synthetic coefficients and jitters are clipped at this many std.", gt=0)
-    jaw_max: float = _f(0.4, "Largest sampled jaw opening (rad).", ge=0)
-    eye_range: float = _f(0.2, "Largest sampled gaze angle (rad).", ge=0)
-    neck_std: float = _f(0.05, "Neck pose jitter std (rad).", ge=0)
-    rotation_std: float = _f(0.05, "Global rotation jitter std (rad), composed with the training frame's.", ge=0)
-    translation_std: float = _f(0.005, "Global translation jitter std (m).", ge=0)
-    observed_weight: float = _f(0.3, "Probability of starting from one of the capture's training expressions.", ge=0, le=1)
-    observed_noise: float = _f(0.2, "Noise on observed expressions, relative to the component std.", ge=0)
-    rest_fraction: float = _f(0.0, "Probability that a step poses the training frame exactly as captured (no sampled expression or jitter): the appearance term then anchors the avatar to its own phase-1 renders.", ge=0, le=1)
     near: float = _f(0.2, "Near plane (m) of the surfel renders.", gt=0)
     far: float = _f(3.0, "Far plane (m) of the distortion's normalised depth.", gt=0)
     background: float = _f(1.0, "Background grey level.", ge=0, le=1)
-    curve_steps: int = _f(100, "Steps of the distortion curve written to distortion_curve.json.", ge=0)
     eval_phase1: bool = _f(True, "Also evaluate the phase-1 avatar (no correction) on the test split, for comparison.")
     eval_frames: int = _f(0, "Evaluate at most this many evenly spaced frames per split (0: all).", ge=0)
-    checkpoint_every: int = _f(500, "Checkpoint interval in steps.", ge=1)
     render_backend: str = _f("auto", "Surfel rasterizer backend: auto (triton on CUDA, the native C++ backend on CPU when it is available, else torch), torch (packed pure torch, the reference), cpp (native CPU, OpenMP) or triton (CUDA tile kernels). The backend actually used is recorded in the manifest.", choices=RENDER_BACKENDS)
+    correction: CorrectionConfig = _sub(CorrectionConfig, "Surfel correction.")
+    lr: Phase2Rates = _sub(Phase2Rates, "Learning rates.")
+    loss: Phase2Losses = _sub(Phase2Losses, "Loss weights.")
+    schedule: Phase2Schedule = _sub(Phase2Schedule, "Intervals.", checkpoint_every=500)
+    neus: NeuSConfig = _sub(NeuSConfig, "NeuS teacher (teacher=neus).")
+    rest_teacher: RestTeacherConfig = _sub(RestTeacherConfig, "Rest teacher (teacher=rest).")
+    pixels: PixelSamplingConfig = _sub(PixelSamplingConfig, "Pixels of the appearance term.")
+    mouth: MouthPriorConfig = _sub(MouthPriorConfig, "Mouth-interior prior.")
+    unseen_fill: UnseenFillConfig = _sub(UnseenFillConfig, "Colours of unseen surfels.")
+    wrinkles: WrinkleConfig = _sub(WrinkleConfig, "Wrinkle shading.")
+    expressions: ExpressionSamplingConfig = _sub(ExpressionSamplingConfig, "Sampled expressions and poses.")
 
 
 STAGE_CONFIGS: dict[str, type] = {
@@ -372,35 +593,35 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
         },
         "phase1": {
             "iterations": 1500,
-            "n_surfels": 6000,
-            "app_hidden": 32,
-            "app_sh_degree": 2,
-            "sh_degree": 2,
-            "app_grid_levels": 8,
-            "app_grid_log2_table": 15,
-            "app_grid_max_res": 512,
-            "shape_hidden": 32,
-            "lr_sdf": 1e-3,
-            "lr_grid": 1e-3,
-            "lr_networks": 1e-3,
-            "lr_color": 1e-2,
-            "normal_consistency_from": 300,
-            "distortion_from": 300,
-            "rays_per_step": 256,
-            "smooth_points": 256,
-            "neus_samples": 24,
-            "neus_importance": 16,
-            "rebind_every": 250,
-            "eval_every": 250,
+            "surfels.count": 6000,
+            "appearance.hidden": 32,
+            "appearance.sh_degree": 2,
+            "free.sh_degree": 2,
+            "appearance.grid_levels": 8,
+            "appearance.grid_log2_table": 15,
+            "appearance.grid_max_res": 512,
+            "shape.hidden": 32,
+            "lr.sdf": 1e-3,
+            "lr.grid": 1e-3,
+            "lr.networks": 1e-3,
+            "lr.color": 1e-2,
+            "schedule.normal_consistency_from": 300,
+            "schedule.distortion_from": 300,
+            "neus.rays_per_step": 256,
+            "smooth.points": 256,
+            "neus.samples": 24,
+            "neus.importance": 16,
+            "schedule.rebind_every": 250,
+            "schedule.eval_every": 250,
             "mc_resolution": 128,
-            "checkpoint_every": 250,
+            "schedule.checkpoint_every": 250,
         },
         "phase2": {
             "iterations": 300,
-            "rays_per_step": 256,
-            "neus_samples": 24,
-            "neus_importance": 16,
-            "checkpoint_every": 100,
+            "pixels.per_step": 256,
+            "neus.samples": 24,
+            "neus.importance": 16,
+            "schedule.checkpoint_every": 100,
         },
         "eval": {},
         "export": {"mc_resolution": 128},
@@ -420,35 +641,35 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
         },
         "phase1": {
             "iterations": 4000,
-            "n_surfels": 20000,
-            "app_hidden": 64,
-            "app_sh_degree": 2,
-            "sh_degree": 2,
-            "app_grid_levels": 12,
-            "app_grid_log2_table": 17,
-            "app_grid_max_res": 1024,
-            "shape_hidden": 32,
-            "lr_sdf": 1e-3,
-            "lr_grid": 1e-3,
-            "lr_networks": 1e-3,
-            "lr_color": 1e-2,
-            "normal_consistency_from": 800,
-            "distortion_from": 800,
-            "rays_per_step": 512,
-            "smooth_points": 512,
-            "neus_samples": 24,
-            "neus_importance": 16,
-            "rebind_every": 500,
-            "eval_every": 500,
+            "surfels.count": 20000,
+            "appearance.hidden": 64,
+            "appearance.sh_degree": 2,
+            "free.sh_degree": 2,
+            "appearance.grid_levels": 12,
+            "appearance.grid_log2_table": 17,
+            "appearance.grid_max_res": 1024,
+            "shape.hidden": 32,
+            "lr.sdf": 1e-3,
+            "lr.grid": 1e-3,
+            "lr.networks": 1e-3,
+            "lr.color": 1e-2,
+            "schedule.normal_consistency_from": 800,
+            "schedule.distortion_from": 800,
+            "neus.rays_per_step": 512,
+            "smooth.points": 512,
+            "neus.samples": 24,
+            "neus.importance": 16,
+            "schedule.rebind_every": 500,
+            "schedule.eval_every": 500,
             "mc_resolution": 192,
-            "checkpoint_every": 500,
+            "schedule.checkpoint_every": 500,
         },
         "phase2": {
             "iterations": 800,
-            "rays_per_step": 512,
-            "neus_samples": 24,
-            "neus_importance": 16,
-            "checkpoint_every": 200,
+            "pixels.per_step": 512,
+            "neus.samples": 24,
+            "neus.importance": 16,
+            "schedule.checkpoint_every": 200,
         },
         "eval": {},
         "export": {"mc_resolution": 192},
@@ -458,8 +679,8 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 # Regime-dependent defaults, applied over the preset (and under a config file and flags) when the
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
-    "sv-hr": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},
-    "one-shot": {"phase1": {"app_sh_degree": 0, "sh_degree": 0, "exposure": "gain", "w_sym_sdf": 0.1, "w_sym_color": 0.05}},
+    "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
+    "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05}},
 }
 
 # Rules that tie several fields of one config together: (check, fields named in the error, what is
@@ -469,13 +690,16 @@ CONFIG_RULES: dict[type, tuple[tuple[Callable[[Any], bool], tuple[str, ...], str
     HashGridConfig: ((lambda c: c.base_res <= c.max_res, ("base_res", "max_res"), "base_res must not exceed max_res"),),
     Phase1Config: (
         (lambda c: c.near < c.far, ("near", "far"), "near must be smaller than far"),
-        (lambda c: not c.densify or c.attributes == "free", ("densify", "attributes"), "adaptive density control needs free surfel attributes (attributes=free)"),
-        (lambda c: c.attributes == "free" or (c.w_local_position == 0 and c.w_local_scale == 0), ("w_local_position", "w_local_scale", "attributes"),
-         "the local position and scale terms act on free surfel attributes only (attributes=free)"),
+        (lambda c: not c.densify.enabled or c.attributes == "free", ("densify.enabled", "attributes"),
+         "adaptive density control needs free surfel attributes (attributes=free)"),
+        (lambda c: c.attributes == "free" or (c.loss.local_position == 0 and c.loss.local_scale == 0),
+         ("loss.local_position", "loss.local_scale", "attributes"), "the local position and scale terms act on free surfel attributes only (attributes=free)"),
     ),
     Phase2Config: (
         (lambda c: c.near < c.far, ("near", "far"), "near must be smaller than far"),
-        (lambda c: c.wrinkle_quantiles[0] < c.wrinkle_quantiles[1], ("wrinkle_quantiles",), "the first quantile must be below the second"),
+    ),
+    WrinkleConfig: (
+        (lambda c: c.quantiles[0] < c.quantiles[1], ("quantiles",), "the first quantile must be below the second"),
     ),
 }
 
@@ -497,9 +721,72 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+def legacy_aliases(cls: type) -> dict[str, str]:
+    """Flat key of earlier versions -> dotted field name, for a stage config class.
+
+    The phase-1 and phase-2 configs were flat (``w_light_albedo``, ``n_surfels``); their fields now
+    sit in sections (``loss.light_albedo``, ``surfels.count``) and carry the old name as
+    ``metadata["alias"]`` (:func:`_f`). Config files, ``--set`` flags and saved configs may use
+    either name."""
+    return dict(_aliases(cls))
+
+
+def _aliases(cls: type) -> tuple[tuple[str, str], ...]:
+    cached = _ALIAS_CACHE.get(cls)
+    if cached is None:
+        out: list[tuple[str, str]] = []
+
+        def walk(tp: type, prefix: str) -> None:
+            for f in dataclasses.fields(tp):
+                sub = _field_types(tp)[f.name]
+                if dataclasses.is_dataclass(sub):
+                    walk(sub, f"{prefix}{f.name}.")
+                elif "alias" in f.metadata:
+                    out.append((f.metadata["alias"], f"{prefix}{f.name}"))
+
+        walk(cls, "")
+        cached = _ALIAS_CACHE[cls] = tuple(out)
+    return cached
+
+
+_ALIAS_CACHE: dict[type, tuple[tuple[str, str], ...]] = {}
+
+
+def canonical_form(cfg: Any) -> dict[str, Any]:
+    """The form of a config that :func:`config_hash` hashes: the nested plain dict, except that a
+    field with a legacy flat name (:func:`legacy_aliases`) sits at the top level under that name,
+    fields added later (``added``) are left out at their default, and sections left empty by this
+    are dropped. A config whose values did not change since its
+    stage's fields were nested therefore keeps its hash, and stages a workspace finished before stay
+    up to date."""
+    flat: dict[str, Any] = {}
+
+    def walk(obj: Any) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                sub = walk(value)
+                if sub:
+                    out[f.name] = sub
+            elif f.metadata.get("added") and value == f.default:
+                continue
+            elif "alias" in f.metadata:
+                flat[f.metadata["alias"]] = json.loads(json.dumps(value))
+            else:
+                out[f.name] = json.loads(json.dumps(value))
+        return out
+
+    nested = walk(cfg)
+    clash = set(flat) & set(nested)
+    if clash:  # a legacy name may not also be a field or a non-empty section at the top level
+        raise ConfigError(f"{type(cfg).__name__}: legacy name(s) {', '.join(sorted(clash))} clash with top-level fields")
+    return {**nested, **flat}
+
+
 def config_hash(cfg: Any) -> str:
-    """Stable sha256 (hex, 16 chars) of the canonical JSON form of a config."""
-    blob = json.dumps(to_dict(cfg), sort_keys=True, separators=(",", ":")).encode()
+    """Stable sha256 (hex, 16 chars) of the canonical JSON form (:func:`canonical_form`) of a config."""
+    blob = json.dumps(canonical_form(cfg), sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
 
 
@@ -543,15 +830,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
             return bool(value)
         raise ConfigError(f"{key}: expected true/false, got {value!r}")
     if tp is int:
-        if isinstance(value, bool):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        try:
-            f = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}") from None
-        if not f.is_integer():
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        return int(f)
+        return _coerce_int(value, key)
     if tp is float:
         if isinstance(value, bool):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
@@ -566,8 +845,48 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     return value
 
 
+EXACT_INT_LIMIT = 2**53
+"""Magnitude up to which a number written as a float (``1e4``, ``2.0``) is taken as an integer: the
+floats beyond it are not all whole numbers, and ``1e23`` would become 99999999999999991611392."""
+
+INT_MAX = 2**31 - 1
+"""Upper bound of every integer field that declares none (:func:`validate_config`): counts and step
+numbers beyond it are mistakes, not settings."""
+
+
+def _coerce_int(value: Any, key: str) -> int:
+    """An integer from an int, an integer string (``"500"``) or a whole number written as a float
+    (``1e4``, ``"2.0"``) of magnitude at most :data:`EXACT_INT_LIMIT`; ConfigError otherwise."""
+    if isinstance(value, bool):
+        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    if isinstance(value, int):
+        return value
+    if isinstance(value, str):
+        try:
+            return int(value.strip().replace("_", ""))
+        except ValueError:
+            pass
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key}: expected an integer, got {value!r}") from None
+    if not math.isfinite(f) or not f.is_integer():
+        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    if abs(f) > EXACT_INT_LIMIT:
+        raise ConfigError(f"{key}: {value!r} is too large for an integer setting (at most {INT_MAX} for most fields)")
+    return int(f)
+
+
 def _apply(cfg: Any, key: str, value: Any, where: str) -> None:
-    """Set a dotted key on a (nested) config dataclass, with type checks."""
+    """Set a dotted key on a (nested) config dataclass, with type checks. A legacy flat key of the
+    stage config (:func:`legacy_aliases`) stands for its dotted field; a legacy name that is also a
+    section (``densify``, ``correction``) sets the section's field when given a plain value."""
+    if "." not in key:
+        alias = dict(_aliases(type(cfg))).get(key)
+        if alias is not None:
+            types = _field_types(type(cfg))
+            if key not in types or (dataclasses.is_dataclass(types[key]) and not isinstance(value, dict)):
+                key = alias
     parts = key.split(".")
     obj = cfg
     for i, p in enumerate(parts):
@@ -583,11 +902,24 @@ def _apply(cfg: Any, key: str, value: Any, where: str) -> None:
                 for k, v in value.items():
                     _apply(getattr(obj, p), str(k), v, where)
             else:
-                setattr(obj, p, _coerce(value, tp, f"{where}: {key}"))
+                v = _coerce(value, tp, f"{where}: {key}")
+                meta = next(f.metadata for f in dataclasses.fields(obj) if f.name == p)
+                if "spellings" in meta and isinstance(v, str):  # other names of the choices, any case
+                    low = v.strip().lower()
+                    v = meta["spellings"].get(low, low if low in meta.get("choices", ()) else v)
+                setattr(obj, p, v)
         else:
             obj = getattr(obj, p)
             if not dataclasses.is_dataclass(obj):
                 raise ConfigError(f"{where}: '{'.'.join(parts[: i + 1])}' is not a section")
+
+
+def get_field(cfg: Any, key: str) -> Any:
+    """The value of a dotted field of a config (``get_field(cfg, "loss.pt")``)."""
+    obj = cfg
+    for p in key.split("."):
+        obj = getattr(obj, p)
+    return obj
 
 
 def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -600,11 +932,10 @@ def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def load_config_file(path: str | Path) -> dict[str, Any]:
     """Read a YAML or JSON config file into a mapping; errors name the file."""
-    from .errors import InputError
+    from .errors import InputError, require_file
 
     p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "config file not found")
+    require_file(p, "config file")
     text = p.read_text()
     try:
         if p.suffix.lower() == ".json":
@@ -690,7 +1021,7 @@ def allowed_text(meta: Any) -> str:
 
 
 def _num(v: float) -> str:
-    return f"{v:g}"
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else f"{v:g}"
 
 
 def _check_value(value: Any, meta: Any, key: str) -> None:
@@ -720,17 +1051,27 @@ def validate_config(cfg: Any, where: str = "", prefix: str = "") -> None:
     (``init-mesh config: pretrain.steps = 0 is out of range (allowed: >= 1)``).
     :func:`resolve_config` calls it once, after all sources are merged.
     """
+    types = _field_types(type(cfg))
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         key = f"{prefix}{f.name}"
         if dataclasses.is_dataclass(value):
             validate_config(value, where, prefix=f"{key}.")
             continue
-        _check_value(value, f.metadata, f"{where}: {key}" if where else key)
+        name = f"{where}: {key}" if where else key
+        _check_value(value, f.metadata, name)
+        if _is_int(types[f.name]) and "le" not in f.metadata and "lt" not in f.metadata and value is not None and value > INT_MAX:
+            raise ConfigError(f"{name} = {value!r} is out of range (allowed: at most {INT_MAX})")
     for check, names, problem in CONFIG_RULES.get(type(cfg), ()):
         if not check(cfg):
-            got = ", ".join(f"{prefix}{n} = {getattr(cfg, n)!r}" for n in names)
+            got = ", ".join(f"{prefix}{n} = {get_field(cfg, n)!r}" for n in names)
             raise ConfigError(f"{where + ': ' if where else ''}{problem} (got {got})")
+
+
+def _is_int(tp: Any) -> bool:
+    """Whether a field's annotation is ``int`` or ``int | None``."""
+    args = [a for a in typing.get_args(tp) if a is not type(None)] if typing.get_origin(tp) in (typing.Union, getattr(__import__("types"), "UnionType", None)) else [tp]
+    return args == [int]
 
 
 def from_dict(cls: type[T], data: dict[str, Any]) -> T:
@@ -743,12 +1084,15 @@ def from_dict(cls: type[T], data: dict[str, Any]) -> T:
 
 def describe(cls: type, prefix: str = "") -> list[tuple[str, str, Any]]:
     """(dotted name, help, default) for every field, for docs and ``--help`` listings."""
+    return _describe(cls(), prefix)
+
+
+def _describe(obj: Any, prefix: str) -> list[tuple[str, str, Any]]:
     rows: list[tuple[str, str, Any]] = []
-    inst = cls()
-    for f in dataclasses.fields(cls):
-        val = getattr(inst, f.name)
+    for f in dataclasses.fields(obj):
+        val = getattr(obj, f.name)
         if dataclasses.is_dataclass(val):
-            rows.extend(describe(type(val), prefix=f"{prefix}{f.name}."))
+            rows.extend(_describe(val, f"{prefix}{f.name}."))
         else:
             rows.append((f"{prefix}{f.name}", f.metadata.get("help", ""), val))
     return rows

@@ -8,7 +8,7 @@ is also accepted and gives a 0-d result. Images stored channels-last (``(H, W, C
 ``(B, H, W, C)``, as :func:`sage_core.data.imageio.read_image` returns) go through
 :func:`to_nchw` first. Values are in [0, 1] (data range 1).
 
-Protocol (formats.md §8): PSNR clamps both images to [0, 1] itself. SSIM does not clamp, because it
+Protocol (docs/formats.md §8): PSNR clamps both images to [0, 1] itself. SSIM does not clamp, because it
 is also a training loss (``0.8·L1 + 0.2·(1 − SSIM)``) and clamping would cut gradients; the
 evaluation caller clamps renders before calling it.
 """
@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .native_build import NativeExtension
+from .native_build import native_extension
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -65,7 +64,7 @@ def _mse_to_psnr(mse: torch.Tensor, cap: float | None) -> torch.Tensor:
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, cap: float | None = None) -> torch.Tensor:
-    """Standard PSNR per image, ``10·log10(1 / MSE)`` with max 1 (formats.md §8).
+    """Standard PSNR per image, ``10·log10(1 / MSE)`` with max 1 (docs/formats.md §8).
 
     Both images are clamped to [0, 1]; the MSE is over all pixels × channels.
 
@@ -124,14 +123,7 @@ def gaussian_window_1d(
     return (g / g.sum()).to(dtype=dtype, device=device)
 
 
-BLUR_EXT = NativeExtension(
-    name="sage_blur_cpu",
-    source=Path(__file__).parent / "csrc" / "blur_cpu.cpp",
-    namespace="sage_blur_cpu",
-    probe_op="gaussian_blur",
-    what="SSIM blur",
-    fallback="convolution for the SSIM windows",
-)
+BLUR_EXT = native_extension(__file__, "blur_cpu", probe_op="gaussian_blur", what="SSIM blur", fallback="convolution for the SSIM windows")
 """The native separable blur of the SSIM windows on CPU tensors (compiled on first use)."""
 
 
@@ -211,7 +203,7 @@ def ssim_map(
     window_size: int = SSIM_WINDOW,
     sigma: float = SSIM_SIGMA,
 ) -> torch.Tensor:
-    """Per-pixel, per-channel SSIM map (formats.md §8).
+    """Per-pixel, per-channel SSIM map (docs/formats.md §8).
 
     Gaussian window ``window_size``² with std ``sigma``, zero-padded 'same' convolution as in the
     3DGS code, ``C1 = 0.01²``, ``C2 = 0.03²`` (data range 1). No clamping; differentiable in pred.

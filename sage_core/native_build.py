@@ -186,6 +186,18 @@ class NativeExtension:
         return "torch"
 
 
+def native_extension(module_file: str | Path, stem: str, *, probe_op: str, what: str, fallback: str) -> NativeExtension:
+    """The extension of ``csrc/<stem>.cpp`` beside the module ``module_file`` (its ``__file__``), named
+    and registered as ``torch.ops.sage_<stem>``: the layout every extension of the package follows.
+    probe_op, what, fallback: see :class:`NativeExtension`. A loader module then reads
+
+    ``EXT = native_extension(__file__, "blur_cpu", probe_op=..., what=..., fallback=...)`` and uses
+    ``EXT.available()``, ``EXT.ops(caller)`` and ``EXT.warn_unavailable_once(reason)``."""
+    name = f"sage_{stem}"
+    return NativeExtension(name=name, source=Path(module_file).parent / "csrc" / f"{stem}.cpp", namespace=name, probe_op=probe_op,
+                           what=what, fallback=fallback)  # fmt: skip
+
+
 def warn_unavailable(what: str, fallback: str, reason: str, stacklevel: int = 3) -> None:
     """The warning a caller gives (once) when it falls back from a native ``what`` to ``fallback``."""
     warnings.warn(

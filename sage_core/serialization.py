@@ -9,8 +9,12 @@ the raw tensor bytes. Nothing in it is executed on load. The header's ``__metada
 * ``sage.format``: the kind's format version (an integer, as text);
 * ``sage.tree``: the saved object as JSON in which every tensor or numpy array is replaced by a
   reference to a tensor of the file (see :func:`encode`);
-* ``sage.sha256``: a hash over the tensors' names, dtypes, shapes and bytes, checked on load, so
-  a truncated or damaged file is reported as such.
+* ``sage.sha256``: a hash over the tensors' names, dtypes, shapes and bytes;
+* ``sage.digest``: a hash over the kind, the format, the JSON tree and ``sage.sha256``, so the
+  structure is covered as well as the tensors. Both are checked on load, so a truncated, damaged or
+  edited file is reported as such (files written before ``sage.digest`` existed are checked on
+  their tensors only). These are checksums, not signatures: they catch damage and careless edits.
+  That loading runs no code does not rest on them but on the format (JSON and raw tensors only).
 
 Older sage versions wrote these files with ``torch.save`` (Python pickle, which can run arbitrary
 code). They are refused with :class:`~sage_core.errors.UnsafeFileError`; a user who trusts such a
@@ -55,6 +59,9 @@ META_KIND = "sage.kind"
 META_FORMAT = "sage.format"
 META_TREE = "sage.tree"
 META_SHA = "sage.sha256"
+META_DIGEST = "sage.digest"
+MAX_TREE_DEPTH = 200
+"""Deepest nesting of lists and objects accepted in a file's JSON tree."""
 MAX_HEADER = 100 * 1024 * 1024
 
 CONVERT_HINT = "`sage convert {path} --trust`"
@@ -145,6 +152,37 @@ def _hashable(k: Any) -> Any:
     return tuple(k) if isinstance(k, list) else k
 
 
+def tree_digest(kind: str, version: str, tree_json: str, tensors_sha: str) -> str:
+    """The ``sage.digest`` of a file: SHA-256 over its kind, format, JSON tree and tensor hash."""
+    h = hashlib.sha256()
+    for part in (kind, version, tree_json, tensors_sha):
+        h.update(part.encode("utf-8"))
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def _json_depth(text: str) -> int:
+    """Deepest bracket nesting of a JSON text (brackets inside strings are skipped)."""
+    depth = deepest = 0
+    in_str = escaped = False
+    for ch in text:
+        if in_str:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_str = False
+        elif ch == '"':
+            in_str = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
 def tensors_sha256(tensors: dict[str, torch.Tensor]) -> str:
     """Hash over every tensor's name, dtype, shape and bytes (sorted by name)."""
     import torch
@@ -168,11 +206,14 @@ def to_bytes(obj: Any, kind: str, version: int) -> bytes:
     from safetensors.torch import save
 
     tree, tensors = encode(obj)
+    tree_json = json.dumps(tree, separators=(",", ":"))
+    sha = tensors_sha256(tensors)
     meta = {
         META_KIND: kind,
         META_FORMAT: str(int(version)),
-        META_TREE: json.dumps(tree, separators=(",", ":")),
-        META_SHA: tensors_sha256(tensors),
+        META_TREE: tree_json,
+        META_SHA: sha,
+        META_DIGEST: tree_digest(kind, str(int(version)), tree_json, sha),
     }
     return save(tensors, metadata=meta)
 
@@ -297,13 +338,17 @@ def load_file(
         tensors = load(data)
     except Exception as e:  # noqa: BLE001  (safetensors raises its own error types)
         raise InputError(p, f"damaged {what}: {e}") from None
-    if meta.get(META_SHA) != tensors_sha256(tensors):
-        raise InputError(p, f"damaged {what}: its content does not match its checksum")
+    problem = _checksum_problem(meta, tensors)
+    if problem:
+        raise InputError(p, f"damaged {what}: {problem}")
+    tree_json = meta.get(META_TREE, "null")
+    if _json_depth(tree_json) > MAX_TREE_DEPTH:
+        raise InputError(p, f"damaged {what}: its structure is nested deeper than {MAX_TREE_DEPTH} levels")
     try:
-        tree = json.loads(meta.get(META_TREE, "null"))
+        tree = json.loads(tree_json)
         obj = decode(tree, tensors)
-    except (json.JSONDecodeError, KeyError, ValueError, TypeError) as e:
-        raise InputError(p, f"damaged {what}: malformed structure ({e})") from None
+    except (json.JSONDecodeError, KeyError, ValueError, TypeError, RecursionError) as e:
+        raise InputError(p, f"damaged {what}: malformed structure ({type(e).__name__}: {e})") from None
     if map_location is not None:
         obj = _move(obj, map_location)
     return obj, version
@@ -402,7 +447,16 @@ def verify_file(path: str | Path) -> str | None:
         tensors = load(data)
     except Exception as e:  # noqa: BLE001
         return str(e)
-    meta = header.get("__metadata__") or {}
-    if meta.get(META_SHA) != tensors_sha256(tensors):
+    return _checksum_problem(header.get("__metadata__") or {}, tensors)
+
+
+def _checksum_problem(meta: dict[str, Any], tensors: dict[str, torch.Tensor]) -> str | None:
+    """Why a file's tensors or structure do not match its checksums, or None when they do."""
+    sha = tensors_sha256(tensors)
+    if meta.get(META_SHA) != sha:
         return "its content does not match its checksum"
+    if META_DIGEST in meta:
+        expected = tree_digest(str(meta.get(META_KIND, "")), str(meta.get(META_FORMAT, "")), str(meta.get(META_TREE, "null")), sha)
+        if meta[META_DIGEST] != expected:
+            return "its structure does not match its checksum"
     return None

@@ -1,6 +1,6 @@
 """Workspace layout, manifests, atomic writes, checkpoints and the per-workspace lock.
 
-A workspace ``WS`` holds one folder per stage (design.md "Data flow"): ``WS/data`` (ingest),
+A workspace ``WS`` holds one folder per stage (docs/method.md §1): ``WS/data`` (ingest),
 ``WS/init`` (init-mesh), ``WS/phase1``, ``WS/phase2``, ``WS/eval``, ``WS/export``. A stage runs in
 ``WS/.work/<stage>/`` (which also keeps its checkpoints between interrupted runs) and, on
 success, its outputs are promoted to ``WS/<stage folder>/`` by a directory rename; the stage's
@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from . import __version__
+from ._version import __version__
 from .atomic import atomic_write_bytes, atomic_write_text
 from .errors import InputError, StageError, UnsafeFileError, WorkspaceError
 from .serialization import CHECKPOINT_FORMAT, CHECKPOINT_KIND
@@ -54,7 +54,10 @@ STAGE_FOLDERS: dict[str, str] = {
 HASH_CACHE = ".cache/content-hashes.json"
 """Per-workspace cache of file content hashes keyed by path, size and mtime (see :func:`content_hashes`)."""
 # files of a work folder that are not outputs of the stage
-_RUN_FILES = ("RUN", "FAILED", "manifest.json")
+_RUN_FILES = ("RUN", "FAILED", "RUNNING", "manifest.json")
+_MARKERS = ("RUN", "FAILED", "RUNNING")
+"""Run markers: ``RUN`` (the run's identity, for resuming), ``FAILED`` (why it failed) and
+``RUNNING`` (pid, host and start time of the live process)."""
 
 log = logging.getLogger("sage")
 
@@ -116,7 +119,8 @@ def file_fingerprint(path: str | Path, content: bool = True) -> str:
     return h.hexdigest()[:16]
 
 
-def _sha256_file(path: Path) -> str:
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
@@ -152,7 +156,7 @@ def content_hashes(paths: list[Path], cache_file: str | Path | None = None) -> d
         if isinstance(hit, list) and len(hit) == 3 and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
             out[key] = str(hit[2])
             continue
-        digest = _sha256_file(Path(key))
+        digest = file_sha256(Path(key))
         out[key] = digest
         cache[key] = [st.st_size, st.st_mtime_ns, digest]
         changed = True
@@ -246,9 +250,12 @@ class StageStatus:
 
     stage: str
     folder: Path
-    status: str  # "missing" | "complete" | "stale" | "incomplete" | "corrupt" | "interrupted" | "failed"
+    status: str  # "missing" | "complete" | "stale" | "incomplete" | "corrupt" | "interrupted" | "failed" | "running"
     manifest: dict[str, Any] | None
     reason: str = ""
+    rerun: str | None = None
+    """The stage to re-run to mend a stale stage: the furthest upstream one that is incomplete,
+    corrupt or was re-run (None when the stage itself is the one)."""
 
 
 class Workspace:
@@ -328,6 +335,9 @@ class Workspace:
                                                                 "this stage completes the move")
         if m is None or m.get("status") != "complete":
             if self.work_dir(stage).exists():
+                live = running_process(self.work_dir(stage))
+                if live is not None:
+                    return StageStatus(stage, folder, "running", m, live)
                 st = "failed" if (self.work_dir(stage) / "FAILED").exists() else "interrupted"
                 return StageStatus(stage, folder, st, m, "an earlier run did not finish")
             return StageStatus(stage, folder, "missing", m)
@@ -338,25 +348,47 @@ class Workspace:
         for up, fp in (m.get("inputs", {}).get("stages") or {}).items():
             um = self.manifest(up)
             if um is None or um.get("status") != "complete":
-                return StageStatus(stage, folder, "stale", m, f"its input stage '{up}' is missing")
+                return StageStatus(stage, folder, "stale", m, f"its input stage '{up}' is missing", rerun=up)
             if um.get("fingerprint") != fp:
-                return StageStatus(stage, folder, "stale", m, f"'{up}' was re-run since")
+                return StageStatus(stage, folder, "stale", m, f"'{up}' was re-run since", rerun=stage)
             ust = self.status(up)
-            if ust.status == "stale":
-                return StageStatus(stage, folder, "stale", m, f"'{up}' is stale ({ust.reason})")
+            if ust.status in ("stale", "incomplete", "corrupt"):
+                return StageStatus(stage, folder, "stale", m, f"'{up}' is {ust.status} ({ust.reason})", rerun=ust.rerun or up)
         return StageStatus(stage, folder, "complete", m)
 
     def require(self, stage: str, by: str) -> dict[str, Any]:
-        """Manifest of an upstream stage that ``by`` needs; StageError if missing or stale."""
+        """Manifest of an upstream stage that ``by`` needs; StageError naming the stage to re-run if
+        it (or a stage it depends on) is missing, stale, incomplete or corrupt."""
         st = self.status(stage)
         if st.status == "complete":
             assert st.manifest is not None
             return st.manifest
         if st.status == "stale":
-            raise StageError(f"'{by}' needs stage '{stage}', which is stale ({st.reason}): re-run `sage {stage} {self.root}`")
+            fix = st.rerun or stage
+            raise StageError(f"'{by}' needs stage '{stage}', which is stale ({st.reason}): re-run `sage {fix} {self.root}`"
+                             + (" and the stages after it" if fix != stage else ""))
         if st.status in ("incomplete", "corrupt"):
             raise StageError(f"'{by}' needs stage '{stage}', which is {st.status} ({st.reason}): re-run `sage {stage} {self.root}`")
+        if st.status == "running":
+            raise StageError(f"'{by}' needs stage '{stage}', which is still running ({st.reason}); wait for it to finish")
         raise StageError(f"'{by}' needs stage '{stage}', which has not completed: run `sage {stage} {self.root}` first")
+
+    def verify(self, stage: str) -> list[str]:
+        """Outputs of a complete stage whose bytes differ from the SHA-256 its manifest recorded
+        (``hashes``), or are gone: one line each (empty when all match or nothing was recorded)."""
+        m = self.manifest(stage) or {}
+        hashes = m.get("hashes")
+        if not isinstance(hashes, dict):
+            return []
+        folder = self.stage_dir(stage)
+        problems = []
+        for rel, digest in sorted(hashes.items()):
+            p = folder / rel
+            if not p.is_file():
+                problems.append(f"{rel} is missing")
+            elif file_sha256(p) != digest:
+                problems.append(f"{rel} changed since the stage finished (its SHA-256 differs from the manifest's)")
+        return problems
 
     def stages(self) -> Iterator[StageStatus]:
         for s in STAGE_FOLDERS:
@@ -390,7 +422,7 @@ class Workspace:
         if (final / "RUN").is_file() and self.manifest(stage) is not None:
             # promoted, but the clean-up after it was cut short
             shutil.rmtree(final / "checkpoints", ignore_errors=True)
-            for marker in ("RUN", "FAILED"):
+            for marker in _MARKERS:
                 (final / marker).unlink(missing_ok=True)
         m_path = work / "manifest.json"
         m = None
@@ -413,6 +445,25 @@ class Workspace:
         for t in trash:
             shutil.rmtree(t, ignore_errors=True)
         return promoted
+
+
+def running_process(work_dir: Path) -> str | None:
+    """``pid N on HOST since T`` when the ``RUNNING`` marker of a work folder names a live process
+    of this host (or another host, which cannot be checked from here), else None."""
+    p = work_dir / "RUNNING"
+    try:
+        info = read_json(p)
+        pid, host, since = int(info["pid"]), str(info["host"]), str(info["since"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if host == socket.gethostname():
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:
+            pass
+    return f"pid {pid} on {host} since {since}"
 
 
 def check_workspace_path(root: Path) -> None:
@@ -470,7 +521,7 @@ def _promote(ws: Workspace, stage: str, work: Path, keep_checkpoints: bool) -> N
                                     f"{work} and the next run of this stage completes the move") from None
     if not keep_checkpoints:
         shutil.rmtree(final / "checkpoints", ignore_errors=True)
-    for marker in ("RUN", "FAILED"):
+    for marker in _MARKERS:
         (final / marker).unlink(missing_ok=True)
     if trash.exists():
         shutil.rmtree(trash, ignore_errors=True)
@@ -519,6 +570,8 @@ class StageRun:
 
         An interruption at any point leaves either the finished run in the work folder (the next
         run promotes it, :meth:`Workspace.recover`) or the promoted folder with its manifest."""
+        (self.work_dir / "RUNNING").unlink(missing_ok=True)
+        files = _inventory(self.work_dir)
         manifest = {
             "stage": self.stage,
             "status": "complete",
@@ -533,17 +586,38 @@ class StageRun:
             "wall_time_s": round(time.time() - self._t0, 3),
             "resumed": self.resumed,
             "metrics": self.metrics,
-            "outputs": self.outputs,
-            "files": _inventory(self.work_dir),
+            "outputs": {k: self._relative(v) for k, v in self.outputs.items()},
+            "files": files,
+            "hashes": {rel: file_sha256(self.work_dir / rel) for rel in files},
         }
         atomic_write_json(self.work_dir / "manifest.json", manifest)
         _promote(self.ws, self.stage, self.work_dir, keep_checkpoints)
         return manifest
 
+    def _relative(self, path: str) -> str:
+        """An output path as written into the manifest: relative to the workspace root (POSIX) when
+        it lies in the workspace or the run's work folder, so that a copied or moved workspace
+        still finds it; other paths (and empty ones) as given."""
+        if not path:
+            return path
+        p = Path(path)
+        for base, to in ((self.work_dir, self.ws.stage_dir(self.stage)), (self.ws.root, self.ws.root)):
+            try:
+                return (to / p.relative_to(base)).relative_to(self.ws.root).as_posix()
+            except ValueError:
+                continue
+        return path
+
     def fail(self, message: str) -> None:
         """Mark the work folder as failed (its checkpoints stay for a resume)."""
         if self.work_dir.exists():
             atomic_write_text(self.work_dir / "FAILED", message + "\n")
+            (self.work_dir / "RUNNING").unlink(missing_ok=True)
+
+    def interrupted(self) -> None:
+        """The run was stopped (Ctrl-C, SIGTERM): the work folder stays, marked neither running
+        nor failed, so the stage reads as interrupted and resumes from its newest checkpoint."""
+        (self.work_dir / "RUNNING").unlink(missing_ok=True)
 
 
 def _stage_fingerprint(
@@ -632,6 +706,7 @@ def begin_stage(
             shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
     (work / "FAILED").unlink(missing_ok=True)
+    atomic_write_json(work / "RUNNING", {"pid": os.getpid(), "host": socket.gethostname(), "since": now_iso()})
     atomic_write_json(state_file, run_id)
     atomic_write_json(work / "config.json", config)
     return StageRun(

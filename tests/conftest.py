@@ -82,6 +82,25 @@ def tiny_init_dir(tiny_ws, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def init_mesh_ws(tiny_ws, tiny_init_dir, tmp_path_factory):
+    """tiny_ws with the shared init-mesh outputs promoted as its init-mesh stage (copy before use)."""
+    import shutil
+
+    from sage_core.workspace import Workspace, begin_stage
+
+    ws = tmp_path_factory.mktemp("rel") / "ws"
+    shutil.copytree(tiny_ws, ws)
+    w = Workspace(ws)
+    with w.lock:
+        run = begin_stage(w, "init-mesh", {"copied": True}, "copied-init", requires=["ingest"])
+        for f in tiny_init_dir.iterdir():
+            if f.is_file():
+                shutil.copy2(f, run.work_dir / f.name)
+        run.finish()
+    return ws
+
+
+@pytest.fixture(scope="session")
 def tiny_avatar_ws(tiny_ws, tiny_init_dir, tmp_path_factory):
     """A workspace with complete ingest, init-mesh (the quick ``tiny_init_dir``) and phase1 stages;
     the phase-1 avatar is an untrained 300-surfel one moved off its initial state. Shared read-only."""

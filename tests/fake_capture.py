@@ -197,7 +197,7 @@ def make_tiny_model(path: Path, n_vertices: int = MODEL_V, n_base_vertices: int 
         v_template=v,
         faces=np.stack([np.arange(V), (np.arange(V) + 1) % V, (np.arange(V) + 2) % V], 1).astype(np.int64),
         shapedirs=rng.normal(size=(V, 3, 10)) * 1e-3,
-        exprdirs=rng.normal(size=(V, 3, 10)) * 1e-3,
+        exprdirs=rng.normal(size=(V, 3, N_EXPR)) * 1e-3,
         posedirs=np.zeros((V, 3, 9 * (J - 1))),
         j_regressor=np.full((J, V), 1.0 / V),
         lbs_weights=w,

@@ -184,3 +184,30 @@ def test_rigid_canonical_ray_map_round_trip(init_dir, data):
     assert torch.allclose(r2[ok2], torch.ones_like(r2[ok2]), atol=1e-4)
     assert torch.allclose(rot1[ok2], rot2[ok2], atol=1e-4)
     assert torch.allclose(o1[ok2], o2[ok2], atol=1e-4)
+
+
+def test_shape_network_reading_the_detail_grid(init_dir, data, tmp_path):
+    """``detail_grid``: the shape network's input holds the appearance grid's features at the surfel
+    centres, its gradient reaches that grid, and the flag survives saving."""
+    g = torch.Generator().manual_seed(3)
+    app = {"hidden": 16, "sh_degree": 1, "grid": {"n_levels": 4, "n_features": 2, "log2_table": 10, "base_res": 8, "max_res": 64}}
+    av = Avatar.build(init_dir, data, 300, "mlp", app_args=app, shape_args={"hidden": 16, "detail_grid": True}, generator=g)
+    plain = Avatar.build(init_dir, data, 300, "mlp", app_args=app, shape_args={"hidden": 16}, generator=g)
+    assert av.shape_reads_detail and not plain.shape_reads_detail
+    assert av.shape.in_features == av.sdf.encoding.output_dim + av.appearance.grid.output_dim
+    assert plain.shape.in_features == plain.sdf.encoding.output_dim
+    with torch.no_grad():
+        av.appearance.grid.table.normal_(0, 1, generator=g)
+        av.shape.mlp[-1].weight.normal_(0, 1, generator=g)
+    cs = av.canonical_state()
+    cs.scales.sum().backward()
+    assert av.appearance.grid.table.grad is not None and av.appearance.grid.table.grad.abs().sum() > 0
+    with torch.no_grad():  # the shape depends on the detail grid: changing it changes the scales
+        before = av.canonical_state().scales.clone()
+        av.appearance.grid.table.mul_(-1)
+        assert not torch.allclose(av.canonical_state().scales, before)
+    av.save(tmp_path / "a.pt", embed_flame=True)
+    back = Avatar.load(tmp_path / "a.pt")
+    assert back.shape_reads_detail
+    with torch.no_grad():
+        assert torch.equal(back.canonical_state().scales, av.canonical_state().scales)

@@ -33,8 +33,8 @@ def _app() -> typer.Typer:
     return app
 
 
-def _args(subjects: Path, root: Path, *extra: str) -> list[str]:
-    args = [str(subjects), str(root), "--preset", "tiny", "--skip-phase2", "--device", "cpu", "--quiet", *extra]
+def _args(subjects: Path, root: Path, *extra: str, quiet: bool = True) -> list[str]:
+    args = [str(subjects), str(root), "--preset", "tiny", "--skip-phase2", "--device", "cpu", *(["--quiet"] if quiet else []), *extra]
     for s in FAST:
         args += ["--set", s]
     return args
@@ -54,8 +54,13 @@ def captures(tmp_path_factory):
     return base
 
 
-def _csv(path: Path, caps: Path, ids: list[str]) -> Path:
-    rows = ["id,capture,flame_model"] + [f"{i},{caps / i},{caps / i / 'model' / 'synth_flame.npz'}" for i in ids]
+def _csv(path: Path, caps: Path, ids: list[str], sets: dict[str, str] | None = None, folders: dict[str, str] | None = None) -> Path:
+    """A SUBJECTS file of the captures ``ids`` (``folders`` maps an id to another capture folder; ``sets``
+    gives a subject ``stage.key=value`` overrides)."""
+    sets, folders = sets or {}, folders or {}
+    rows = ["id,capture,flame_model,set"] + [
+        f"{i},{caps / folders.get(i, i)},{caps / folders.get(i, i) / 'model' / 'synth_flame.npz'},{sets.get(i, '')}" for i in ids
+    ]
     path.write_text("\n".join(rows) + "\n")
     return path
 
@@ -169,19 +174,25 @@ def test_local_batch_with_a_broken_subject_then_rerun(captures, tmp_path):
     subjects = _csv(tmp_path / "subjects.csv", captures, ["a", "b", "bad"])
     root = tmp_path / "root"
     runner = CliRunner()
-    res = runner.invoke(_app(), _args(subjects, root, "--max-parallel", "2", "--cpus-per-subject", "1"))
+    res = runner.invoke(_app(), _args(subjects, root, "--max-parallel", "2", "--cpus-per-subject", "1", quiet=False))
     assert res.exit_code == 1, res.output  # one subject failed; the others finished
     s = _summary(root)
     assert s["a"]["status"] == "finished" and s["b"]["status"] == "finished"
     assert s["bad"]["status"] == "failed" and "transforms_train.json" in s["bad"]["error"] and s["bad"]["returncode"] == 2
+    assert s["bad"]["stage"] == "ingest"
     for sid in ("a", "b"):
-        assert s[sid]["metrics"]["val_psnr"] > 5 and s[sid]["wall_time_s"] > 0
+        assert s[sid]["metrics"]["val_psnr"] > 5 and s[sid]["wall_time_s"] > 0 and s[sid]["stage"] is None
         assert json.loads((root / sid / ".batch_status.json").read_text())["state"] == "finished"
         assert all(_finished_at(root / sid).values())
         assert list((root / sid / "logs").glob("batch-*.log"))
     md = (root / "batch_summary.md").read_text()
-    assert "| a | finished |" in md and "| bad | failed |" in md
+    assert "| a | finished |" in md and "| bad | failed | ingest |" in md
     assert not (root / "bad" / "data").exists()
+    # without a terminal: a line per change as it happens, and every error in full (paths are not cut)
+    out = res.output
+    assert "a: running phase1" in out and "bad: failed in ingest" in out and "a: finished (PSNR" in out
+    assert str(captures / "bad" / "transforms_train.json") in out
+    assert out.index("a: running phase1") < out.index("sage batch summary")
 
     before = {sid: _finished_at(root / sid) for sid in ("a", "b")}
     logs_before = len(list((root / "a" / "logs").glob("batch-*.log")))
@@ -195,35 +206,110 @@ def test_local_batch_with_a_broken_subject_then_rerun(captures, tmp_path):
 
 
 def test_resume_after_killing_the_batch(captures, tmp_path):
+    """The batch is killed while subject b trains (b cannot finish: its phase 1 is a million steps);
+    the next batch skips a and runs b to the end. The test waits on the status files, not the clock."""
     from sage_core.batch import read_status
 
-    subjects = _csv(tmp_path / "subjects.csv", captures, ["a", "b"])
+    long_b = _csv(tmp_path / "long.csv", captures, ["a", "b"], sets={"b": "phase1.iterations=1000000"})
     root = tmp_path / "root"
     code = "import sys, typer; from sage_cli.commands.batch_cmd import batch; typer.run(batch)"
-    cmd = [sys.executable, "-c", code, *_args(subjects, root, "--max-parallel", "1", "--cpus-per-subject", "1")]
+    cmd = [sys.executable, "-c", code, *_args(long_b, root, "--max-parallel", "1", "--cpus-per-subject", "1")]
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        deadline = time.time() + 120
-        while time.time() < deadline and p.poll() is None:
-            if read_status(root / "a").get("state") == "finished":
-                break
-            time.sleep(0.1)
-        assert read_status(root / "a").get("state") == "finished", "subject a did not finish in time"
+        while p.poll() is None and not (read_status(root / "a").get("state") == "finished" and (read_status(root / "b").get("done") or 0) > 0
+                                        and read_status(root / "b").get("stage") == "phase1"):  # fmt: skip
+            time.sleep(0.05)
+        assert p.poll() is None, "the batch ended before subject b trained"
         os.killpg(p.pid, signal.SIGKILL)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
         p.wait()
-    assert read_status(root / "b").get("state") != "finished"  # killed midway
+    assert read_status(root / "a").get("state") == "finished" and read_status(root / "b").get("state") == "running"
     a_before = _finished_at(root / "a")
     assert all(a_before.values())
 
+    subjects = _csv(tmp_path / "subjects.csv", captures, ["a", "b"])
     res = CliRunner().invoke(_app(), _args(subjects, root, "--max-parallel", "1", "--cpus-per-subject", "1"))
     assert res.exit_code == 0, res.output
     s = _summary(root)
     assert s["a"]["status"] == "skipped" and s["b"]["status"] == "finished"
     assert _finished_at(root / "a") == a_before
     assert all(_finished_at(root / "b").values())
+
+
+def test_worker_outcomes_and_the_local_sharing():
+    from sage_core.batch import exit_state, local_gpus, plan_local
+    from sage_core.batch.worker import error_text
+    from sage_core.errors import ConfigError, InputError
+
+    assert [exit_state(c) for c in (0, 130, 2, 1)] == ["finished", "interrupted", "failed", "failed"]
+    assert error_text(InputError("/a/very/long/path/" + "x" * 120 + "/transforms_train.json", "cannot parse"), 2).endswith(
+        "transforms_train.json: cannot parse")  # the whole line
+    assert error_text(ValueError("bad\nsecond line"), 1) == "ValueError: bad" and error_text(KeyboardInterrupt(), 130) == "interrupted"
+    # the device parser of the local engine
+    assert local_gpus("cpu", [0, 1]) == [] and local_gpus("auto", [0, 1]) == [0, 1] and local_gpus("auto", []) == []
+    assert local_gpus("cuda", [0, 1]) == [0, 1] and local_gpus("cuda:1", [0, 1]) == [1]
+    for device, needle in (("cuda:5", "no such CUDA device"), ("gpu", "expected auto, cpu, cuda or cuda:N"), ("cuda:x", "expected")):
+        with pytest.raises(ConfigError, match=needle):
+            local_gpus(device, [0, 1])
+    with pytest.raises(ConfigError, match="CUDA is not available"):
+        local_gpus("cuda", [])
+    # the sharing of cores and GPUs
+    assert plan_local(8) == plan_local(8, cpus_per_subject=None) and plan_local(8).max_parallel == 2 and plan_local(8).cpus_per_subject == 4
+    assert plan_local(2).max_parallel == 1 and plan_local(2).cpus_per_subject == 2
+    assert (plan_local(8, max_parallel=3).max_parallel, plan_local(8, max_parallel=3).cpus_per_subject) == (3, 2)
+    assert plan_local(2, cpus_per_subject=999).cpus_per_subject == 2  # never more threads than cores
+    gpu = plan_local(16, [0, 1, 2, 3], gpus_per_subject=2)
+    assert (gpu.max_parallel, gpu.cpus_per_subject, gpu.gpus, gpu.gpus_per_subject) == (2, 8, (0, 1, 2, 3), 2)
+    with pytest.raises(ConfigError, match="whole number"):
+        plan_local(8, [0, 1], gpus_per_subject=1.5)
+    with pytest.raises(ConfigError, match="at least 1"):
+        plan_local(8, max_parallel=0)
+
+
+def test_a_failed_subject_names_the_stage_that_failed(tmp_path, monkeypatch):
+    """A stage that fails before its work begins (here eval, after phase 1 trained) is the subject's
+    failed stage, in its status file, its outcome and the summary; the error line is kept whole."""
+    import sage_core.stages as stages
+    from sage_core.batch import BatchDriver, JobResult, read_status, run_subject
+    from sage_core.errors import InputError
+    from sage_core.stages import StageEvent
+
+    long_path = tmp_path / ("deep" * 30) / "gt" / "novel"
+
+    def pipeline(*args, on_event=None, **kw):
+        for stage in ("ingest", "init-mesh", "phase1"):
+            on_event(StageEvent("started", stage))
+            on_event(StageEvent("running", stage, title=stage, metrics={}))
+            on_event(StageEvent("progress", stage, step=2, total=2, message=stage, metrics={"psnr": 20.0}))
+        on_event(StageEvent("started", "eval"))
+        raise InputError(long_path, "the capture has no held-out ground truth")
+
+    monkeypatch.setattr(stages, "run_pipeline", pipeline)
+    ws = tmp_path / "s1"
+    spec = {"id": "s1", "ws": str(ws), "dataset": str(tmp_path), "flame_model": str(tmp_path / "m.npz"), "flame_masks": None,
+            "ingest_flags": {}, "skip_phase2": True, "lpips_weights": None, "preset": "tiny", "config": None, "sets": {}, "seed": 0,
+            "force": False, "run_key": "k", "stages": ["ingest"]}  # fmt: skip
+    seen = []
+    code = run_subject(spec, "cpu", 0, on_error=lambda e, c: seen.append(c), watch=False)
+    st = read_status(ws)
+    assert code == 2 and seen == [2] and st["state"] == "failed" and st["failed_stage"] == "eval"
+    assert st["error"] == f"{long_path}: the capture has no held-out ground truth"
+    changes = []
+    driver = BatchDriver(tmp_path, [spec], on_change=lambda sid, row: changes.append((row["state"], row.get("stage"))))
+    driver.on_result(JobResult("s1", 2, 3.0, "cpu", "exit code 2"))
+    o = driver.outcomes["s1"]
+    assert (o.status, o.stage, o.error) == ("failed", "eval", st["error"]) and changes[-1] == ("failed", "eval")
+    assert "| s1 | failed | eval |" in (tmp_path / "batch_summary.md").read_text()
+
+
+def test_change_lines_without_a_terminal():
+    from sage_cli.commands.batch_cmd import change_line
+
+    assert change_line("s1", {"state": "running", "stage": "phase1"}).endswith("s1: running phase1")
+    assert change_line("s1", {"state": "failed", "stage": "eval"}).endswith("s1: failed in eval")
+    assert change_line("s1", {"state": "finished", "psnr": 24.123}).endswith("s1: finished (PSNR 24.12 dB)")
 
 
 # ---- Ray engine ------------------------------------------------------------------------------

@@ -5,6 +5,7 @@ workspaces, and one end-to-end smoke run of two rows."""
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -60,8 +61,8 @@ def test_rows_map_to_the_expected_cli_arguments(tmp_path):
     # init-mesh with teeth and no cavity; the free-surfel row keeps SAGE's layout and init-mesh
     for rid in ("ga_mvsf", "ga_mvmf"):
         sets = set(_sets(by_key[f"{rid}:phase1"].argv))
-        assert {"init_layout=per_face", "densify=true", "rebind_every=0", "w_local_position=0.01", "w_local_scale=1",
-                "densify_from=100", "densify_every=50", "densify_until=1000", "opacity_reset_every=500"} <= sets
+        assert {"init_layout=per_face", "init_opacity=0.1", "densify=true", "rebind_every=0", "w_local_position=0.01", "w_local_scale=1",
+                "densify_from=25", "densify_every=100", "densify_until=1500", "opacity_reset_every=500"} <= sets
         assert "mouth_cavity=false" in _sets(by_key[f"{rid}:init-mesh"].argv)
     assert by_key["ga_mvsf:copy"].stages == ("ingest",) and by_key["free_mvsf:copy"].stages == ("ingest", "init-mesh")
     assert not any("densify" in kv or "init_layout" in kv for kv in _sets(by_key["free_mvsf:phase1"].argv))
@@ -93,6 +94,23 @@ def test_rows_map_to_the_expected_cli_arguments(tmp_path):
     assert "sage:phase1" in needs["no_phase2"] and "sage:phase2" not in needs["no_phase2"]
     # phase 2's own evaluation is cut: the suite evaluates with `sage eval`
     assert "eval_phase1=false" in _sets(by_key["sage:phase2"].argv)
+
+
+def test_ga_schedule_is_gaussian_avatars_scaled_to_each_preset():
+    """GA's fractions of its 600,000 steps (start 1/60, interval 1/300, resets 1/10, to the end); at
+    the full size exactly, at the short ones with the intervals floored."""
+    from _suite.rows import MIN_DENSIFY_EVERY, MIN_RESET_EVERY, ga_schedule, preset_iterations
+
+    def parsed(items):
+        return {k: int(v) for k, v in (kv.split("=") for kv in items)}
+
+    assert parsed(ga_schedule(600_000)) == {"densify_from": 10_000, "densify_every": 2_000, "densify_until": 600_000,
+                                            "opacity_reset_every": 60_000}
+    assert parsed(SIZES["full"].densify) == {"densify_from": 500, "densify_every": 100, "densify_until": 30_000, "opacity_reset_every": 3_000}
+    for name, preset in (("tiny", "tiny"), ("small", "small"), ("full", "default")):
+        d, n = parsed(SIZES[name].densify), preset_iterations(preset)
+        assert d["densify_until"] == n and d["densify_from"] == round(n / 60)
+        assert d["densify_every"] == max(MIN_DENSIFY_EVERY, round(n / 300)) and d["opacity_reset_every"] == max(MIN_RESET_EVERY, round(n / 10))
 
 
 def test_the_ceiling_row_trains_nothing_and_renders_the_tracked_truth(tmp_path):
@@ -138,6 +156,56 @@ def test_overrides_and_smoke_size_reach_the_commands(tmp_path):
     assert smoke.smoke and _flag(k["synth:multiview"].argv, "--cameras") == "9"
     assert any(s.startswith("iterations=") for s in _sets(k["sage:phase1"].argv))
     assert SIZES["full"].preset == "default" and SIZES["tiny"].preset == "tiny" and SIZES["small"].preset == "small"
+
+
+def test_every_row_runs_on_each_subject_with_the_chosen_head(tmp_path):
+    by_key, needs, steps = _steps(tmp_path, rows=("sage", "one_shot"))
+    # subject 0 keeps the plain keys and paths, subject 1 (capture seed 1) is prefixed and suffixed
+    a, b = by_key["synth:multiview"].argv, by_key["seed1/synth:multiview"].argv
+    assert _flag(a, "--seed") == "0" and _flag(b, "--seed") == "1"
+    assert _flag(a, "--appearance") == _flag(b, "--appearance") == "detailed"
+    assert b[1] == str(tmp_path / "out/captures/multiview_seed1")
+    p1 = by_key["seed1/sage:phase1"].argv
+    assert p1[1] == str(tmp_path / "out/ws/sage_seed1") and _flag(p1, "--seed") == "0"  # stages keep the suite's seed
+    assert "/captures/multiview_seed1/" in _flag(by_key["seed1/sage:ingest"].argv, "--flame-model")
+    assert by_key["seed1/sage:phase1"].deps == ["seed1/sage:init-mesh"] and by_key["seed1/sage:phase1"].subject == 1
+    assert by_key["seed1/one_shot:eval:novel"].argv[1] == str(tmp_path / "out/ws/one_shot_seed1")
+    assert by_key["seed1/motion:multiview"].out == tmp_path / "out/motions/multiview_seed1_test.npz"
+    assert {"sage:phase2", "seed1/sage:phase2"} <= set(needs["sage"]) and "seed1/sage:phase2" not in needs["one_shot"]
+    keys = [s.key for s in steps]
+    assert keys.index("one_shot:eval:novel") < keys.index("seed1/synth:multiview")  # the first subject's rows first
+    # the smooth head of earlier versions, one subject: the plan of earlier versions plus --appearance smooth
+    smooth, _, _ = _steps(tmp_path, rows=("sage",), head="smooth", subjects=1)
+    assert not any(k.startswith("seed") for k in smooth) and _flag(smooth["synth:multiview"].argv, "--appearance") == "smooth"
+
+
+def test_capture_check_follows_the_appearance(tmp_path):
+    from _suite.workspaces import capture_is_current
+
+    from sage_core.data.synthetic import preset
+
+    cap = tmp_path / "cap"
+    (cap / "gt").mkdir(parents=True)
+    cfg = preset("tiny", "oneshot", seed=1, tracking="fitted", appearance="detailed")
+    (cap / "gt" / "info.json").write_text(json.dumps({"config": cfg.to_dict()}))
+    argv = ["synth", str(cap), "--regime", "oneshot", "--tracking", "fitted", "--preset", "tiny", "--seed", "1", "--quiet"]
+    assert capture_is_current(cap, argv) and capture_is_current(cap, [*argv[:-1], "--appearance", "detailed"])
+    assert not capture_is_current(cap, [*argv[:-1], "--appearance", "smooth"])
+    assert not capture_is_current(cap, [*argv[:-3], "--seed", "2"])
+
+
+def test_subject_numbers_are_averaged_and_counts_summed():
+    from _suite.execute import mean_tree
+
+    a = {"test": {"overall": {"psnr": 20.0, "ssim": 0.8, "lpips": None, "count": 4}, "frontal": None},
+         "novel": {"view_groups": {"back": {"overall": {"psnr": 12.0, "count": 2}}}}, "images": 4}  # fmt: skip
+    b = {"test": {"overall": {"psnr": 22.0, "ssim": 0.9, "lpips": 0.1, "count": 4}, "frontal": {"psnr": 25.0, "count": 1}},
+         "novel": {"view_groups": {"back": {"overall": {"psnr": 14.0, "count": 2}}}}, "images": 4}  # fmt: skip
+    m = mean_tree([a, b])
+    assert m["test"]["overall"] == {"psnr": 21.0, "ssim": pytest.approx(0.85), "lpips": 0.1, "count": 8}
+    assert m["test"]["frontal"] == {"psnr": 25.0, "count": 1} and m["images"] == 8
+    assert m["novel"]["view_groups"]["back"]["overall"]["psnr"] == 13.0
+    assert mean_tree([None, None]) is None
 
 
 # --------------------------------------------------------------------------------------------
@@ -240,6 +308,30 @@ def test_markdown_puts_numbers_in_their_columns_and_dashes_for_missing():
     assert doc.rstrip().endswith("Ours against the paper.") and doc.index("## Size `tiny`") < doc.index("## Discussion")
 
 
+def test_markdown_shows_the_head_the_subjects_and_the_back_views():
+    doc = _results()
+    doc["head"], doc["subject_seeds"] = "detailed", [0, 1]
+    one = {"id": "one_shot", "label": "SAGE", "input_type": "One-shot", "has_sdf": True, "errors": [], "steps": [], "capture": "oneshot",
+           "metrics": {"novel": {"overall": _m(18.5, 0.8, 0.2, 20), "view_groups": {"back": {"overall": _m(11.25, 0.6, 0.4, 8)}}}}}  # fmt: skip
+    one["subjects"] = [{"seed": 0, "hair": "bob", "metrics": {"novel": {"overall": _m(18.0, 0.8, 0.2, 10)}}},
+                       {"seed": 1, "hair": "short", "metrics": {"novel": {"overall": _m(19.0, 0.8, 0.2, 10),
+                                                                          "view_groups": {"back": {"overall": _m(11.5, 0.6, 0.4)}}}}}]  # fmt: skip
+    doc["rows"]["one_shot"] = one
+    md = render_markdown(doc)
+    assert "- Synthetic heads: detailed (`sage synth --appearance detailed`), 2 subjects (capture seeds 0, 1)" in md
+    header, rows = _table_rows(md, "### Single-view and one-shot regimes")
+    col = {h: j for j, h in enumerate(header)}
+    assert rows["one_shot"][col["Held-out GT PSNR"]] == "18.50" and rows["one_shot"][col["Back views PSNR"]] == "11.25"
+    sh, srows = _table_rows(md, "### Per subject")
+    lines = [ln for ln in md.split("### Per subject")[1].split("###")[0].splitlines() if ln.startswith("| SAGE (`one_shot`)")]
+    assert len(lines) == 2 and "| 1 | short |" in lines[1] and "11.50" in lines[1] and "19.00" in lines[1]
+    # an earlier document (no head recorded) is the smooth head with one subject, and is not merged with a detailed one
+    old = _results()
+    assert "- Synthetic heads: smooth (`sage synth --appearance smooth`), 1 subject (capture seed 0)" in render_markdown(old)
+    assert "### Per subject" not in render_markdown(old)
+    assert merge_results(old, doc) is doc
+
+
 def test_smoke_results_are_labelled():
     md = render_markdown({**_results(), "smoke": True})
     assert "Smoke test" in md.split("### Novel view")[0]
@@ -265,14 +357,33 @@ def test_merge_keeps_rows_that_were_not_rerun():
 # --------------------------------------------------------------------------------------------
 
 
-def test_run_process_measures_the_child_and_keeps_its_output(tmp_path):
-    code = "import sys, time; b = bytearray(160 * 2**20); b[::4096] = b'x' * len(b[::4096]); print('made it'); time.sleep(0.6); sys.exit(3)"
-    res = run_process([sys.executable, "-c", code], tmp_path / "log.txt")
-    assert res.rc == 3
-    assert res.peak_rss_mib is not None and 150 < res.peak_rss_mib < 400
-    assert "made it" in res.tail and res.wall_s > 0
-    small = run_process([sys.executable, "-c", "import time; time.sleep(0.6)"], tmp_path / "log2.txt")
-    assert small.rc == 0 and small.peak_rss_mib < res.peak_rss_mib
+def test_memory_sampler_reads_the_peak_of_the_running_child(tmp_path):
+    """The child holds 160 MiB until the test has sampled it (it waits for a line on its stdin): no
+    timing involved."""
+    import subprocess
+
+    from _suite.runner import MemorySampler
+
+    code = "import sys; b = bytearray(160 * 2**20); b[::4096] = b'x' * len(b[::4096]); print('ready', flush=True); sys.stdin.readline()"
+    p = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert p.stdout.readline().strip() == b"ready"
+        sampler = MemorySampler(p.pid, os.fsencode(sys.executable))
+        assert MemorySampler(p.pid, b"/not/this/program").sample() is None  # only once it runs its own program
+        v = sampler.sample()
+        assert v is not None and 150 < v < 400 and sampler.peak == v
+        p.stdin.write(b"done\n")
+        p.stdin.flush()
+    finally:
+        p.communicate(timeout=60)
+    assert sampler.sample() is None and sampler.peak == v  # gone: the peak stays
+
+
+def test_run_process_keeps_the_exit_code_and_the_output(tmp_path):
+    res = run_process([sys.executable, "-c", "import sys; print('made it'); sys.exit(3)"], tmp_path / "log.txt")
+    assert res.rc == 3 and "made it" in res.tail and res.wall_s > 0
+    assert res.peak_rss_mib is None or res.peak_rss_mib > 1  # sampled only if the child lived past the first sample
+    assert "made it" in (tmp_path / "log.txt").read_text()
 
 
 def _fake_stage(ws: Path, stage: str, requires: list[str], payload: str) -> dict:
@@ -387,6 +498,11 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert c["metrics"]["test"]["overall"]["count"] == doc["rows"]["no_phase2"]["metrics"]["test"]["overall"]["count"]
     r = doc["rows"]["no_phase2"]
     assert r["errors"] == [], r["errors"]
+    # two detailed subjects (capture seeds 0 and 1), averaged; the geometry check below is the first subject's
+    assert doc["head"] == "detailed" and doc["subject_seeds"] == [0, 1] and [s["seed"] for s in r["subjects"]] == [0, 1]
+    assert all(s["appearance"] == "detailed" for s in r["subjects"]) and (out / "ws" / "no_phase2_seed1").is_dir()
+    n0, n1 = (s["metrics"]["test"]["overall"]["psnr"] for s in r["subjects"])
+    assert r["metrics"]["test"]["overall"]["psnr"] == pytest.approx((n0 + n1) / 2)
     assert r["metrics"]["val"]["overall"]["psnr"] > 5 and r["metrics"]["test"]["overall"]["psnr"] > 5
     assert r["metrics"]["test"]["frontal"]["count"] >= 1
     # LPIPS where sage finds the weights (as in CI), reported unavailable where it does not
@@ -396,10 +512,11 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     # the capture is tracked: its FLAME mesh differs from the ground truth by the tracking error, so the
     # GT mesh moved to canonical space gives phase 1's Chamfer to its canonical FLAME mesh up to that error
     info = json.loads((out / "captures" / "multiview" / "gt" / "info.json").read_text())
-    t_can = int(r["geometry"]["gt_mesh"].split("canonical timestep ")[1].split(",")[0])
+    geo = r["subjects"][0]["geometry"]
+    t_can = int(geo["gt_mesh"].split("canonical timestep ")[1].split(",")[0])
     err_mm = info["tracking"]["timesteps"][t_can]["max_mm"]
     assert r["capture_tracking"]["mode"] == "fitted" and 0 < err_mm < 10
-    assert abs(r["geometry"]["chamfer_mm"] - r["stages"]["phase1"]["chamfer_m"] * 1000) <= 1.1 * err_mm + 0.05 * r["geometry"]["chamfer_mm"]
+    assert abs(geo["chamfer_mm"] - r["stages"]["phase1"]["chamfer_m"] * 1000) <= 1.1 * err_mm + 0.05 * geo["chamfer_mm"]
     assert doc["steps"]["sage:phase1"]["ran"] is True and doc["steps"]["sage:phase1"]["peak_rss_mib"] > 100
     md = (docs / "results.md").read_text()
     assert "Smoke test" in md and "sage phase1 " in md and "### Comparison with the paper" in md
@@ -410,3 +527,28 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert doc2["steps"]["sage:phase1"]["ran"] is False
     assert doc2["steps"]["sage:phase1"]["peak_rss_mib"] == doc["steps"]["sage:phase1"]["peak_rss_mib"]
     assert doc2["rows"]["no_phase2"]["metrics"]["val"] == r["metrics"]["val"]
+
+
+def test_the_written_results_name_no_path_of_this_machine(tmp_path):
+    """Paths under --out are written relative to it (OUT in commands), the LPIPS weights by name,
+    any other absolute path by its last component; the committed documents hold none."""
+    from _suite.portable import portable_doc, portable_text
+
+    out, weights = tmp_path / "runs" / "t", tmp_path / "w" / "lpips_alex_v0.1.pth"
+    doc = {"settings": {"out": str(out), "lpips_weights": str(weights)},
+           "steps": {"sage:eval": {"command": f"sage eval {out}/ws/sage --lpips-weights {weights}", "log": f"{out}/logs/sage__eval.log",
+                                   "error": f"exit 2: error: {out}/ws/sage/data: missing | see https://example.org/x"}},
+           "rows": {"sage": {"workspace": f"{out}/ws/sage", "errors": [f"copy: {tmp_path}/elsewhere/file.txt: gone"]}},
+           "runs": [{"command": f"python benchmarks/suite.py --size tiny --out {out} --docs /somewhere/docs_new"}]}  # fmt: skip
+    new = portable_doc(doc, [out], [weights])
+    assert new["settings"] == {"out": ".", "lpips_weights": "lpips_alex_v0.1.pth"}
+    step = new["steps"]["sage:eval"]
+    assert step["command"] == "sage eval OUT/ws/sage --lpips-weights lpips_alex_v0.1.pth" and step["log"] == "logs/sage__eval.log"
+    assert step["error"] == "exit 2: error: OUT/ws/sage/data: missing | see https://example.org/x"
+    assert new["rows"]["sage"] == {"workspace": "ws/sage", "errors": ["copy: file.txt: gone"]}
+    assert new["runs"][0]["command"].endswith("--out OUT --docs docs_new")
+    assert portable_text("--variant a=/x/ref::/x/ws::phase1.k=1") == "--variant a=ref::ws::phase1.k=1"
+    text = "\n".join(p.read_text(encoding="utf-8") for p in [REPO / "docs" / "results.md", *(REPO / "docs" / "benchmarks").glob("*")])
+    import re
+
+    assert not re.search(r"(?<![\w.~/-])/(work|home|tmp|root|mnt|data)/", text)

@@ -126,7 +126,10 @@ def test_config_command_applies_regime_defaults():
     svhr = runner.invoke(app, ["config", "phase1", "--preset", "tiny", "--regime", "sv-hr"])
     assert plain.exit_code == 0 and svhr.exit_code == 0, svhr.output
     assert "exposure: 'off'" in plain.output and "exposure: gain" in svhr.output
-    assert "app_sh_degree: 0" in svhr.output and "app_sh_degree: 0" not in plain.output
+    import yaml
+
+    app_sh = [yaml.safe_load(r.output)["phase1"]["appearance"]["sh_degree"] for r in (plain, svhr)]
+    assert app_sh == [2, 0]
     bad = runner.invoke(app, ["config", "phase1", "--regime", "bogus"])
     assert bad.exit_code == 3 and "bogus" in bad.output
 
@@ -150,3 +153,5 @@ def test_out_of_range_flag_is_refused_before_anything_is_written(tiny_ws, tmp_pa
     assert res.exit_code == 3 and "one of rest, neus" in res.output, res.output
     res = runner.invoke(app, ["config", "phase1", "--explain"], env={"COLUMNS": "250"})
     assert res.exit_code == 0 and "one of off, gain, rgb" in res.output
+    # the nested names, each with the flat name it had before (still accepted)
+    assert "loss.light_albedo" in res.output and "(flat name w_light_albedo)" in res.output

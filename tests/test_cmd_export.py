@@ -43,7 +43,7 @@ def test_canonical_ply_round_trip_and_header(ws):
 
     res = invoke(["export", ws, "--ply", "--orientation", "flame", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    path = ws / "export" / "ply" / "canonical.ply"
+    path = ws / "export" / "ply" / "canonical-flame.ply"  # the orientation is in the name
     props, comments = _header(path)
     assert props == property_names(0)  # INRIA order, SH degree 0, no binding_0
     assert any("Vertical Axis: y" in c for c in comments)
@@ -55,7 +55,8 @@ def test_canonical_ply_round_trip_and_header(ws):
     ply = read_ply(path)
     n = int(keep.sum())
     assert ply["means"].shape == (n, 3)
-    entry = json.loads((ws / "export" / "results.json").read_text())["ply:canonical"]
+    entry = json.loads((ws / "export" / "results.json").read_text())["ply:canonical-flame"]
+    assert entry["orientation"] == "flame" and entry["avatar_stage"] == "phase1" and entry["files"] == ["ply/canonical-flame.ply"]
     assert entry["rows"] == n and entry["rows_dropped"] == len(keep) - n
     assert np.allclose(ply["means"], posed.means.numpy()[keep], atol=1e-6)
     q_ref = posed.quats.numpy()[keep]
@@ -81,7 +82,7 @@ def test_ply_rendered_back_matches_the_avatar_render(ws):
     fr = data.val[0]
     res = invoke(["export", ws, "--ply", "--frame", fr.timestep, "--color-camera", fr.camera_index, "--up", "y", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    ply = read_ply(ws / "export" / "ply" / f"frame_{fr.timestep:05d}.ply")
+    ply = read_ply(ws / "export" / "ply" / f"frame_{fr.timestep:05d}-flame.ply")
     cam = RenderCamera.from_camera(fr.camera)
     s = loaded.render
     with torch.no_grad():
@@ -128,39 +129,66 @@ def test_export_meshes(ws):
     assert res.exit_code == 0 and "skipping" in res.output
 
 
-def test_bundle_loads_without_the_workspace_and_renders_the_same(ws, tmp_path):
+def test_bundle_loads_without_the_workspace_and_renders_the_same(ws, tmp_path, tiny_capture):
+    from sage_core.errors import InputError
     from sage_core.export.bundle import FRAME_CONVENTION, load_bundle
+    from sage_core.stages.avatars import AvatarRenderer
+    from sage_core.workspace import file_sha256
 
     res = invoke(["export", ws, "--bundle", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
+    assert "--flame-model" in res.output  # the panel says what loading it needs
     data, loaded, renderer = load_phase1_renderer(ws)
     fr = data.val[0]
     inputs = loaded.avatar.frame_inputs(fr.timestep)
     ref = renderer.render(fr.camera, inputs)
     moved = tmp_path / "elsewhere" / "bundle"
     shutil.copytree(ws / "export" / "bundle", moved)
+    res = invoke(["export", ws, "--bundle", "--include-flame-model", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    with_model = tmp_path / "elsewhere" / "with_model"
+    shutil.copytree(ws / "export" / "bundle", with_model)
     shutil.rmtree(ws)  # nothing of the workspace is left
     meta = json.loads((moved / "bundle.json").read_text())
+    assert meta["format"] == 3 and meta["source"]["workspace"] == "../.."  # no absolute path of this machine
     assert meta["surfels"]["frame_convention"] == FRAME_CONVENTION == "surfel-flat [a0,-a2,a1]"
     assert meta["surfels"]["dimensions"] == 2 and meta["up_axis"] == "y"
     assert meta["flame"]["n_vertices"] == loaded.avatar.model_data.v_template.shape[0]
     assert meta["flame"]["n_faces"] == loaded.avatar.faces.shape[0]
+    # the model is referenced by its file name and SHA-256, not carried
+    model = meta["flame"]["model"]
+    assert model["included"] is False and model["file"] == tiny_capture.model_path.name
+    assert model["file_sha256"] == file_sha256(tiny_capture.model_path) and model["mouth_interior"]["cavity"] is True
+    arrays = meta["arrays"]["avatar.safetensors"]
+    assert not any(k.startswith("flame/") for k in arrays) and "state/canonical_vertices" in arrays
+    assert any(k.startswith("flame/") for k in json.loads((with_model / "bundle.json").read_text())["arrays"]["avatar.safetensors"])
+    size = sum(f.stat().st_size for f in moved.iterdir())
+    assert size < 0.8 * sum(f.stat().st_size for f in with_model.iterdir())
     assert [e["timestep"] for e in meta["timestep_map"]] == [int(t) for t in loaded.avatar.params.timesteps]
     with np.load(moved / "flame_param.npz") as z:
         assert z["shape"].ndim == 1 and z["expr"].shape[0] == len(meta["timestep_map"])
-    b = load_bundle(moved)
-    assert b.reference_camera is not None and b.reference_camera.index == fr.camera_index
-    from sage_core.stages.avatars import AvatarRenderer
-
-    img = AvatarRenderer(b.avatar, b.render).render(b.reference_camera, b.avatar.frame_inputs(fr.timestep))
-    assert torch.equal(img, ref)
+    with pytest.raises(InputError, match="--flame-model"):
+        load_bundle(moved)
+    other = tmp_path / "other.npz"
+    other.write_bytes(tiny_capture.model_path.read_bytes() + b"\0")
+    with pytest.raises(InputError, match="SHA-256"):  # refused by its hash, before it is read
+        load_bundle(moved, flame_model=other)
+    for folder, model_file in ((moved, tiny_capture.model_path), (with_model, None)):
+        b = load_bundle(folder, flame_model=model_file)
+        assert b.reference_camera is not None and b.reference_camera.index == fr.camera_index
+        img = AvatarRenderer(b.avatar, b.render).render(b.reference_camera, b.avatar.frame_inputs(fr.timestep))
+        assert torch.equal(img, ref)
+    # a format-2 bundle (the model inside, no model section) still loads
+    meta2 = json.loads((with_model / "bundle.json").read_text())
+    meta2["format"] = 2
+    del meta2["flame"]["model"]
+    (with_model / "bundle.json").write_text(json.dumps(meta2))
+    assert load_bundle(with_model).avatar.surfels.n == loaded.avatar.surfels.n
     # a tampered face table is refused
     meta["flame"]["faces_sha256"] = "0" * 64
     (moved / "bundle.json").write_text(json.dumps(meta))
-    from sage_core.errors import InputError
-
     with pytest.raises(InputError, match="faces_sha256"):
-        load_bundle(moved)
+        load_bundle(moved, flame_model=tiny_capture.model_path)
 
 
 def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture):
@@ -172,6 +200,9 @@ def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture
     out = tmp_path / "orbit"
     res = invoke(["reenact", "--bundle", moved, "--flame-seq", tiny_capture, "--orbit", "--max-frames", "3",
                   "--out", out, "--device", "cpu", "--quiet"])  # fmt: skip
+    assert res.exit_code == 2 and "--flame-model" in res.output  # the bundle names the model it needs
+    res = invoke(["reenact", "--bundle", moved, "--flame-model", tiny_capture.model_path, "--flame-seq", tiny_capture,
+                  "--orbit", "--max-frames", "3", "--out", out, "--device", "cpu", "--quiet"])  # fmt: skip
     assert res.exit_code == 0, res.output
     frames = sorted((out / "frames").glob("*.png"))
     assert len(frames) == 3 and (out / "video.mp4").stat().st_size > 0
@@ -181,6 +212,12 @@ def test_bundle_drives_an_orbit_without_the_workspace(ws, tmp_path, tiny_capture
     assert np.abs(a - b).max() > 0.1  # the camera moved
     rec = json.loads((out / "reenact.json").read_text())
     assert rec["report"]["n_frames"] == 3 and "orbit" in rec["cameras"]
+    # its reference camera is the bundle's, not a camera of "this capture"
+    res = invoke(["reenact", "--bundle", moved, "--flame-model", tiny_capture.model_path, "--flame-seq", tiny_capture,
+                  "--max-frames", "1", "--no-video", "--out", tmp_path / "ref", "--device", "cpu", "--quiet"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    cams = json.loads((tmp_path / "ref" / "reenact.json").read_text())["cameras"]
+    assert cams.startswith("the bundle's reference camera") and "this capture" not in res.output
 
 
 def test_export_sequence_writes_one_ply_per_frame(ws, tiny_capture):
@@ -188,9 +225,71 @@ def test_export_sequence_writes_one_ply_per_frame(ws, tiny_capture):
 
     res = invoke(["export", ws, "--ply", "--flame-seq", tiny_capture, "--max-frames", "3", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    files = sorted((ws / "export" / "ply").glob("0*.ply"))
+    folder = ws / "export" / "ply" / f"seq_{tiny_capture.name}"
+    files = sorted(folder.glob("*.ply"))
     assert [f.name for f in files] == ["00000.ply", "00001.ply", "00002.ply"]
     a, b = read_ply(files[0]), read_ply(files[2])
     assert a["means"].shape[1] == 3 and not np.allclose(a["means"][:10], b["means"][:10])
+    entry = json.loads((ws / "export" / "results.json").read_text())[f"ply:seq_{tiny_capture.name}"]
+    assert entry["frames"] == 3 and entry["orientation"] == "viewer" and entry["avatar_stage"] == "phase1"
+    # a .splat of the same motion joins the folder; a shorter cut of it replaces every format there
+    res = invoke(["export", ws, "--splat", "--flame-seq", tiny_capture, "--max-frames", "3", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert len(list(folder.glob("*.splat"))) == 3 and len(list(folder.glob("*.ply"))) == 3
+    res = invoke(["export", ws, "--ply", "--flame-seq", tiny_capture, "--max-frames", "2", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert sorted(f.name for f in folder.iterdir()) == ["00000.ply", "00001.ply"]  # no stale .splat of the 3-frame cut
+    doc = json.loads((ws / "export" / "results.json").read_text())
+    assert f"splat:seq_{tiny_capture.name}" not in doc and doc[f"ply:seq_{tiny_capture.name}"]["frames"] == 2
     res = invoke(["export", ws, "--frame", 999, "--quiet"])
     assert res.exit_code == 2 and "999" in res.output
+
+
+def test_a_later_export_keeps_every_file_of_the_web_player(ws):
+    """--web then --mesh: the web player's three files survive, the record lists them, and a file
+    deleted afterwards makes the stage incomplete and the web player redone."""
+    from sage_core.workspace import Workspace
+
+    res = invoke(["export", ws, "--web", "--max-frames", "2", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    res = invoke(["export", ws, "--mesh", "--mc-resolution", "16", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    web = ws / "export" / "web"
+    assert sorted(p.name for p in web.iterdir()) == ["avatar.js", "index.html", "player.js"]
+    doc = json.loads((ws / "export" / "results.json").read_text())
+    assert doc["web"]["files"] == ["web/index.html", "web/player.js", "web/avatar.js"]
+    m = json.loads((ws / "export" / "manifest.json").read_text())
+    assert {"web/avatar.js", "web/player.js", "mesh/sdf_mesh.ply"} <= set(m["files"])
+    assert all(not str(v).startswith("/") for v in m["outputs"].values())  # outputs are workspace-relative
+    (web / "avatar.js").unlink()
+    st = Workspace(ws).status("export")
+    assert st.status == "incomplete" and "avatar.js" in st.reason
+    res = invoke(["export", ws, "--web", "--max-frames", "2", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0 and "skipping" not in res.output, res.output
+    assert (web / "avatar.js").is_file() and (ws / "export" / "mesh" / "sdf_mesh.obj").is_file()
+    assert Workspace(ws).status("export").status == "complete"
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--web", "--frame", "0", "--max-frames", "2"], "--max-frames"),
+    (["--ply", "--max-frames", "2"], "--max-frames"),
+    (["--bundle", "--frame", "0"], "--frame"),
+    (["--mesh", "--flame-seq", "."], "--flame-seq"),
+])  # fmt: skip
+def test_options_that_would_be_ignored_are_refused(ws, args, needle):
+    res = invoke(["export", ws, *args, "--device", "cpu", "--quiet"])
+    assert res.exit_code == 3 and needle in res.output, res.output
+    assert not (ws / "export").exists()
+
+
+def test_web_at_a_frame_plays_that_timestep_and_the_preset_is_the_workspaces(ws):
+    from sage_core.stages.export import workspace_preset
+
+    assert workspace_preset(ws) == "tiny"  # the avatar workspace was built with the tiny preset
+    res = invoke(["export", ws, "--web", "--mesh", "--frame", "0", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((ws / "export" / "results.json").read_text())
+    assert doc["web"]["frames"] == 1 and doc["web"]["sequence"] == "timestep 0"
+    assert doc["mesh:sdf"]["mc_resolution"] == 128  # the tiny preset's, not the default 256
+    js = (ws / "export" / "web" / "avatar.js").read_text()
+    assert '"timesteps":[0]' in js

@@ -137,15 +137,15 @@ def test_every_enum_and_numeric_field_declares_what_it_allows():
     "stage,key,value,allowed",
     [
         ("phase1", "iterations", "-5", ">= 1"),  # int, inclusive lower bound
-        ("phase1", "checkpoint_every", "0", ">= 1"),  # 0 no longer turns checkpoints off silently
-        ("phase1", "init_opacity", "1", "0 < x < 1"),  # exclusive bounds
-        ("phase1", "pseudo_view_prob", "1.5", "0 <= x <= 1"),  # inclusive bounds
+        ("phase1", "schedule.checkpoint_every", "0", ">= 1"),  # 0 no longer turns checkpoints off silently
+        ("phase1", "free.init_opacity", "1", "0 < x < 1"),  # exclusive bounds
+        ("phase1", "pseudo.prob", "1.5", "0 <= x <= 1"),  # inclusive bounds
         ("phase1", "near", "0", "> 0"),
         ("phase1", "exposure", "bright", "one of off, gain, rgb"),  # choices
         ("phase1", "render_backend", "cuda", "one of auto, torch, cpp, triton"),
         ("phase2", "teacher", "mesh", "one of rest, neus"),
-        ("phase2", "teeth_color", "0.5,2,0.5", "3 values, each 0 <= x <= 1"),  # list elements
-        ("phase2", "wrinkle_quantiles", "0.5", "2 values"),  # list length
+        ("phase2", "mouth.teeth_color", "0.5,2,0.5", "3 values, each 0 <= x <= 1"),  # list elements
+        ("phase2", "wrinkles.quantiles", "0.5", "2 values"),  # list length
         ("init-mesh", "pretrain.steps", "0", ">= 1"),  # nested field: dotted path
         ("init-mesh", "pretrain.truncation", "-0.1", "> 0 or none"[:3]),  # optional float
         ("eval", "split", "train", "one of test, val, all, novel"),
@@ -167,8 +167,8 @@ def test_validation_sees_every_source_and_accepts_bounds_and_none(tmp_path):
         resolve_config("phase1", "tiny", load_config_file(f))
     # a flag repairs what the file broke: validation runs once, on the merged config
     assert resolve_config("phase1", "tiny", load_config_file(f), {"iterations": 3}).iterations == 3
-    cfg = resolve_config("phase1", "default", None, {"pseudo_view_prob": 1, "sh_degree": 3, "rebind_every": 0})
-    assert cfg.pseudo_view_prob == 1.0 and cfg.sh_degree == 3 and cfg.rebind_every == 0
+    cfg = resolve_config("phase1", "default", None, {"pseudo.prob": 1, "free.sh_degree": 3, "schedule.rebind_every": 0})
+    assert cfg.pseudo.prob == 1.0 and cfg.free.sh_degree == 3 and cfg.schedule.rebind_every == 0
     assert resolve_config("init-mesh", "default", None, {"pretrain.truncation": "none"}).pretrain.truncation is None
 
 
@@ -211,9 +211,144 @@ def test_presets_are_declared_in_one_table():
         ("ingest", {"height": 100, "downsample": 2}, r"either height or downsample.*height = 100, downsample = 2.0"),
         ("init-mesh", {"grid.base_res": 4096}, r"base_res must not exceed max_res.*grid.base_res = 4096, grid.max_res = 2048"),
         ("phase1", {"near": 5}, r"near must be smaller than far.*near = 5.0, far = 3.0"),
-        ("phase2", {"wrinkle_quantiles": "0.9,0.5"}, r"first quantile must be below the second"),
+        ("phase2", {"wrinkles.quantiles": "0.9,0.5"}, r"first quantile must be below the second.*wrinkles.quantiles = \[0.9, 0.5\]"),
+        ("phase1", {"densify": "true"}, r"density control needs free surfel attributes.*densify.enabled = True, attributes = 'mlp'"),
     ],
 )
 def test_rules_across_fields(stage, flags, match):
     with pytest.raises(ConfigError, match=match):
         resolve_config(stage, "default", None, flags)
+
+
+# ---- the sections of the phase configs and their legacy flat names -------------------------------
+
+
+def test_phase_configs_share_their_neus_loss_and_schedule_sections():
+    from sage_core.config import LossWeights, NeuSConfig, Phase1Config, Phase2Config, Schedule
+
+    p1, p2 = Phase1Config(), Phase2Config()
+    assert isinstance(p1.neus, NeuSConfig) and type(p2.neus) is NeuSConfig
+    assert isinstance(p1.loss, LossWeights) and isinstance(p2.loss, LossWeights)
+    assert isinstance(p1.schedule, Schedule) and isinstance(p2.schedule, Schedule)
+    # one declaration, each phase with its own defaults
+    assert p1.schedule.checkpoint_every == 1000 and p2.schedule.checkpoint_every == 500
+    # the listing shows the phase's own defaults
+    assert {n: d for n, _, d in describe(Phase2Config)}["schedule.checkpoint_every"] == 500
+
+
+@pytest.mark.parametrize("stage", ["phase1", "phase2"])
+def test_every_legacy_flat_key_is_accepted_and_sets_its_field(stage):
+    """The flat key names of the earlier flat configs (the canonical form's keys) keep working in
+    flags, files and saved configs; a changed value lands in the nested field."""
+    from sage_core.config import STAGE_CONFIGS, canonical_form, get_field, legacy_aliases
+
+    cls = STAGE_CONFIGS[stage]
+    aliases = legacy_aliases(cls)
+    flat = canonical_form(cls())
+    assert set(flat) == set(aliases) | {n for n, _, _ in describe(cls) if "." not in n}
+    assert all(n in aliases or "." not in n for n in flat)
+    # an old saved config (plain flat data) rebuilds the same config
+    assert from_dict(cls, flat) == cls()
+    # each legacy key, given a value that differs from the default, sets the nested field
+    for old, new in aliases.items():
+        default = get_field(cls(), new)
+        if isinstance(default, bool):
+            value = not default
+        elif isinstance(default, str) or default is None:
+            continue
+        elif isinstance(default, list):
+            value = list(reversed(default)) if len(default) != 2 else [0.1, 0.2]
+        else:
+            value = default + 1 if isinstance(default, int) else default / 2 + 0.01
+        cfg = cls()
+        from sage_core.config import _apply
+
+        _apply(cfg, old, value, "test")
+        assert get_field(cfg, new) == value, (old, new)
+
+
+def test_legacy_keys_in_files_flags_and_sections(tmp_path):
+    f = tmp_path / "old.yaml"
+    f.write_text("phase1:\n  w_light_albedo: 2\n  n_surfels: 5000\n  pseudo_view_prob: 0.25\nphase2:\n  correction_mode: curvature\n"
+                 "  wrinkle_shading: false\n  teacher_max_views: 8\n")  # fmt: skip
+    p1 = resolve_config("phase1", "tiny", load_config_file(f), {"w_pt": "0.5", "schedule.sdf_from": 7})
+    assert p1.loss.light_albedo == 2.0 and p1.surfels.count == 5000 and p1.pseudo.prob == 0.25 and p1.loss.pt == 0.5
+    assert p1.schedule.sdf_from == 7
+    p2 = resolve_config("phase2", "tiny", load_config_file(f), {"correction": "off"})
+    assert p2.correction.mode == "curvature" and p2.wrinkles.enabled is False and p2.rest_teacher.max_views == 8
+    assert p2.correction.enabled is False
+    # a legacy name that is also a section: a mapping addresses the section, a plain value its switch
+    on = resolve_config("phase1", "default", None, {"attributes": "free", "densify": "true", "densify_every": 7})
+    assert on.densify.enabled and on.densify.every == 7
+    nested = resolve_config("phase1", "default", {"phase1": {"attributes": "free", "densify": {"enabled": True, "every": 7}}})
+    assert nested == on
+    assert resolve_config("phase2", "default", None, {"unseen_fill": "true"}).unseen_fill.enabled is True
+    # a new config file, nested
+    g = tmp_path / "new.yaml"
+    g.write_text("phase1:\n  loss:\n    light_albedo: 2\n  surfels:\n    count: 5000\n")
+    assert resolve_config("phase1", "tiny", load_config_file(g)).loss.light_albedo == 2.0
+    with pytest.raises(ConfigError, match="unknown option 'loss.nope'"):
+        resolve_config("phase1", "tiny", None, {"loss.nope": 1})
+    # an error on a legacy key names the field it set
+    with pytest.raises(ConfigError, match=r"phase1 config: loss.pt = -1.0 is out of range"):
+        resolve_config("phase1", "tiny", None, {"w_pt": -1})
+
+
+def test_the_hash_of_a_config_does_not_depend_on_the_names_it_was_given_with():
+    a = resolve_config("phase1", "tiny", None, {"w_light_albedo": 2, "n_surfels": 5000})
+    b = resolve_config("phase1", "tiny", None, {"loss.light_albedo": 2, "surfels.count": 5000})
+    assert a == b and config_hash(a) == config_hash(b) != config_hash(resolve_config("phase1", "tiny"))
+    # a saved nested config round-trips with its hash
+    assert config_hash(from_dict(type(a), to_dict(a))) == config_hash(a)
+
+
+@pytest.mark.parametrize(
+    "value,expected",
+    [("500", 500), (500, 500), ("1e4", 10000), (1e4, 10000), ("2.0", 2), ("1_000", 1000)],
+)
+def test_integer_fields_take_whole_numbers_in_any_spelling(value, expected):
+    assert resolve_config("phase1", "tiny", None, {"iterations": value}).iterations == expected
+
+
+@pytest.mark.parametrize(
+    "value,match",
+    [
+        ("1e23", r"iterations: '1e23' is too large for an integer setting"),  # was logged as 99999999999999991611392
+        (1e23, r"too large for an integer setting"),
+        ("1e10", r"iterations = 10000000000 is out of range \(allowed: at most 2147483647\)"),
+        ("1.5", "expected an integer"),
+        ("nan", "expected an integer"),
+        ("inf", "expected an integer"),
+        (True, "expected an integer"),
+    ],
+)
+def test_integer_fields_refuse_fractions_and_absurd_magnitudes(value, match):
+    with pytest.raises(ConfigError, match=match):
+        resolve_config("phase1", "tiny", None, {"iterations": value})
+
+
+def test_integer_cap_applies_to_every_integer_field_without_a_bound(tmp_path):
+    f = tmp_path / "c.json"
+    f.write_text(json.dumps({"phase2": {"expressions": {"active": 3e9}}}))
+    with pytest.raises(ConfigError, match=r"expressions.active = 3000000000 is out of range"):
+        resolve_config("phase2", "tiny", load_config_file(f))
+    # a declared bound still wins, and the large values the suite uses stay valid
+    assert resolve_config("phase1", "tiny", None, {"sdf_from": 1_000_000_000}).schedule.sdf_from == 1_000_000_000
+
+
+def test_regimes_take_the_synth_spellings_too(tmp_path):
+    from sage_cli.commands.synth import INGEST_SPELLINGS
+    from sage_core.batch import load_subjects
+    from sage_core.config import REGIMES, canonical_regime
+    from sage_core.data.synthetic import REGIMES as SYNTH_REGIMES
+
+    assert resolve_config("ingest", flags={"regime": "oneshot"}).regime == "one-shot"
+    assert resolve_config("ingest", flags={"regime": "monocular"}).regime == "sv-hr"
+    assert resolve_config("ingest", flags={"regime": "MV-SF"}).regime == "mv-sf"
+    with pytest.raises(ConfigError, match="regime = 'multiview' is not allowed"):
+        resolve_config("ingest", flags={"regime": "multiview"})  # one or all timesteps? mv-sf or mv-mf
+    assert {canonical_regime(r) for r in REGIMES} == set(REGIMES)
+    assert set(INGEST_SPELLINGS) >= {"one-shot", "sv-hr"} and set(INGEST_SPELLINGS.values()) <= set(SYNTH_REGIMES)
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "s.csv").write_text("id,capture,regime\na,cap,oneshot\nb,cap,monocular\n")
+    assert [s.regime for s in load_subjects(tmp_path / "s.csv")] == ["one-shot", "sv-hr"]

@@ -1,7 +1,10 @@
 """Adaptive density control of free surfels (the GaussianAvatars baseline): the projected-centre
-gradient statistic, clone / split / prune / opacity reset with binding inheritance, the optimizer
-state that follows the rows, a per-face initialisation, the teeth-only mouth, and exact resume of a
-phase 1 whose surfel count changes."""
+gradient statistic over the views that keep a surfel, clone / split / prune / opacity reset with
+binding inheritance and GA's last-surfel-per-triangle rule, GA's schedule (strict start, the reset
+at the start, large surfels pruned past the first reset interval), the position rate scaled by the
+scene extent, the local terms on visible surfels, the optimizer state that follows the rows, a
+per-face initialisation, the teeth-only mouth, and exact resume of a phase 1 whose surfel count
+changes."""
 
 from __future__ import annotations
 
@@ -23,9 +26,11 @@ from sage_core.train.densify import (
     SPLIT_SCALE_DIVISOR,
     DensifySchedule,
     DensityControl,
+    keep_last_per_face,
     ndc_gradient_norm,
     scene_extent,
 )
+from sage_core.train.losses import local_position_loss, local_scale_loss
 from sage_core.train.phase1 import Phase1Trainer, build_avatar
 
 _GA = {
@@ -105,12 +110,13 @@ def test_clone_split_prune_and_reset():
         s.opacity[2] = -10.0  # nearly transparent: pruned
     av = _StubAvatar(s)
     sched = DensifySchedule(0, 100, 10, grad_threshold=0.5, percent_dense=0.01, prune_opacity=0.005, reset_every=50)
+    assert sched.prune_large_now(60) and not sched.prune_large_now(50)
     dc = DensityControl(av, sched, extent=1.0, generator=torch.Generator().manual_seed(0))  # type: ignore[arg-type]
     opt = torch.optim.Adam([s.mu_loc, s.q_loc, s.s_loc, s.sh_dc, s.sh_rest, s.opacity], lr=0.01)
     dc.grad_sum[:] = torch.tensor([1.0, 1.0, 0.0, 0.1, 0.0, 0.0], dtype=torch.float64)
     dc.count[:] = 1.0
     parent_binding, parent_mu, parent_s = int(s.binding[1]), s.mu_loc[1].detach().clone(), s.s_loc[1].detach().clone()
-    out = dc.densify_and_prune(opt)
+    out = dc.densify_and_prune(opt, 10)
     assert out == {"cloned": 1, "split": 1, "pruned": 1, "surfels": 6 - 1 - 1 + 1 + 2}
     assert len(s) == 7 and av.base_scale.shape == (7,)
     # the split children: parent's triangle, scales / 1.6, offsets within the parent's plane
@@ -131,9 +137,53 @@ def test_clone_split_prune_and_reset():
 
 def test_schedule():
     sc = DensifySchedule(100, 1000, 50, 2e-4, 0.01, 0.005, 500)
-    assert [t for t in range(0, 1100, 50) if sc.densify_now(t)] == list(range(100, 1000, 50))
+    # GaussianAvatars densifies strictly after its start step, resets on multiples before the stop
+    assert [t for t in range(0, 1100, 50) if sc.densify_now(t)] == list(range(150, 1000, 50))
     assert [t for t in range(1, 1500) if sc.reset_now(t)] == [500]
+    assert [t for t in range(1, 1500) if sc.prune_large_now(t)] == list(range(501, 1500))
+    # and, on a white background, once more at the start
+    ga = DensifySchedule.from_config(resolve_config("phase1", "tiny", None, {"densify_from": 25, "densify_until": 1500, "opacity_reset_every": 500}).densify)
+    assert ga.reset_at_start and [t for t in range(1, 1600) if ga.reset_now(t)] == [25, 500, 1000]
     assert scene_extent(torch.tensor([[1.0, 0, 0], [-1.0, 0, 0]])) == pytest.approx(1.1)
+
+
+def test_prune_never_empties_a_triangle():
+    binding = torch.tensor([0, 0, 1, 1, 2, 3])
+    remove = torch.tensor([True, False, True, True, True, False])
+    # triangle 0 keeps its unmarked surfel; 1 and 2 would lose all: theirs stay; 3 is untouched
+    assert keep_last_per_face(remove, binding).tolist() == [True, False, False, False, False, False]
+    assert not keep_last_per_face(torch.zeros(6, dtype=torch.bool), binding).any()
+
+
+def test_statistics_count_every_kept_view():
+    """3DGS's denominator: a surfel kept for the view counts it even when no gradient reached it
+    (occluded); one outside the view neither adds nor counts."""
+    s = _surfels(4)
+    dc = DensityControl(_StubAvatar(s), DensifySchedule(0, 10, 1, 1.0, 0.01, 0.005, 0), 1.0, torch.Generator())  # type: ignore[arg-type]
+    cam = _camera()
+    means = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
+    means.grad = torch.tensor([[1.0, 0, 0], [0, 0, 0], [1.0, 0, 0], [0, 0, 0]], dtype=torch.float64)
+    dc.accumulate(means, cam, torch.tensor([True, True, False, False]))
+    assert dc.count.tolist() == [1.0, 1.0, 0.0, 0.0]
+    assert float(dc.grad_sum[0]) > 0 and dc.grad_sum[1:].tolist() == [0.0, 0.0, 0.0]
+    means.grad = None
+    dc.accumulate(means, cam, torch.tensor([True, False, True, False]))
+    assert dc.count.tolist() == [2.0, 1.0, 1.0, 0.0] and dc.grad_sum[2] == 0
+
+
+def test_local_terms_average_over_the_given_rows():
+    from types import SimpleNamespace
+
+    from sage_core.train.phase1 import Phase1Step
+
+    mu = torch.tensor([[3.0, 0, 0], [0.5, 0, 0], [0, 0, 2.0]])
+    vis = torch.tensor([True, True, False])
+    step = SimpleNamespace(render=SimpleNamespace(visible=vis))
+    rows = Phase1Step.visible_rows(step, mu)  # type: ignore[arg-type]
+    assert local_position_loss(rows, 1.0).item() == pytest.approx(1.0)  # (2 + 0) / 2 visible
+    assert local_position_loss(mu, 1.0).item() == pytest.approx(1.0)  # (2 + 0 + 1) / 3
+    assert local_position_loss(mu[:0], 1.0).item() == 0.0 and local_scale_loss(torch.zeros(0, 2), 0.6).item() == 0.0
+    assert Phase1Step.visible_rows(SimpleNamespace(render=SimpleNamespace(visible=None)), mu) is mu  # type: ignore[arg-type]
 
 
 def test_per_face_layout():
@@ -182,6 +232,13 @@ def test_phase1_densifies_and_resumes_exactly(tiny_ws, tiny_init_dir, one_thread
     assert n0 == ref.avatar.faces.shape[0]
     straight = [ref.step() for _ in range(n)]
     assert len(ref.avatar.surfels) != n0 and any("densify_surfels" in h for h in straight)
+    # every triangle keeps a surfel; the position rate is GA's scaled by the scene extent
+    assert torch.bincount(ref.avatar.surfels.binding, minlength=n0).min() >= 1
+    c, ext = ref.cfg, ref.density.extent  # type: ignore[union-attr]
+    assert ext > 0.5 and ref.position_lr_scale == ext
+    t = (n - 1) / c.iterations
+    want = math.exp((1 - t) * math.log(c.lr.position) + t * math.log(c.lr.position_final)) * ext
+    assert next(g["lr"] for g in ref.optimizer.param_groups if g["name"] == "mu_loc") == pytest.approx(want)
     assert all(np.isfinite(h["local_position"]) and np.isfinite(h["local_scale"]) for h in straight)
 
     first = _ga_trainer(tiny_ws, tiny_init_dir)

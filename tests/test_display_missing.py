@@ -89,7 +89,7 @@ def test_batch_tables():
 
     o = SubjectOutcome("s1", "finished", "/ws", 12.0, {"val_psnr": NAN, "val_ssim": None, "test_psnr": 23.456, "test_ssim": 0.9})
     md = summary_markdown([o])
-    assert f"| s1 | finished | 12.0 | {MISSING} | {MISSING} | 23.46 | 0.9000 |" in md and "nan" not in md
+    assert f"| s1 | finished |  | 12.0 | {MISSING} | {MISSING} | 23.46 | 0.9000 | {MISSING} | {MISSING} |" in md and "nan" not in md
     con = Console(width=160, record=True, file=io.StringIO())
     con.print(_table({"s1": {"state": "finished", "psnr": NAN}, "s2": {"state": "running", "psnr": 20.5}}))
     text = con.export_text()

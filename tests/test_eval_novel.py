@@ -182,3 +182,34 @@ def test_held_out_frames_follow_the_ingest_resolution_and_a_marked_frontal(base_
         img = load_novel_image(novel, fr)
         assert img.shape == (train_cam.height, train_cam.width, 3) and img.dtype == "float32"
         assert float(img.min()) >= 0.0 and float(img.max()) <= 1.0
+
+
+def test_view_groups_of_the_capture_are_reported_separately(ws, tmp_path):
+    """A capture whose gt/info.json groups its held-out cameras (views all around the head) gets the
+    means of every group; cameras the set does not hold are left out of the groups."""
+    summary_path = ws / "data" / "summary.json"
+    summary = json.loads(summary_path.read_text())
+    cap = tmp_path / "cap_grouped"
+    shutil.copytree(summary["source"], cap)
+    info_path = cap / "gt" / "info.json"
+    info = json.loads(info_path.read_text())
+    front = NOVEL_VIEWS // 2
+    others = [c for c in range(NOVEL_VIEWS) if c != front]
+    info["novel"]["view_groups"] = {"front": [front], "back": [*others, 99]}
+    info_path.write_text(json.dumps(info))
+    summary["source"] = str(cap)
+    summary_path.write_text(json.dumps(summary))
+    res = invoke(["eval", ws, "--split", "novel", "--samples", "0", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((ws / "eval" / "phase1" / "novel" / "metrics.json").read_text())
+    groups = doc["view_groups"]
+    assert set(groups) == {"front", "back"} and groups["back"]["cameras"] == others
+    assert groups["front"]["overall"]["count"] == 1 + NOVEL_EXPRESSIONS
+    assert groups["back"]["overall"]["count"] == len(others) * (1 + NOVEL_EXPRESSIONS)
+    per_image = {(r["timestep"], r["camera"]): r["psnr"] for r in doc["images"]}
+    back = [v for (t, c), v in per_image.items() if c in others]
+    assert groups["back"]["overall"]["psnr"] == pytest.approx(sum(back) / len(back), rel=1e-6)
+    assert _finite(groups["front"]["visible_region"]["psnr"])
+    index = json.loads((ws / "eval" / "results.json").read_text())
+    assert set(index["phase1/novel"]["view_groups"]) == {"front", "back"}
+    assert "back views" in res.output and "front views" in res.output

@@ -217,3 +217,15 @@ def test_cuda_renders_and_lpips(data, frames, lpips_model):
         assert a.psnr == pytest.approx(b.psnr, abs=1e-3) and a.ssim == pytest.approx(b.ssim, abs=1e-4)
         if a.lpips is not None:
             assert a.lpips == pytest.approx(b.lpips, abs=1e-3)
+
+
+def test_means_leave_out_images_with_an_empty_region():
+    """A region metric over an empty region is NaN (a back view no training view saw); the means are
+    over the other images and count says how many."""
+    from sage_core.evaluate.protocol import ImageMetrics, MetricMeans
+
+    rows = [ImageMetrics(0, 0, 20.0, 20.0, 0.9, 0.1), ImageMetrics(0, 1, math.nan, math.nan, math.nan, None),
+            ImageMetrics(1, 0, 30.0, 30.0, 0.7, 0.3)]
+    m = MetricMeans.of(rows)
+    assert m.count == 2 and m.psnr == pytest.approx(25.0) and m.ssim == pytest.approx(0.8) and m.lpips == pytest.approx(0.2)
+    assert math.isnan(MetricMeans.of(rows[1:2]).psnr) and MetricMeans.of(rows[1:2]).count == 0

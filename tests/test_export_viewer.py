@@ -255,6 +255,7 @@ def test_export_viewer_files_default_to_the_viewer_orientation(viewer_ws):
     # the FLAME orientation keeps sage's world; a wrong --up is refused
     res = invoke(["export", viewer_ws, "--ply", "--up", "y", "--device", "cpu", "--quiet"])
     assert res.exit_code == 0, res.output
-    assert np.allclose(read_ply(out / "canonical.ply")["means"], posed.means.numpy()[keep], atol=1e-6)
+    assert np.allclose(read_ply(out / "canonical-flame.ply")["means"], posed.means.numpy()[keep], atol=1e-6)
+    assert np.allclose(read_ply(out / "canonical.ply")["means"], posed.means.numpy()[keep] * flip, atol=1e-6)  # kept beside it
     res = invoke(["export", viewer_ws, "--ply", "--up", "z", "--quiet"])
     assert res.exit_code != 0 and "--up" in res.output

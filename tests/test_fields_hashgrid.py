@@ -67,7 +67,7 @@ def test_level_layout_tcnn_conventions():
     assert all(s <= t and s % 8 == 0 for s in g.level_sizes)
     assert dense[:5] == [True] * 5 and not any(dense[5:])
     assert g.table.shape == (sum(g.level_sizes), 2)
-    assert 12.0e6 < g.table.numel() < 12.4e6  # rendering.md: 12.2M parameters
+    assert 12.0e6 < g.table.numel() < 12.4e6  # docs/rendering.md §7: about 12.2M entries
     assert g.table.abs().max() <= 1e-4
 
 

@@ -42,7 +42,7 @@ def test_encoding_weights_zero_at_init_and_table_gradient_zero():
     assert torch.all(net.layers[0].weight[:, 3:] == 0)
     x = (torch.rand(100, 3) * 2 - 1) * BOX
     net.sdf(x).sum().backward()
-    assert net.encoding.table.grad.abs().max() == 0  # expected on step 1 (rendering.md 6.1)
+    assert net.encoding.table.grad.abs().max() == 0  # expected on step 1 (docs/rendering.md §8.1)
     assert net.layers[0].weight.grad[:, 3:].abs().max() > 0
 
 

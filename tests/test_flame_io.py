@@ -251,7 +251,7 @@ def test_validate_rejects_bad_parents_and_faces() -> None:
         validate_model(data)
 
 
-# --- teeth extension (formats.md §4) on a random 5023-vertex model ---
+# --- teeth extension (docs/formats.md §4) on a random 5023-vertex model ---
 
 V0 = 5023
 

@@ -230,7 +230,7 @@ def _synthetic_available() -> bool:
 
 
 def _above_neck_line(uv: np.ndarray, left: int, right: int, front_bottom: int) -> np.ndarray:
-    """VHAP's neck-line test in image space (formats.md §1.1): keep k·x + b − y > 0. (N,) bool."""
+    """VHAP's neck-line test in image space (docs/formats.md §1.1): keep k·x + b − y > 0. (N,) bool."""
     a, b, c = uv[left], uv[right], uv[front_bottom]
     k = (b[1] - a[1]) / (b[0] - a[0])
     return k * uv[:, 0] + (c[1] - k * c[0]) - uv[:, 1] > 0

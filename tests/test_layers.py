@@ -1,4 +1,4 @@
-"""Imports in ``sage_core`` run down the layers of the design (design.md, "Layout"): the CLI over
+"""Imports in ``sage_core`` run down the layers of the design (DEVELOPERS.md, "Layers"): the CLI over
 the stages over train / export / evaluate over the avatar over render, fields and flame over
 geometry, with a few small foundation modules (errors, atomic writes, image metrics, …) at the
 bottom. A package imports only from a lower layer or from itself: never from a higher layer, and
@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "sage_core"
 
 LAYERS: list[tuple[str, ...]] = [
     # foundation: no sage_core imports besides each other's lower rows
-    ("errors", "atomic", "__version__"),  # __version__: the string set first in sage_core/__init__.py
+    ("errors", "atomic", "_version"),
     ("config", "native_build", "npz", "serialization"),
     ("image_metrics",),  # its SSIM blur is a native extension
     ("workspace",),
@@ -124,17 +124,17 @@ def _violations(root: Path = PACKAGE) -> list[str]:
 
 def test_sage_core_imports_only_go_down_the_layers() -> None:
     bad = _violations()
-    assert not bad, "imports against the layers of design.md:\n" + "\n".join(bad)
+    assert not bad, "imports against the layers of DEVELOPERS.md:\n" + "\n".join(bad)
 
 
 def _import_circles(root: Path = PACKAGE) -> list[list[str]]:
     """Circles of runtime imports between the modules under ``root`` (also imports made inside
-    functions; not those under ``TYPE_CHECKING``, nor the version string, nor the allow-list)."""
+    functions; not those under ``TYPE_CHECKING``, nor the allow-list)."""
     mods = {_module_name(p, root)[0]: p for p in root.rglob("*.py")}
     graph: dict[str, set[str]] = {name: set() for name in mods}
     for name, path in mods.items():
         for target, _ in _imports(path, root, runtime_only=True):
-            if not target.startswith("sage_core") or target == "sage_core.__version__" or (name, target) in ALLOWED:
+            if not target.startswith("sage_core") or (name, target) in ALLOWED:
                 continue
             while target not in mods and "." in target:  # a name imported from a module
                 target = target.rsplit(".", 1)[0]
@@ -220,3 +220,39 @@ def test_checker_reports_backward_sideways_and_cli_imports(tmp_path: Path) -> No
     (root / "train" / "helpers.py").write_text("from .losses import f\n")
     (root / "train" / "losses.py").write_text((root / "train" / "losses.py").read_text() + "    from .helpers import g\n")
     assert _import_circles(root) == [["sage_core.train.helpers", "sage_core.train.losses"]]
+
+
+def test_the_version_has_one_source_below_every_module() -> None:
+    """``sage_core._version`` holds the version that ``pyproject.toml`` declares; the package root
+    only re-exports it, so reading the version imports nothing of the flat API."""
+    import re
+    import subprocess
+    import sys
+
+    from sage_core import __version__
+    from sage_core._version import __version__ as version
+
+    declared = re.search(r'^version = "([^"]+)"', (PACKAGE.parent / "pyproject.toml").read_text(encoding="utf-8"), re.M)
+    assert declared and version == declared.group(1) == __version__
+    code = "import sys, sage_core.workspace; print(sorted(m for m in sys.modules if m.startswith('sage_core.') and m.count('.') == 1))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=PACKAGE.parent).stdout
+    assert "sage_core.api" not in out and "sage_core.stages" not in out, out
+
+
+def test_every_native_extension_follows_the_loader_layout() -> None:
+    """Each native extension is built from ``csrc/<stem>.cpp`` beside its loader and registers
+    ``torch.ops.sage_<stem>`` (:func:`sage_core.native_build.native_extension`), and every C++ source
+    has a loader."""
+    import importlib
+
+    from sage_core.native_build import NativeExtension
+
+    loaders = {"sage_core.image_metrics": "BLUR_EXT", "sage_core.fields._cpp_eigh": "EXT", "sage_core.fields._cpp_hashgrid": "EXT",
+               "sage_core.fields._cpp_sdf": "EXT", "sage_core.render._cpp_surfels": "EXT"}  # fmt: skip
+    sources = set()
+    for module, attr in loaders.items():
+        ext = getattr(importlib.import_module(module), attr)
+        assert isinstance(ext, NativeExtension) and ext.source.is_file(), module
+        assert ext.name == ext.namespace == f"sage_{ext.source.stem}" and ext.source.parent.name == "csrc", module
+        sources.add(ext.source.resolve())
+    assert sources == {p.resolve() for p in PACKAGE.rglob("csrc/*.cpp")}

@@ -117,3 +117,48 @@ def test_mask_losses_match_their_formulas():
     mk = torch.tensor([[0.0, 1.0], [0.0, 1.0]])
     assert torch.isclose(alpha_mask_loss(a, mk), torch.tensor(0.7 / 4))
     assert float(alpha_mask_loss(mk, mk)) == 0.0
+
+
+# ---- the loss-term table ---------------------------------------------------------------------------
+
+
+def test_add_terms_runs_a_table_in_order_with_weights_starts_polish_and_groups():
+    from types import SimpleNamespace
+
+    from sage_core.train.losses import LossTerm, add_terms
+
+    calls = []
+
+    def term(name, value):
+        def compute(ctx):
+            calls.append(name)
+            return None if value is None else torch.tensor(value)
+
+        return compute
+
+    table = (
+        LossTerm("a", None, term("a", 1.0)),
+        LossTerm("b", "b", term("b", 2.0), start="b_from"),
+        LossTerm("c", "c", term("c", 3.0), polish=False),
+        LossTerm("g1", "g", term("g1", 4.0), group="g"),
+        LossTerm("g2", "g", term("g2", 5.0), group="g", when=lambda ctx: ctx.flag),
+        LossTerm("none", "g", term("none", None)),
+        LossTerm("zero", "zero", term("zero", 7.0)),
+        LossTerm("view", lambda ctx: ctx.view, term("view", 6.0)),
+    )
+    weights = SimpleNamespace(b=10.0, c=100.0, g=0.5, zero=0.0)
+    schedule = SimpleNamespace(b_from=3)
+
+    def run(step, polish, flag, view=2.0):
+        calls.clear()
+        terms = {}
+        total = add_terms(table, SimpleNamespace(step=step, polish=polish, flag=flag, view=view), weights, schedule, terms)
+        return total, terms, list(calls)
+
+    total, terms, order = run(5, False, True)
+    assert order == ["a", "b", "c", "g1", "g2", "none", "view"]  # the zero-weight term is not computed
+    assert set(terms) == {"a", "b", "c", "g1", "g2", "view"}
+    assert float(total) == 1 + 20 + 300 + (0.5 * 4 + 0.5 * 5) + 12
+    total, terms, order = run(2, True, False, view=0.0)  # before b's start, in the polish, g2 off, view weight 0
+    assert order == ["a", "g1", "none"] and float(total) == 1 + 2
+    assert add_terms((LossTerm("z", "zero", term("z", 1.0)),), SimpleNamespace(step=0, polish=False), weights, schedule, {}) is None

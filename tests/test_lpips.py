@@ -92,7 +92,7 @@ def test_resolution_order(tmp_path, monkeypatch):
 
 def test_named_missing_file_is_an_error(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path))
-    with pytest.raises(InputError, match="does not exist"):
+    with pytest.raises(InputError, match="not found"):
         find_lpips_weights(tmp_path / "nope.pth")
     monkeypatch.setenv(ENV_VAR, str(tmp_path / "gone.pth"))
     with pytest.raises(InputError, match=ENV_VAR):
@@ -129,7 +129,7 @@ def test_malformed_weights_give_clear_errors(tmp_path):
     assert isinstance(LPIPS.from_path(good), LPIPS)
     with pytest.raises(InputError, match="sha256"):
         LPIPS.from_path(good, check_sha256=True)
-    with pytest.raises(InputError, match="does not exist"):
+    with pytest.raises(InputError, match="not found"):
         load_lpips_or_none(tmp_path / "absent.pth")
 
 

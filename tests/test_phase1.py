@@ -198,20 +198,20 @@ def test_default_initial_opacity_is_one_half_in_the_config_and_the_network():
     from sage_core.fields.appearance import AppearanceNetwork
     from sage_core.train.phase1 import appearance_args
 
-    assert Phase1Config().app_init_opacity == 0.5
+    assert Phase1Config().appearance.init_opacity == 0.5
     assert appearance_args(Phase1Config())["opacity_bias"] == 0.0
     assert AppearanceNetwork(4, [-1.0] * 3, [1.0] * 3).mlp[-1].bias[3].item() == 0.0
 
 
 @pytest.mark.parametrize("p", [0.5, 0.8808, 0.2])
-def test_app_init_opacity_sets_the_opacity_logit_bias(p):
-    """The appearance network starts every surfel near app_init_opacity: its opacity-logit bias is
+def test_appearance_init_opacity_sets_the_opacity_logit_bias(p):
+    """The appearance network starts every surfel near appearance.init_opacity: its opacity-logit bias is
     logit(p), and with the last layer's weights zeroed every predicted opacity is exactly p."""
-    from sage_core.config import Phase1Config
+    from sage_core.config import resolve_config
     from sage_core.fields.appearance import AppearanceNetwork
     from sage_core.train.phase1 import appearance_args
 
-    args = appearance_args(Phase1Config(app_init_opacity=p, app_grid=False))
+    args = appearance_args(resolve_config("phase1", flags={"appearance.init_opacity": p, "appearance.grid": False}))
     net = AppearanceNetwork(4, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], **args)
     with torch.no_grad():
         net.mlp[-1].weight.zero_()

@@ -380,7 +380,7 @@ def test_wrinkle_basis_expression_ignores_skinning_but_not_expression_creases(ph
 
     tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, wrinkle_shading=True)
     av = tr.avatar
-    assert av.wrinkle_basis == "expression" and tr.cfg.wrinkle_basis == "expression"
+    assert av.wrinkle_basis == "expression" and tr.cfg.wrinkles.basis == "expression"
     n = len(av.surfels)
     w = torch.stack([torch.ones(n), torch.full((n,), 0.25)], -1)  # every surfel at full amplitude
     base = av.frame_inputs(p2_data.canonical_timestep)
@@ -493,13 +493,13 @@ def test_mouth_prior_by_surfel_visibility_spares_seen_surfels(phase1_avatar_path
 def test_cosine_schedule_falls_from_the_set_rate_to_zero():
     from types import SimpleNamespace
 
-    from sage_core.config import Phase2Config
+    from sage_core.config import Phase2Config, Phase2Rates
     from sage_core.train.phase2 import Phase2Trainer
 
-    cos = SimpleNamespace(cfg=Phase2Config(iterations=100, lr_schedule="cosine"))
+    cos = SimpleNamespace(cfg=Phase2Config(iterations=100, lr=Phase2Rates(schedule="cosine")))
     f = [Phase2Trainer.lr_factor(cos, s) for s in (0, 50, 100, 150)]
     assert f[0] == pytest.approx(1.0) and f[1] == pytest.approx(0.5) and f[2] == pytest.approx(0.0) and f[3] == pytest.approx(0.0)
-    const = SimpleNamespace(cfg=Phase2Config(iterations=100, lr_schedule="constant"))
+    const = SimpleNamespace(cfg=Phase2Config(iterations=100, lr=Phase2Rates(schedule="constant")))
     assert {Phase2Trainer.lr_factor(const, s) for s in (0, 50, 99)} == {1.0}
 
 
@@ -660,7 +660,7 @@ def test_batched_rest_lookup_equals_the_view_by_view_lookup(phase1_avatar_path, 
     views = [dataclasses.replace(v, color=v.color.clone()) for i, v in enumerate(base) if i != 1]
     views += [crop, dataclasses.replace(base[3], color=base[3].color.clone())]
     ref_views = [dataclasses.replace(v) for v in views]  # the same tensors, kept out of the stacking
-    teacher = RestTeacher(views, tr.cfg.teacher_depth_tol)
+    teacher = RestTeacher(views, tr.cfg.rest_teacher.depth_tol)
     assert len(teacher._stacked()) == 2
     fr = p2_data.train[2]
     cam = RenderCamera.from_camera(fr.camera, "cpu")
@@ -713,7 +713,7 @@ def test_pixel_rays_equal_the_full_image_rays(dtype):
 
 def test_default_phase2_keeps_the_appearance_network_and_trains_the_shape_network(phase1_avatar_path, p2_data, p2_init_dir):
     tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir)
-    assert tr.cfg.lr_networks == 0.0 and tr.cfg.lr_shape > 0 and tr.cfg.mouth_prior_visibility == "surfels"
+    assert tr.cfg.lr.networks == 0.0 and tr.cfg.lr.shape > 0 and tr.cfg.mouth.visibility == "surfels"
     av = tr.avatar
     app0 = {k: v.clone() for k, v in av.appearance.state_dict().items()}
     shape0 = {k: v.clone() for k, v in av.shape.state_dict().items()}
@@ -727,20 +727,30 @@ def test_default_phase2_keeps_the_appearance_network_and_trains_the_shape_networ
 def test_render_settings_keep_the_correction_mode_an_avatar_was_trained_with(tmp_path):
     import json
 
-    from sage_core.config import Phase2Config, to_dict
+    from sage_core.config import Phase2Config, canonical_form, to_dict
     from sage_core.stages.avatars import stage_render_settings
 
     cfg = to_dict(Phase2Config())
     (tmp_path / "config.json").write_text(json.dumps(cfg))
     s = stage_render_settings(tmp_path, None)
     assert s.correction is not None and s.correction["mode"] == "affine" and s.correction["radius_edges"] is None
-    # a phase-2 config from before the option: the curvature mode it was trained with
-    old = {k: v for k, v in cfg.items() if k != "correction_mode"}
+    off = json.loads(json.dumps(cfg))
+    off["correction"]["enabled"] = False
+    (tmp_path / "config.json").write_text(json.dumps(off))
+    assert stage_render_settings(tmp_path, None).correction is None
+    # a config saved before the phase configs had sections (the flat form of canonical_form)
+    flat = canonical_form(Phase2Config())
+    assert flat["correction"] is True and flat["correction_mode"] == "affine"
+    (tmp_path / "config.json").write_text(json.dumps({**flat, "correction_radius_edges": 1.5}))
+    s = stage_render_settings(tmp_path, None)
+    assert s.correction == {"radius_edges": 1.5, "max_neighbours": 16, "w_s": 0.0, "umbilic_tol": 1.0, "anisotropy_tol": 0.1, "mode": "affine"}
+    # a phase-2 config from before the mode option: the curvature mode it was trained with
+    old = {k: v for k, v in flat.items() if k != "correction_mode"}
     old["correction_radius_edges"] = 2.0
     (tmp_path / "config.json").write_text(json.dumps(old))
     s = stage_render_settings(tmp_path, None)
     assert s.correction["mode"] == "curvature" and s.correction["radius_edges"] == 2.0
-    (tmp_path / "config.json").write_text(json.dumps({**cfg, "correction": False}))
+    (tmp_path / "config.json").write_text(json.dumps({**flat, "correction": False}))
     assert stage_render_settings(tmp_path, None).correction is None
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from sage_core.config import Phase1Config
+from sage_core.config import PseudoViewConfig
 from sage_core.train.pseudo_views import (
     FaceTexture,
     MirrorViewProvider,
@@ -32,7 +32,7 @@ from sage_core.train.pseudo_views import (
     texture_lookup,
 )
 
-_D = Phase1Config()  # the defaults the providers read without a config
+_D = PseudoViewConfig()  # the defaults the providers read without a config
 
 
 @pytest.fixture(scope="module")
@@ -91,12 +91,12 @@ def test_mirror_view_is_the_flipped_input(setup):
     assert view.weight.shape == mask.shape and float(view.weight.min()) >= 0.0 and float(view.weight.max()) <= 1.0
     # frontal input: the mirrored surface is already seen, so the foreground keeps little weight
     fg = view.mask > 0.5
-    assert float(view.weight[fg].mean()) < 0.5 * (1.0 - _D.pseudo_mirror_seen_weight)
+    assert float(view.weight[fg].mean()) < 0.5 * (1.0 - _D.mirror_seen_weight)
     assert abs(prov.last_info["yaw_deg"]) < 2.0
-    assert view.view_weight == pytest.approx(_D.pseudo_mirror_weight * _D.pseudo_mirror_yaw_floor, rel=0.05)
+    assert view.view_weight == pytest.approx(_D.mirror_weight * _D.mirror_yaw_floor, rel=0.05)
     # no mirror view without a mirror index or with the mirror switched off
     assert prov.views(data, avatar, None) == []
-    assert MirrorViewProvider(SimpleNamespace(pseudo_mirror=False), proj).views(data, avatar, setup.mirror_index) == []
+    assert MirrorViewProvider(SimpleNamespace(mirror=False), proj).views(data, avatar, setup.mirror_index) == []
 
 
 def test_mirror_view_weighs_more_when_the_head_is_turned(setup):
@@ -122,7 +122,7 @@ def test_mirror_view_weighs_more_when_the_head_is_turned(setup):
     (vs,) = side.views(data, turned, setup.mirror_index)
     assert abs(side.last_info["yaw_deg"]) == pytest.approx(40.0, abs=2.0)
     assert side.last_info["unseen_fraction"] > front.last_info["unseen_fraction"] + 0.1
-    assert vs.view_weight == pytest.approx(_D.pseudo_mirror_weight)  # beyond the full-weight yaw
+    assert vs.view_weight == pytest.approx(_D.mirror_weight)  # beyond the full-weight yaw
     assert vs.view_weight > vf.view_weight
     fg_f, fg_s = vf.mask > 0.5, vs.mask > 0.5
     assert float(vs.weight[fg_s].mean()) > float(vf.weight[fg_f].mean()) + 0.1
@@ -189,7 +189,7 @@ def test_ring_weight_is_zero_where_nothing_is_known(setup):
 
 def test_build_pseudo_views_and_the_non_symmetric_fallback(setup):
     data, avatar = setup.data, setup.avatar
-    cfg = SimpleNamespace(pseudo_ring_views=2, pseudo_ring_weight=0.3, pseudo_ring_supersample=1)
+    cfg = SimpleNamespace(ring_views=2, ring_weight=0.3, ring_supersample=1)
     views, idx = build_pseudo_views(data, avatar, cfg)
     assert idx is not None and torch.equal(idx, setup.mirror_index)
     assert [v.name for v in views] == ["mirror", "ring00", "ring01"]
@@ -202,7 +202,7 @@ def test_build_pseudo_views_and_the_non_symmetric_fallback(setup):
     ring = views[1:]
     assert all(not v.mirror and v.view_weight == pytest.approx(0.3) for v in ring)
     yaws = [v.camera.extra["yaw_deg"] for v in ring]
-    assert yaws == pytest.approx([_D.pseudo_ring_yaw_deg, -_D.pseudo_ring_yaw_deg])
+    assert yaws == pytest.approx([_D.ring_yaw_deg, -_D.ring_yaw_deg])
     # same distance to the head and the same intrinsics as the input
     c0 = data.train[0].camera
     for v in ring:
@@ -220,7 +220,7 @@ def test_build_pseudo_views_and_the_non_symmetric_fallback(setup):
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_pseudo_views_on_cuda_match_cpu(setup):
-    cfg = SimpleNamespace(pseudo_ring_views=1, pseudo_ring_supersample=1)
+    cfg = SimpleNamespace(ring_views=1, ring_supersample=1)
     cpu_views, _ = build_pseudo_views(setup.data, setup.avatar, cfg)
     gpu_avatar = copy.deepcopy(setup.avatar).to("cuda")
     gpu_views, idx = build_pseudo_views(setup.data, gpu_avatar, cfg)

@@ -64,6 +64,10 @@ def test_ga_npz_default_fps_and_expr_fit(tmp_path):
     path = tmp_path / "m.npz"
     a = _ga_arrays(3, E=10, offsets=False)
     np.savez(path, **a)
+    with pytest.raises(InputError, match="expression components"):  # non-zero columns are never dropped
+        load_motion(path, n_expr=4)
+    a["expr"][:, 4:] = 0
+    np.savez(path, **a)
     m = load_motion(path, n_expr=4)
     assert m.fps == DEFAULT_FPS and m.params.expr.shape == (3, 4) and m.params.dynamic_offset is None
     np.testing.assert_array_equal(m.params.expr, a["expr"][:, :4])

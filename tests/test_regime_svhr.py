@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from sage_core.config import REGIME_OVERRIDES, resolve_config, to_dict
+from sage_core.config import REGIME_OVERRIDES, get_field, resolve_config, to_dict
 from sage_core.data.dataset import IngestedData
 from sage_core.errors import ConfigError
 from sage_core.flame.mirror import mirror_correspondence, model_mirror
@@ -112,13 +112,13 @@ def test_regime_defaults_apply_and_yield_to_flags():
     plain = resolve_config("phase1", "tiny")
     assert to_dict(resolve_config("phase1", "tiny", regime="mv-sf")) == to_dict(plain)
     assert to_dict(resolve_config("phase1", "tiny", regime="mv-mf")) == to_dict(plain)
-    assert plain.exposure == "off" and plain.w_sym_sdf == 0 and plain.w_sym_color == 0 and not plain.pose_refine
+    assert plain.exposure == "off" and plain.loss.sym_sdf == 0 and plain.loss.sym_color == 0 and not plain.pose_refine
     for regime in ("sv-hr", "one-shot"):
         cfg = resolve_config("phase1", "tiny", regime=regime)
-        assert cfg.app_sh_degree == 0 and cfg.exposure == "gain" and cfg.w_sym_sdf > 0 and cfg.w_sym_color > 0
-        assert set(REGIME_OVERRIDES[regime]["phase1"]) <= set(to_dict(cfg))
+        assert cfg.appearance.sh_degree == 0 and cfg.exposure == "gain" and cfg.loss.sym_sdf > 0 and cfg.loss.sym_color > 0
+        assert all(get_field(cfg, k) == v for k, v in REGIME_OVERRIDES[regime]["phase1"].items())
     over = resolve_config("phase1", "tiny", {"app_sh_degree": 1}, {"exposure": "rgb"}, regime="sv-hr")
-    assert over.app_sh_degree == 1 and over.exposure == "rgb"
+    assert over.appearance.sh_degree == 1 and over.exposure == "rgb"
 
 
 # ---------------------------------------------------------------------------- ingest

@@ -173,23 +173,6 @@ def test_convert_trusted_old_avatar_round_trips(tmp_path, tiny_init_dir, tiny_ws
 # --------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def init_ws(tiny_ws, tiny_init_dir, tmp_path_factory):
-    """tiny_ws with the shared init-mesh outputs promoted as its init-mesh stage."""
-    from sage_core.workspace import Workspace, begin_stage
-
-    ws = tmp_path_factory.mktemp("rel") / "ws"
-    shutil.copytree(tiny_ws, ws)
-    w = Workspace(ws)
-    with w.lock:
-        run = begin_stage(w, "init-mesh", {"copied": True}, "copied-init", requires=["ingest"])
-        for f in tiny_init_dir.iterdir():
-            if f.is_file():
-                shutil.copy2(f, run.work_dir / f.name)
-        run.finish()
-    return ws
-
-
 def _copy(ws: Path, tmp_path: Path) -> Path:
     dst = tmp_path / "ws"
     shutil.copytree(ws, dst)
@@ -209,8 +192,8 @@ def test_workspace_path_is_a_file_or_under_a_file(tmp_path, tiny_capture):
     assert f.read_text() == "mine"
 
 
-def test_read_only_workspace_is_refused_before_training(init_ws, tmp_path, monkeypatch):
-    ws = _copy(init_ws, tmp_path)
+def test_read_only_workspace_is_refused_before_training(init_mesh_ws, tmp_path, monkeypatch):
+    ws = _copy(init_mesh_ws, tmp_path)
     before = snapshot(ws / "init")
     if os.geteuid() == 0:  # root writes anywhere: stand in for the kernel's refusal
         import sage_core.workspace as wsmod
@@ -234,8 +217,8 @@ def test_read_only_workspace_is_refused_before_training(init_ws, tmp_path, monke
     assert snapshot(ws / "init") == before
 
 
-def test_manifest_that_is_json_but_not_an_object(init_ws, tmp_path):
-    ws = _copy(init_ws, tmp_path)
+def test_manifest_that_is_json_but_not_an_object(init_mesh_ws, tmp_path):
+    ws = _copy(init_mesh_ws, tmp_path)
     (ws / "init" / "manifest.json").write_text("[]\n")
     res = invoke("info", ws)
     assert res.exit_code == 0
@@ -246,10 +229,10 @@ def test_manifest_that_is_json_but_not_an_object(init_ws, tmp_path):
     assert not (ws / "phase1").exists()
 
 
-def test_deleted_output_makes_the_stage_incomplete(init_ws, tmp_path):
+def test_deleted_output_makes_the_stage_incomplete(init_mesh_ws, tmp_path):
     from sage_core.workspace import Workspace, begin_stage, read_json
 
-    ws = _copy(init_ws, tmp_path)
+    ws = _copy(init_mesh_ws, tmp_path)
     (ws / "init" / "flame_model.npz").unlink()
     w = Workspace(ws)
     st = w.status("init-mesh")
@@ -396,18 +379,18 @@ def _assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None
 
 
 @pytest.fixture(scope="module")
-def phase1_reference(init_ws, tmp_path_factory):
+def phase1_reference(init_mesh_ws, tmp_path_factory):
     """An uninterrupted phase-1 run (the workspace and its avatar state)."""
     ws = tmp_path_factory.mktemp("ref1") / "ws"
-    shutil.copytree(init_ws, ws)
+    shutil.copytree(init_mesh_ws, ws)
     res = invoke("phase1", ws, *P1_ARGS)
     assert res.exit_code == 0, text(res)
     return ws, _avatar_state(ws / "phase1" / "avatar.pt")
 
 
-def test_phase1_killed_mid_training_and_mid_promotion_resumes_bit_identically(init_ws, phase1_reference, tmp_path):
+def test_phase1_killed_mid_training_and_mid_promotion_resumes_bit_identically(init_mesh_ws, phase1_reference, tmp_path):
     ref_ws, ref = phase1_reference
-    ws = _copy(init_ws, tmp_path)
+    ws = _copy(init_mesh_ws, tmp_path)
     # 1. SIGKILL right after the step-4 checkpoint
     res = _run_killed(ws, "phase1", P1_ARGS, kill_after_checkpoint=4)
     assert res.returncode == -signal.SIGKILL, res.stderr[-2000:]
@@ -500,7 +483,7 @@ def test_bundle_is_pickle_free_documented_and_ga_compatible(phase1_reference, tm
         assert z["dynamic_offset"].shape[1:] == z["static_offset"].shape[1:]
         np.testing.assert_array_equal(z["expr"], np.asarray(av.params.expr, np.float32))
     meta = json.loads((out / "bundle.json").read_text())
-    assert meta["format"] == 2 and meta["files"]["avatar"] == "avatar.safetensors"
+    assert meta["format"] == 3 and meta["flame"]["model"] == {"included": True} and meta["files"]["avatar"] == "avatar.safetensors"
     with safe_open(str(out / "avatar.safetensors"), "pt") as f:
         names = set(f.keys())
         described = meta["arrays"]["avatar.safetensors"]

@@ -21,19 +21,25 @@ runner = CliRunner()
 # ---- threads ------------------------------------------------------------------------------------
 
 
+def _busy(monkeypatch, busy: float) -> None:
+    """Make the busy-core measurement report ``busy`` cores."""
+    monkeypatch.setattr(runtime, "measure_busy_cores", lambda *a, **k: runtime.CpuSample(busy, runtime.available_cores(), 0.2, 0.0))
+
+
 def test_apply_threads_flag_env_and_default(monkeypatch):
     before = torch.get_num_threads()
     try:
         monkeypatch.delenv(runtime.THREADS_ENV, raising=False)
-        monkeypatch.setattr(runtime, "busy_cores", lambda: 0)
+        _busy(monkeypatch, 0.0)
         assert runtime.default_threads() == runtime.available_cores()
         assert runtime.apply_threads(1) == 1 and torch.get_num_threads() == 1
-        monkeypatch.setenv(runtime.THREADS_ENV, "2")
-        assert runtime.apply_threads(None) == 2 and torch.get_num_threads() == 2
-        assert runtime.apply_threads(1) == 1  # the flag wins over the environment
+        monkeypatch.setenv(runtime.THREADS_ENV, "1")
+        assert runtime.apply_threads(None) == 1 and torch.get_num_threads() == 1
+        assert runtime.apply_thread_choice(None).source == "$SAGE_THREADS"
         monkeypatch.setenv(runtime.THREADS_ENV, "many")
         with pytest.raises(ConfigError, match="SAGE_THREADS"):
             runtime.apply_threads(None)
+        assert runtime.apply_threads(1) == 1  # the flag wins over the environment
         with pytest.raises(ConfigError, match="--threads = 0"):
             runtime.apply_threads(0)
     finally:
@@ -43,30 +49,70 @@ def test_apply_threads_flag_env_and_default(monkeypatch):
 def test_default_threads_leave_the_busy_cores_alone(monkeypatch):
     monkeypatch.delenv(runtime.THREADS_ENV, raising=False)
     monkeypatch.setattr(runtime, "available_cores", lambda: 8)
-    for busy, want in ((0, 8), (3, 5), (7, 1), (12, 1)):
-        monkeypatch.setattr(runtime, "busy_cores", lambda b=busy: b)
-        assert runtime.default_threads() == want
+    for busy, want in ((0.0, 8), (0.4, 8), (0.6, 7), (3.0, 5), (7.2, 1), (12.0, 1)):
+        _busy(monkeypatch, busy)
+        choice = runtime.choose_threads(None)
+        assert choice.threads == want and choice.source == "idle cores"
+        assert choice.describe().startswith(f"{want} thread") and "of 8 cores idle" in choice.describe()
     monkeypatch.setenv(runtime.THREADS_ENV, "6")  # an explicit count is taken as given
     assert runtime.default_threads() == 6
 
 
-def test_busy_cores_reads_the_load(monkeypatch, tmp_path):
+def test_thread_counts_above_the_cores_are_capped_with_a_warning(monkeypatch):
+    monkeypatch.setattr(runtime, "available_cores", lambda: 2)
+    choice = runtime.choose_threads(999)
+    assert choice.threads == 2 and choice.capped_from == 999
+    assert "--threads 999 is more than the 2 cores" in (choice.warning() or "")
+    monkeypatch.setenv(runtime.THREADS_ENV, "64")
+    env = runtime.choose_threads(None)
+    assert env.threads == 2 and "$SAGE_THREADS 64" in (env.warning() or "")
+    assert runtime.choose_threads(2).warning() is None and runtime.choose_threads(1).describe() == "1 thread (--threads)"
+
+
+def test_busy_cores_are_measured_over_a_short_window(monkeypatch, tmp_path):
+    """The busy share of the cores this process may run on over the window, from /proc/stat, less
+    this process's own CPU time: not the load average, which lags a minute behind."""
     import builtins
 
+    monkeypatch.setattr(runtime, "_LAST_SAMPLE", [])
+    monkeypatch.setattr(runtime.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    # /proc/stat lines of 3 CPUs, of which this process may use cpu0 and cpu1
+    stats = iter([
+        "cpu  0 0 0 0 0 0 0 0 0 0\ncpu0 100 0 0 100 0 0 0 0 0 0\ncpu1 100 0 0 100 0 0 0 0 0 0\ncpu2 0 0 0 0 0 0 0 0 0 0\n",
+        # over the window: cpu0 fully busy (20 of 20 ticks), cpu1 half (user 10, idle 5, iowait 5), cpu2 ignored
+        "cpu  0 0 0 0 0 0 0 0 0 0\ncpu0 120 0 0 100 0 0 0 0 0 0\ncpu1 110 0 0 105 5 0 0 0 0 0\ncpu2 50 0 0 0 0 0 0 0 0 0\n",
+    ])
     real_open = builtins.open
 
     def fake_open(path, *a, **k):
-        if str(path) == "/proc/loadavg":
-            f = tmp_path / "loadavg"
-            f.write_text(fake_open.text)
+        if str(path) == "/proc/stat":
+            f = tmp_path / "stat"
+            f.write_text(next(stats))
             return real_open(f, *a, **k)
         return real_open(path, *a, **k)
 
+    clock = iter([10.0, 10.0, 10.2])  # the reuse check, then both ends of the window
+    own = iter([1.0, 1.05])  # this process used a quarter of a core meanwhile
     monkeypatch.setattr(builtins, "open", fake_open)
-    fake_open.text = "3.70 2.00 1.00 2/300 1234\n"
-    assert runtime.busy_cores() == 3  # the load average
-    fake_open.text = "0.20 0.10 0.05 6/300 1234\n"
-    assert runtime.busy_cores() == 5  # runnable processes other than this one
+    monkeypatch.setattr(runtime, "time", types.SimpleNamespace(monotonic=lambda: next(clock), sleep=lambda s: None, perf_counter=lambda: 0.0))
+    monkeypatch.setattr(runtime, "_own_cpu_s", lambda: next(own))
+    sample = runtime.measure_busy_cores()
+    assert sample is not None and sample.cores == 2
+    assert sample.busy == pytest.approx(2 * (30 / 40) - 0.25)  # 1.25 cores busy with other work
+    monkeypatch.setattr(runtime, "time", types.SimpleNamespace(monotonic=lambda: 12.0, sleep=lambda s: None))
+    assert runtime.measure_busy_cores() is sample  # reused within CPU_SAMPLE_REUSE_S
+    assert runtime.busy_cores() == 1
+
+
+def test_the_running_line_shows_the_thread_choice_and_a_capped_request(tiny_capture, tmp_path):
+    ws = tmp_path / "ws"
+    res = runner.invoke(app, ["ingest", str(tiny_capture), str(ws), "--flame-model", str(tiny_capture.model_path), "--preset", "tiny",
+                              "--device", "cpu", "--threads", "999"], env={"COLUMNS": "200"})  # fmt: skip
+    assert res.exit_code == 0, res.output
+    n = runtime.available_cores()
+    assert f"--threads 999 is more than the {n} cores" in res.output
+    assert f"cpu · {runtime.choose_threads(999).describe()}" in res.output
+    assert json.loads((ws / "data" / "manifest.json").read_text())["metrics"]["threads"] == n
 
 
 def test_batch_divides_the_cores_among_concurrent_workers(tmp_path):
@@ -180,10 +226,47 @@ def test_step_clock_extrapolates_from_the_first_steps(monkeypatch):
     est = [e for e in out if e is not None]
     assert len(est) == 1 and out[4] is est[0]  # reported once, after 1 warm-up + 4 timed steps
     e = est[0]
+    assert e.first and e.basis == "steps 2-5"
     assert e.s_per_step == pytest.approx(2.0)
     assert e.remaining_s == pytest.approx(2.0 * (1000 - 5))
     assert e.total_s == pytest.approx(5.0 + 4 * 2.0 + e.remaining_s)
     assert runtime.format_duration(e.total_s) == "33 min"
+
+
+def test_step_clock_updates_the_estimate_from_the_recent_steps(monkeypatch):
+    """When the machine gets busier half-way, the updates follow the recent rate, not the first steps'."""
+    now = [0.0]
+    monkeypatch.setattr(runtime, "time", types.SimpleNamespace(perf_counter=lambda: now[0]))
+    clock = runtime.StepClock(total=400, start=0, warmup=1, steps=4, update_s=30.0, window_s=60.0)
+    out = []
+    for step in range(1, 400):
+        now[0] += 1.0 if step <= 100 else 4.0  # 1 s per step, then 4 s
+        e = clock.tick(step)
+        if e is not None:
+            out.append((step, e, now[0]))
+    first = out[0][1]
+    assert first.first and first.s_per_step == pytest.approx(1.0)
+    updates = [e for _, e, _ in out[1:]]
+    assert updates and not any(e.first for e in updates)
+    assert all(b[2] - a[2] >= 30 for a, b in zip(out, out[1:]))  # at most every update_s seconds
+    late = [e for s, e, _ in out[1:] if s > 130]
+    assert late and all(e.s_per_step == pytest.approx(4.0) for e in late)  # the last minute's steps only
+    assert late[0].basis.startswith("the last ") and "steps" in late[0].basis
+
+
+def test_progress_display_prints_updates_that_move_the_estimate(monkeypatch):
+    from sage_cli import _common
+
+    shown: list[str] = []
+    monkeypatch.setattr(_common.console, "print", lambda text, **kw: shown.append(str(text)))
+    disp = _common.ProgressDisplay("phase 1", enabled=True, device="cpu", preset="tiny")
+    disp._progress = None  # no bar: only the printed lines
+    disp(5, 1000, "phase 1", **runtime.Estimate(1.0, 995.0, 1000.0, 1000, "steps 2-5", True).as_stats())
+    assert len(shown) == 1 and "about 17 min" in shown[0] and "over steps 2-5" in shown[0]
+    disp(40, 1000, "phase 1", **runtime.Estimate(1.05, 1008.0, 1050.0, 1000, "the last 30 steps (31 s)", False).as_stats())
+    assert len(shown) == 1  # within a quarter of what was printed: logged only
+    disp(70, 1000, "phase 1", **runtime.Estimate(2.0, 1860.0, 1930.0, 1000, "the last 30 steps (60 s)", False).as_stats())
+    assert len(shown) == 2 and "now about 31 min to go" in shown[1] and "over the last 30 steps (60 s)" in shown[1]
 
 
 def test_estimate_lines_warn_on_cpu_with_the_default_preset_or_a_long_stage():

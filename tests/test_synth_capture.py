@@ -170,10 +170,12 @@ def test_oneshot_regime_and_cli(tmp_path: Path) -> None:
     app.command()(synth)
     app.command("noop")(lambda: None)
     out = tmp_path / "one"
-    args = ["synth", str(out), "--regime", "oneshot", "--preset", "tiny", "--width", "48", "--height", "70", "--preview", "--seed", "3"]
+    args = ["synth", str(out), "--regime", "oneshot", "--preset", "tiny", "--width", "48", "--height", "70", "--preview", "--seed", "3",
+            "--set", "novel_around=1"]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
-    assert "sage synth" in res.output
+    assert "sage synth" in res.output and "detailed: " in res.output  # the CLI's default appearance
+    assert json.loads((out / "gt" / "info.json").read_text())["novel"]["cameras"] == preset("tiny").novel_views + 1
     tr = _load(out / "transforms_train.json")
     assert len(tr["frames"]) == 1 and _load(out / "transforms_test.json")["frames"] == []
     assert (out / "preview.png").is_file() and (out / "gt" / "novel" / "transforms_test.json").is_file()

@@ -147,7 +147,8 @@ def test_progress_reports_each_step_and_one_estimate() -> None:
     assert len(est) == 1
     step, total, message, values = est[0]
     assert message == "phase x" and total == 12 and 1 < step <= 12
-    assert set(values) == {"estimate_s", "remaining_s", "s_per_step"}
+    assert set(values) == {"estimate_s", "remaining_s", "s_per_step", "estimate_basis", "estimate_first"}
+    assert values["estimate_first"] is True and values["estimate_basis"].startswith("step")
     assert values["remaining_s"] >= 0 and values["s_per_step"] >= 0
     # the estimate comes before that step's own progress report
     i = rec.calls.index(est[0])

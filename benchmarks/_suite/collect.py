@@ -31,7 +31,7 @@ def _means(m: dict[str, Any] | None) -> dict[str, Any] | None:
 
 def eval_metrics(ws: Path, stage: str, split: str) -> dict[str, Any]:
     """Means of ``WS/eval/<stage>/<split>/metrics.json``: {"overall", "frontal", "lpips_available",
-    "images"} (and "visible_region" where the split reports it). FileNotFoundError when the
+    "images"} (and "visible_region" and "view_groups" where the split reports them). FileNotFoundError when the
     workspace's eval index has no current result for that avatar stage and split (missing, or
     evaluated on an avatar that was re-trained since)."""
     from sage_core.stages.results import fresh_results
@@ -62,6 +62,10 @@ def metrics_file(path: Path) -> dict[str, Any]:
     vis = doc.get("visible_region")
     if isinstance(vis, dict):
         out["visible_region"] = {"overall": _means(vis.get("overall")), "frontal": _means(vis.get("frontal"))}
+    groups = doc.get("view_groups")
+    if isinstance(groups, dict):
+        out["view_groups"] = {g: {"cameras": v.get("cameras"), "overall": _means(v.get("overall")),
+                                  "visible_region": _means(v.get("visible_region"))} for g, v in groups.items()}  # fmt: skip
     return out
 
 
@@ -101,6 +105,19 @@ def capture_tracking(capture: Path) -> dict[str, Any] | None:
     if not tr:
         return {"mode": "exact"}
     return {"mode": tr.get("mode", "fitted"), "error": tr.get("error")}
+
+
+def capture_appearance(capture: Path) -> dict[str, Any]:
+    """The capture's synthetic head (``gt/info.json``): appearance "detailed" (with its hair style)
+    or "smooth"; empty when unreadable."""
+    try:
+        info = json.loads((capture / "gt" / "info.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    detail = ((info.get("identity") or {}).get("appearance") or {}).get("detail")
+    if not detail:
+        return {"appearance": "smooth"}
+    return {"appearance": "detailed", "hair": detail.get("hair_style")}
 
 
 def gt_canonical_mesh(capture: Path, avatar: Any) -> tuple[Any, Any, int]:

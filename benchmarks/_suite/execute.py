@@ -57,7 +57,7 @@ def run_step(step: Step, settings: Settings, previous: dict[str, Any] | None, po
             rec["command"] = command_line(argv)
             return _run_cli(rec, argv, settings, step, poll_gpu, None)
         if step.kind == "cli":
-            ws = settings.ws(step.row) if step.row else None
+            ws = settings.for_subject(step.subject).ws(step.row) if step.row else None
             stamp = _manifest_stamp(ws, step.stage) if ws is not None else None
             return _run_cli(rec, step.argv, settings, step, poll_gpu, (ws, stamp, previous))
         if step.kind == "copy":
@@ -92,7 +92,7 @@ def _keep_previous(rec: dict[str, Any], previous: dict[str, Any] | None) -> dict
 
 
 def _run_cli(rec: dict[str, Any], argv: list[str], settings: Settings, step: Step, poll_gpu: bool, check: Any) -> dict[str, Any]:
-    log = settings.out / "logs" / (step.key.replace(":", "__") + ".log")
+    log = settings.out / "logs" / (step.key.replace(":", "__").replace("/", "__") + ".log")
     res = run_process(sage_argv(argv), log, poll_gpu=poll_gpu)
     rec.update(rc=res.rc, wall_s=res.wall_s, log=str(log), ran=True)
     if res.rc != 0:
@@ -131,24 +131,82 @@ def execute(steps: list[Step], settings: Settings, previous_steps: dict[str, Any
 STAGE_COLUMNS = ("ingest", "init-mesh", "phase1", "phase2")
 
 
-def _stage_step_key(row: RowSpec, stage: str) -> str:
+def _stage_step_key(row: RowSpec, stage: str, st: Settings) -> str:
     """Key of the step that produced ``stage`` of a row's workspace (its base's for copied stages)."""
     if stage in row.copy_stages and row.base is not None:
-        return _stage_step_key(ROWS[row.base], stage)
-    return f"{row.id}:{stage}"
+        return _stage_step_key(ROWS[row.base], stage, st)
+    return st.key(f"{row.id}:{stage}")
 
 
 def collect_row(row: RowSpec, settings: Settings, needs: list[str], records: dict[str, Any]) -> dict[str, Any]:
-    """The numbers of one row from its workspace and the step records (missing ones are None;
-    failures are listed in ``errors``)."""
-    ws = settings.ws(row.id)
+    """The numbers of one row: per subject (``subjects``) from its workspace and step records, and
+    their mean over the subjects at the top level (``metrics``, ``geometry``; counts are summed);
+    stage costs and the reenactment are the first subject's. Missing numbers are None; failures are
+    listed in ``errors`` (a further subject's prefixed with its seed)."""
+    from .rows import row_steps
+
+    subs = []
+    for k in range(settings.subjects):
+        st = settings.for_subject(k)
+        keys = [s.key for s in row_steps(st, row)]
+        subs.append(_collect_subject(row, st, keys, records))
+    first = subs[0]
     out: dict[str, Any] = {
         "id": row.id, "label": row.label, "input_type": row.input_type, "regime": row.regime, "capture": row.capture,
-        "eval_stage": row.eval_stage, "has_sdf": row.has_sdf, "workspace": str(ws), "steps": list(needs),
-        "shared_from": row.base, "copied_stages": list(row.copy_stages), "finished_at": now_iso(), "errors": [],
+        "eval_stage": row.eval_stage, "has_sdf": row.has_sdf, "workspace": first["workspace"], "steps": list(needs),
+        "shared_from": row.base, "copied_stages": list(row.copy_stages), "finished_at": now_iso(),
+        "errors": [e if k == 0 else f"seed {sub['seed']}: {e}" for k, sub in enumerate(subs) for e in sub["errors"]],
     }  # fmt: skip
+    out["stages"] = first["stages"]
+    out["metrics"] = mean_tree([sub["metrics"] for sub in subs])
+    out["capture_tracking"] = first["capture_tracking"]
+    geo = [sub["geometry"] for sub in subs if sub.get("geometry")]
+    if geo:
+        out["geometry"] = mean_tree(geo)
+    if first.get("reenact"):
+        out["reenact"] = first["reenact"]
+    rss = [sub["peak_rss_mib"] for sub in subs if sub.get("peak_rss_mib") is not None]
+    gpu = [sub["gpu_peak_mib"] for sub in subs if sub.get("gpu_peak_mib") is not None]
+    out["peak_rss_mib"] = max(rss) if rss else None
+    out["gpu_peak_mib"] = max(gpu) if gpu else None
+    out["subjects"] = subs
+    return out
+
+
+_SUMMED = ("count", "images")
+"""Keys of :func:`mean_tree` that add up over the subjects instead of being averaged."""
+
+
+def mean_tree(docs: list[Any]) -> Any:
+    """The mean of equally shaped JSON trees: numbers averaged over the trees that have them (the
+    keys of :data:`_SUMMED` summed), dicts merged key by key, anything else taken from the first
+    tree that has it; None when no tree has a value."""
+    vals = [d for d in docs if d is not None]
+    if not vals:
+        return None
+    if all(isinstance(v, dict) for v in vals):
+        keys = list(dict.fromkeys(k for v in vals for k in v))
+        out = {}
+        for key in keys:
+            sub = [v.get(key) for v in vals]
+            if key in _SUMMED and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in sub if x is not None):
+                nums = [x for x in sub if x is not None]
+                out[key] = sum(nums) if nums else None
+            else:
+                out[key] = mean_tree(sub)
+        return out
+    nums = [v for v in vals if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    if nums and len(nums) == len(vals):
+        return float(sum(nums)) / len(nums)
+    return vals[0]
+
+
+def _collect_subject(row: RowSpec, st: Settings, keys: list[str], records: dict[str, Any]) -> dict[str, Any]:
+    """A row's numbers on one subject (the settings' subject)."""
+    ws = st.ws(row.id)
+    out: dict[str, Any] = {"seed": st.capture_seed, "workspace": str(ws), "capture": str(st.capture_dir(row.capture)), "errors": []}
     errors: list[str] = out["errors"]
-    for key in needs:
+    for key in keys:
         err = (records.get(key) or {}).get("error")
         if err:
             errors.append(f"{key}: {err}")
@@ -157,17 +215,17 @@ def collect_row(row: RowSpec, settings: Settings, needs: list[str], records: dic
         rec = collect.stage_record(ws, stage) if ws.exists() else None
         if rec is None:
             continue
-        srec = records.get(_stage_step_key(row, stage)) or {}
+        srec = records.get(_stage_step_key(row, stage, st)) or {}
         rec["peak_rss_mib"] = srec.get("peak_rss_mib")
         rec["gpu_peak_mib"] = srec.get("gpu_peak_mib")
         rec["shared"] = stage in row.copy_stages
         stages[stage] = rec
     for split in row.eval_splits:
-        srec = records.get(f"{row.id}:eval:{split}") or {}
+        srec = records.get(st.key(f"{row.id}:eval:{split}")) or {}
         stages[f"eval:{split}"] = {"wall_time_s": srec.get("run_wall_s"), "peak_rss_mib": srec.get("peak_rss_mib"),
                                    "gpu_peak_mib": srec.get("gpu_peak_mib"), "measured": "subprocess"}  # fmt: skip
     if row.reenact:
-        srec = records.get(f"{row.id}:reenact") or {}
+        srec = records.get(st.key(f"{row.id}:reenact")) or {}
         stages["reenact"] = {"wall_time_s": srec.get("run_wall_s"), "peak_rss_mib": srec.get("peak_rss_mib"),
                              "gpu_peak_mib": srec.get("gpu_peak_mib"), "measured": "subprocess"}  # fmt: skip
     out["stages"] = stages
@@ -179,17 +237,18 @@ def collect_row(row: RowSpec, settings: Settings, needs: list[str], records: dic
             try:
                 metrics[name] = collect.ceiling_metrics(ws, name) if row.ceiling else collect.eval_metrics(ws, row.eval_stage, name)
             except (OSError, ValueError) as e:
-                if not any(k.startswith(f"{row.id}:eval:{split}") for k in errors):
-                    errors.append(f"{row.id}:eval:{split}: no {name} result ({type(e).__name__})")
+                if not any(k.startswith(st.key(f"{row.id}:eval:{split}")) for k in errors):
+                    errors.append(f"{st.key(f'{row.id}:eval:{split}')}: no {name} result ({type(e).__name__})")
     out["metrics"] = metrics
-    out["capture_tracking"] = collect.capture_tracking(settings.capture_dir(row.capture))
+    out["capture_tracking"] = collect.capture_tracking(st.capture_dir(row.capture))
+    out.update(collect.capture_appearance(st.capture_dir(row.capture)))
 
     if row.has_sdf and "phase1" in stages:
         try:
-            out["geometry"] = collect.geometry_vs_gt(ws, settings.capture_dir(row.capture), seed=settings.seed)
+            out["geometry"] = collect.geometry_vs_gt(ws, st.capture_dir(row.capture), seed=st.seed)
         except Exception as e:  # noqa: BLE001
             errors.append(f"geometry: {type(e).__name__}: {e}")
-    if row.reenact and not (records.get(f"{row.id}:reenact") or {}).get("error"):
+    if row.reenact and not (records.get(st.key(f"{row.id}:reenact")) or {}).get("error"):
         try:
             out["reenact"] = collect.reenact_record(ws)
         except (OSError, ValueError) as e:

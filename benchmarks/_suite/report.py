@@ -82,11 +82,17 @@ def machine_info(device: str) -> dict[str, Any]:
     return info
 
 
+def _head(doc: dict[str, Any]) -> tuple[str, list[int]]:
+    """(head, subject seeds) of a results document (earlier documents: the smooth head, one subject)."""
+    return doc.get("head", "smooth"), list(doc.get("subject_seeds") or [(doc.get("settings") or {}).get("seed", 0)])
+
+
 def merge_results(old: dict[str, Any] | None, new: dict[str, Any]) -> dict[str, Any]:
     """A document with ``new``'s rows, steps and runs over ``old``'s: rows and steps of the same
     id are replaced, the others kept (a ``--rows`` run updates part of the suite). Documents of
-    another size or schema, or a smoke run with a real one, are not merged: ``new`` is returned."""
-    if not old or any(old.get(k) != new.get(k) for k in ("size", "schema", "smoke")):
+    another size, schema, head or subjects, or a smoke run with a real one, are not merged: ``new``
+    is returned."""
+    if not old or any(old.get(k) != new.get(k) for k in ("size", "schema", "smoke")) or _head(old) != _head(new):
         return new
     out = dict(new)
     out["rows"] = {**(old.get("rows") or {}), **(new.get("rows") or {})}
@@ -170,10 +176,29 @@ def _capture_lines(rows: list[dict[str, Any]]) -> list[str]:
     return out + [""] if out else []
 
 
+def _group(row: dict[str, Any], group: str) -> dict[str, Any] | None:
+    return ((((row.get("metrics") or {}).get("novel") or {}).get("view_groups") or {}).get(group) or {}).get("overall")
+
+
 def _regime_table(rows: list[dict[str, Any]]) -> list[str]:
-    header = ["Row", "Input", "Held-out GT PSNR", "SSIM", "LPIPS", "Test (all) PSNR", "SSIM", "LPIPS", "Notes"]
-    body = [[_name(r), str(r.get("input_type", DASH)), *_triple(_metric(r, "novel", "overall")),
+    header = ["Row", "Input", "Held-out GT PSNR", "SSIM", "LPIPS", "Back views PSNR", "SSIM", "LPIPS", "Test (all) PSNR", "SSIM",
+              "LPIPS", "Notes"]  # fmt: skip
+    body = [[_name(r), str(r.get("input_type", DASH)), *_triple(_metric(r, "novel", "overall")), *_triple(_group(r, "back")),
              *_triple(_metric(r, "test", "overall")), _notes(r)] for r in rows]  # fmt: skip
+    return _table(header, body)
+
+
+def _subject_table(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per row and subject: novel view, self-reenactment (all cameras) and held-out GT."""
+    header = ["Row", "Subject seed", "Hair", "Val PSNR", "All PSNR", "All LPIPS", "Held-out GT PSNR", "Held-out GT LPIPS", "Back views PSNR"]
+    body = []
+    for r in rows:
+        for sub in r.get("subjects") or []:
+            m = {"metrics": sub.get("metrics")}
+            body.append([_name(r), str(sub.get("seed", DASH)), str(sub.get("hair") or DASH), fmt((_metric(m, "val", "overall") or {}).get("psnr"), 2),
+                         fmt((_metric(m, "test", "overall") or {}).get("psnr"), 2), fmt((_metric(m, "test", "overall") or {}).get("lpips"), 4),
+                         fmt((_metric(m, "novel", "overall") or {}).get("psnr"), 2), fmt((_metric(m, "novel", "overall") or {}).get("lpips"), 4),
+                         fmt((_group(m, "back") or {}).get("psnr"), 2)])  # fmt: skip
     return _table(header, body)
 
 
@@ -319,7 +344,12 @@ def render_markdown(results: dict[str, Any]) -> str:
         f"device `{m.get('device', DASH)}`" + (f" ({m['gpu']}, {m.get('gpu_memory_gib')} GiB)" if m.get("gpu") else ""),
         f"- Preset `{st.get('preset', DASH)}`, seed {st.get('seed', DASH)}, LPIPS weights: {st.get('lpips_weights') or 'none (LPIPS unavailable)'}"
         + (f"; overrides: {st.get('overrides')}" if st.get("overrides") else ""),
+        "- Paths are relative to the suite's `--out` folder, written `OUT` in the commands; the LPIPS weights are named by their file.",
     ]
+    head, seeds = _head(results)
+    lines.append(f"- Synthetic heads: {head} (`sage synth --appearance {head}`), {len(seeds)} subject{'s' if len(seeds) > 1 else ''} "
+                 f"(capture seed{'s' if len(seeds) > 1 else ''} {', '.join(str(x) for x in seeds)})"
+                 + ("; every number is the mean over the subjects (per subject below)" if len(seeds) > 1 else ""))
     for run in results.get("runs") or []:
         lines.append(f"- Run {run.get('started_at', DASH)} → {run.get('finished_at', DASH)} ({fmt(run.get('wall_s'), 0)} s), rows "
                      f"{', '.join(run.get('rows') or [])}; load average at start / end: {run.get('load_start', DASH)} / {run.get('load_end', DASH)}"
@@ -328,16 +358,22 @@ def render_markdown(results: dict[str, Any]) -> str:
     lines += ["### Novel view and self-reenactment (multiview rows)", "",
               "Val = novel view (the held-out frontal camera at the training timesteps); Frontal / All = self-reenactment",
               "on the test split (held-out novel expressions) seen by the frontal camera / all cameras. PSNR is the",
-              "standard per-image value (formats.md §8), SSIM 11×11 Gaussian, LPIPS AlexNet v0.1 on [−1, 1].", ""]  # fmt: skip
+              "standard per-image value (docs/formats.md §8), SSIM 11×11 Gaussian, LPIPS AlexNet v0.1 on [−1, 1].", ""]  # fmt: skip
     mv_ids = ("ceiling", "sage", "sage_exact", "no_mlp", "no_phase2", "no_correction", "no_wrinkles", "no_light", "ga_mvsf", "ga_mvmf", "free_mvsf")
     lines += _capture_lines(_rows(results, mv_ids))
     lines += _rendering_table(_rows(results, mv_ids))
     regime_rows = _rows(results, ("sv_hr", "one_shot"))
     if regime_rows:
         lines += ["", "### Single-view and one-shot regimes", "",
-                  "Held-out GT = `sage eval WS --split novel` against the capture's `gt/novel/` views and expressions.", ""]  # fmt: skip
+                  "Held-out GT = `sage eval WS --split novel` against the capture's `gt/novel/` views and expressions (all of them);",
+                  "back views = its views behind the head (view group `back`, beyond 135° from the face; detailed captures).", ""]  # fmt: skip
         lines += _capture_lines(regime_rows)
         lines += _regime_table(regime_rows)
+    if any(len(r.get("subjects") or []) > 1 for r in _rows(results, ROW_IDS)):
+        lines += ["", "### Per subject", "",
+                  "The rows' numbers on each synthetic subject (the tables above show their mean). Back views = the held-out",
+                  "views behind the head (`gt/novel` view group `back`).", ""]  # fmt: skip
+        lines += _subject_table(_rows(results, ROW_IDS))
     lines += ["", "### Geometry", "",
               "SDF zero level set of phase 1 (frozen in phase 2) against the ground-truth mesh of the canonical timestep",
               "moved into canonical space; Chamfer = mean of both directions' closest-point distances; normal error =",
@@ -385,7 +421,9 @@ def render_document(docs: list[dict[str, Any]], discussion: str | None = None) -
              "regimes. All rows of a size share the seed and train on tracked captures (`sage synth --tracking fitted`:",
              "FLAME parameters fitted to a ground truth the written model cannot fully express, plus pose noise;",
              "docs/synthetic.md), except `sage_exact`, SAGE MV-SF on the exact multiview capture (`--tracking exact`:",
-             "the parameters are the truth).", ""]  # fmt: skip
+             "the parameters are the truth). Each size's section names its synthetic heads: detailed (pixel-scale skin and",
+             "hair detail, hair volume off the scalp; every row on two subjects, numbers averaged) or the smooth head of",
+             "earlier versions.", ""]  # fmt: skip
     for d in sorted(docs, key=lambda d: order.get(str(d.get("size")), 9)):
         parts.append(render_markdown(d))
     if discussion:

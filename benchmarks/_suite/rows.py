@@ -8,7 +8,7 @@ so steps shared by several rows (the synthetic capture, the SAGE phase-1 avatar)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 SDF_OFF_FROM = 1_000_000_000
@@ -30,16 +30,19 @@ light), on SAGE's surfel layout and rebinding: the ``free_mvsf`` row."""
 GA_PHASE1: tuple[str, ...] = (
     *FREE_PHASE1,
     "--set", "init_layout=per_face",
+    "--set", "init_opacity=0.1",
     "--set", "rebind_every=0",
     "--set", "densify=true",
     "--set", "w_local_position=0.01",
     "--set", "w_local_scale=1",
 )  # fmt: skip
 """Phase-1 options of the GaussianAvatars baseline (Qian et al., CVPR 2024) on 2D surfels: one
-surfel per FLAME triangle (teeth included, no mouth cavity: :data:`GA_INIT_MESH`), adaptive density
-control with binding inheritance and no rebinding, GA's local position (λ 0.01, threshold 1) and
-scale (λ 1, threshold 0.6) terms, photometric loss only. The density-control schedule is the size's
-(:attr:`Size.densify`)."""
+surfel per FLAME triangle (teeth included, no mouth cavity: :data:`GA_INIT_MESH`) at GA's initial
+opacity 0.1, adaptive density control with binding inheritance and no rebinding, GA's local
+position (λ 0.01, threshold 1) and scale (λ 1, threshold 0.6) terms, photometric loss only. The
+density-control schedule is the size's (:attr:`Size.densify`, :func:`ga_schedule`); the rest of
+the density control (thresholds, opacity reset at the start, the position rate scaled by the scene
+extent) is the ``densify`` section's defaults. docs/results.md compares every item with GA's code."""
 
 GA_INIT_MESH: tuple[str, ...] = ("--set", "mouth_cavity=false")
 """init-mesh options of the GaussianAvatars rows: FLAME with teeth, no mouth cavity."""
@@ -147,25 +150,62 @@ def _densify(start: int, every: int, stop: int, reset: int) -> tuple[str, ...]:
     return (f"densify_from={start}", f"densify_every={every}", f"densify_until={stop}", f"opacity_reset_every={reset}")
 
 
+GA_ITERATIONS = 600_000
+"""GaussianAvatars' run length. Its density control starts after step 10,000 (1/60 of the run),
+densifies every 2,000 steps (1/300), resets the opacities every 60,000 (1/10) and at the start, and
+runs to the end of training."""
+
+MIN_DENSIFY_EVERY = 100
+"""Fewest steps between two densifications at any size: 3DGS's interval, and GaussianAvatars' own
+fraction (1/300) of the full size's 30,000 steps. The learning rates are GA's per-step rates at every
+size, so the optimiser needs as many steps to respond to a densification in a short run as in a long
+one; 1/300 of the tiny run would densify every 5 steps."""
+
+MIN_RESET_EVERY = 500
+"""Fewest steps between two opacity resets at any size. A reset costs the same number of steps in a
+short run as in a long one (the opacity rate is GA's 0.05 per step): on the tiny capture the training
+PSNR fell to 21 dB after the reset at step 500 and was back to 34 dB at step 549 and 37 dB near 590,
+so 1/10 of the tiny run (150 steps) would spend a third or more of every interval recovering."""
+
+
+def ga_schedule(iterations: int) -> tuple[str, ...]:
+    """GaussianAvatars' density-control schedule scaled to a phase 1 of ``iterations`` steps: its
+    start (1/60), interval (1/300) and reset interval (1/10) as fractions of the run, the intervals no
+    shorter than :data:`MIN_DENSIFY_EVERY` and :data:`MIN_RESET_EVERY`, densifying to the end."""
+    start = round(iterations * 10_000 / GA_ITERATIONS)
+    every = max(MIN_DENSIFY_EVERY, round(iterations * 2_000 / GA_ITERATIONS))
+    reset = max(MIN_RESET_EVERY, round(iterations * 60_000 / GA_ITERATIONS))
+    return _densify(start, every, iterations, reset)
+
+
+def preset_iterations(preset: str) -> int:
+    """Phase 1's iterations of a stage preset."""
+    from sage_core.config import resolve_config
+
+    return int(resolve_config("phase1", preset, None, {}).iterations)
+
+
 TINY_SURFELS = 25_000
-"""Surfels of the rows on SAGE's layout at the tiny size (the tiny preset has 6,000): the count
-GaussianAvatars reaches by densification on the tiny tracked capture (25,470), so that the rows
-compare methods at one budget."""
+"""Surfels of the rows on SAGE's layout at the tiny size (the tiny preset has 6,000): the count the
+GaussianAvatars row reached by densification on the tiny tracked capture with the earlier,
+3DGS-shaped schedule (25,470), so that the rows compare methods at about one budget. On GA's own
+schedule (:func:`ga_schedule`) it ends with 19,875."""
 
 _PHASE2_EVAL = ("eval_phase1=false", "eval_frames=4")
 """Phase 2's own evaluation is cut to a few frames: the suite's numbers come from ``sage eval``."""
 
 SIZES: dict[str, Size] = {
     "tiny": Size("tiny", "tiny", "tiny", {"multiview": (), "monocular": (), "oneshot": ()},
-                 {"phase1": (f"n_surfels={TINY_SURFELS}",), "phase2": _PHASE2_EVAL}, 8, densify=_densify(100, 50, 1000, 500)),
+                 {"phase1": (f"n_surfels={TINY_SURFELS}",), "phase2": _PHASE2_EVAL}, 8, densify=ga_schedule(preset_iterations("tiny"))),
     "small": Size("small", "small", "small", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8,
-                  densify=_densify(250, 100, 2700, 1000)),
+                  densify=ga_schedule(preset_iterations("small"))),
     "full": Size("full", "default", "default", {"multiview": (), "monocular": (), "oneshot": ()}, {"phase2": _PHASE2_EVAL}, 8,
-                 densify=_densify(500, 100, 15000, 3000)),
+                 densify=ga_schedule(preset_iterations("default"))),
 }
-"""Density-control schedules: 3DGS's (from 500, every 100, until 15,000, opacity reset every 3,000 of
-30,000 steps) at ``full``; at the shorter presets the same shape, with intervals long enough for every
-training camera to be seen several times between densifications."""
+"""Density-control schedules (:func:`ga_schedule`): GaussianAvatars' at ``full`` (after 500, every 100,
+to the end of the 30,000 steps, opacity resets at 500 and every 3,000); at ``tiny`` (1,500 steps) after
+25, every 100, resets at 25, 500 and 1,000; at ``small`` (4,000) after 67, every 100, resets at 67 and
+every 500."""
 
 SMOKE_SETS: dict[str, tuple[str, ...]] = {
     "init-mesh": ("pretrain.steps=20", "pretrain.bank_size=4000", "pretrain.batch_size=1024", "pretrain.eval_samples=2000", "mc_resolution=32"),
@@ -187,11 +227,13 @@ def smoke_size(size: Size) -> Size:
 class Step:
     """One step of the plan.
 
-    kind: "synth" | "cli" | "copy" | "motion" | "ceiling". key: unique id (e.g. ``sage:phase1``).
-    argv: the arguments after ``sage`` ("synth" and "cli"). row: the row whose workspace the step
-    writes (None: shared). stage: the workspace stage it writes (manifest to read), if any. deps:
-    keys of the steps it needs. src / dst / stages: the copy. capture / out: the motion, or the
-    ceiling's capture and workspace. split / lpips_weights: the ceiling's split and LPIPS weights.
+    kind: "synth" | "cli" | "copy" | "motion" | "ceiling". key: unique id (e.g. ``sage:phase1``;
+    a further subject's keys start with ``seed<S>/``). argv: the arguments after ``sage`` ("synth"
+    and "cli"). row: the row whose workspace the step writes (None: shared). stage: the workspace
+    stage it writes (manifest to read), if any. deps: keys of the steps it needs. src / dst /
+    stages: the copy. capture / out: the motion, or the ceiling's capture and workspace. split /
+    lpips_weights: the ceiling's split and LPIPS weights. subject: index of the synthetic subject
+    (:attr:`Settings.subjects`) the step belongs to.
     """
 
     kind: str
@@ -208,11 +250,24 @@ class Step:
     steps: int = 8
     split: str = "test"
     lpips_weights: Path | None = None
+    subject: int = 0
+
+
+HEADS: tuple[str, ...] = ("detailed", "smooth")
+"""``--head``: the synthetic captures' appearance (``sage synth --appearance``)."""
 
 
 @dataclass
 class Settings:
-    """What every command of one suite run shares."""
+    """What every command of one suite run shares.
+
+    head: appearance of the synthetic subjects ("detailed" or "smooth", the head of earlier
+    versions); subjects: how many subjects (capture seeds ``seed``, ``seed + 1``, …) every row runs
+    on; subject: the subject this copy of the settings addresses (:meth:`for_subject`). The first
+    subject keeps the plain paths and step keys; a further one appends ``_seed<S>`` to its capture,
+    workspace and motion paths and prefixes its step keys with ``seed<S>/``. Every stage uses
+    ``seed`` whatever the subject.
+    """
 
     size: Size
     out: Path
@@ -220,15 +275,38 @@ class Settings:
     seed: int = 0
     lpips_weights: Path | None = None
     overrides: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    head: str = "detailed"
+    subjects: int = 2
+    subject: int = 0
+
+    def for_subject(self, k: int) -> "Settings":
+        """These settings addressing subject ``k``."""
+        return replace(self, subject=k)
+
+    @property
+    def capture_seed(self) -> int:
+        """``sage synth --seed`` of this subject."""
+        return self.seed + self.subject
+
+    @property
+    def subject_seeds(self) -> list[int]:
+        return [self.seed + k for k in range(self.subjects)]
+
+    def _suffix(self) -> str:
+        return "" if self.subject == 0 else f"_seed{self.capture_seed}"
+
+    def key(self, key: str) -> str:
+        """A step key of this subject."""
+        return key if self.subject == 0 else f"seed{self.capture_seed}/{key}"
 
     def capture_dir(self, kind: str) -> Path:
-        return self.out / "captures" / kind
+        return self.out / "captures" / f"{kind}{self._suffix()}"
 
     def ws(self, row: str) -> Path:
-        return self.out / "ws" / row
+        return self.out / "ws" / f"{row}{self._suffix()}"
 
     def motion_path(self, kind: str) -> Path:
-        return self.out / "motions" / f"{kind}_test.npz"
+        return self.out / "motions" / f"{kind}{self._suffix()}_test.npz"
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, tuple[str, ...]]:
@@ -287,10 +365,11 @@ def reenact_argv(st: Settings, row: RowSpec) -> list[str]:
 
 
 def synth_argv(st: Settings, kind: str) -> list[str]:
-    """``sage synth`` arguments of a capture kind (``--force`` is added when an older capture is replaced)."""
+    """``sage synth`` arguments of a capture kind for the settings' subject (``--force`` is added
+    when an older capture is replaced)."""
     regime, tracking = CAPTURES[kind]
-    return ["synth", str(st.capture_dir(kind)), "--regime", regime, "--tracking", tracking, "--preset", st.size.synth_preset,
-            *st.size.synth_args.get(regime, ()), "--seed", str(st.seed), "--quiet"]  # fmt: skip
+    return ["synth", str(st.capture_dir(kind)), "--regime", regime, "--tracking", tracking, "--appearance", st.head,
+            "--preset", st.size.synth_preset, *st.size.synth_args.get(regime, ()), "--seed", str(st.capture_seed), "--quiet"]  # fmt: skip
 
 
 def own_stages(row: RowSpec) -> list[str]:
@@ -307,66 +386,74 @@ def own_stages(row: RowSpec) -> list[str]:
 
 
 def row_steps(st: Settings, row: RowSpec) -> list[Step]:
-    """Every step a row needs, prerequisites (its base row's stages, the capture) first."""
+    """Every step a row needs for the settings' subject, prerequisites (its base row's stages, the
+    capture) first."""
+    k, sub = st.key, st.subject
     steps: list[Step] = []
     deps: list[str] = []
     if row.base is not None:
         base = ROWS[row.base]
         for s in base_steps(st, base, row.copy_stages):
             steps.append(s)
-        deps = [f"{base.id}:{row.copy_stages[-1]}"]
-        steps.append(Step("copy", f"{row.id}:copy", row=row.id, deps=deps, src=st.ws(base.id), dst=st.ws(row.id), stages=row.copy_stages))
-        deps = [f"{row.id}:copy"]
+        deps = [k(f"{base.id}:{row.copy_stages[-1]}")]
+        steps.append(Step("copy", k(f"{row.id}:copy"), row=row.id, deps=deps, src=st.ws(base.id), dst=st.ws(row.id), stages=row.copy_stages,
+                          subject=sub))  # fmt: skip
+        deps = [k(f"{row.id}:copy")]
     else:
-        steps.append(Step("synth", f"synth:{row.capture}", synth_argv(st, row.capture), capture=st.capture_dir(row.capture)))
-        deps = [f"synth:{row.capture}"]
+        steps.append(Step("synth", k(f"synth:{row.capture}"), synth_argv(st, row.capture), capture=st.capture_dir(row.capture), subject=sub))
+        deps = [k(f"synth:{row.capture}")]
     for stage in own_stages(row):
-        key = f"{row.id}:{stage}"
-        steps.append(Step("cli", key, stage_argv(st, row, stage), row=row.id, stage=stage, deps=deps))
+        key = k(f"{row.id}:{stage}")
+        steps.append(Step("cli", key, stage_argv(st, row, stage), row=row.id, stage=stage, deps=deps, subject=sub))
         deps = [key]
     last = deps
     for split in row.eval_splits:
-        key = f"{row.id}:eval:{split}"
+        key = k(f"{row.id}:eval:{split}")
         if row.ceiling:
             steps.append(Step("ceiling", key, row=row.id, deps=last, capture=st.capture_dir(row.capture), out=st.ws(row.id), split=split,
-                              lpips_weights=st.lpips_weights))
+                              lpips_weights=st.lpips_weights, subject=sub))
         else:
-            steps.append(Step("cli", key, eval_argv(st, row, split), row=row.id, stage="eval", deps=last))
+            steps.append(Step("cli", key, eval_argv(st, row, split), row=row.id, stage="eval", deps=last, subject=sub))
     if row.reenact:
-        mkey = f"motion:{row.capture}"
-        steps.append(Step("motion", mkey, deps=[f"synth:{row.capture}"], capture=st.capture_dir(row.capture),
-                          out=st.motion_path(row.capture), steps=st.size.motion_steps))  # fmt: skip
-        steps.append(Step("cli", f"{row.id}:reenact", reenact_argv(st, row), row=row.id, deps=[*last, mkey]))
+        mkey = k(f"motion:{row.capture}")
+        steps.append(Step("motion", mkey, deps=[k(f"synth:{row.capture}")], capture=st.capture_dir(row.capture),
+                          out=st.motion_path(row.capture), steps=st.size.motion_steps, subject=sub))  # fmt: skip
+        steps.append(Step("cli", k(f"{row.id}:reenact"), reenact_argv(st, row), row=row.id, deps=[*last, mkey], subject=sub))
     return steps
 
 
 def base_steps(st: Settings, base: RowSpec, stages: tuple[str, ...]) -> list[Step]:
-    """The steps of ``base`` up to and including the last of ``stages`` (its capture first)."""
-    steps = [Step("synth", f"synth:{base.capture}", synth_argv(st, base.capture), capture=st.capture_dir(base.capture))]
-    deps = [f"synth:{base.capture}"]
+    """The steps of ``base`` up to and including the last of ``stages`` (its capture first), for the
+    settings' subject."""
+    k, sub = st.key, st.subject
+    steps = [Step("synth", k(f"synth:{base.capture}"), synth_argv(st, base.capture), capture=st.capture_dir(base.capture), subject=sub)]
+    deps = [k(f"synth:{base.capture}")]
     for stage in own_stages(base):
         if stage not in stages:
             break
-        key = f"{base.id}:{stage}"
-        steps.append(Step("cli", key, stage_argv(st, base, stage), row=base.id, stage=stage, deps=deps))
+        key = k(f"{base.id}:{stage}")
+        steps.append(Step("cli", key, stage_argv(st, base, stage), row=base.id, stage=stage, deps=deps, subject=sub))
         deps = [key]
     return steps
 
 
 def plan(st: Settings, rows: list[str]) -> tuple[list[Step], dict[str, list[str]]]:
-    """The deduplicated steps of ``rows`` (in row order, each step where first needed) and, per
-    row, the keys of the steps it needs."""
+    """The deduplicated steps of ``rows`` for every subject (the first subject's rows in row order,
+    then the next subject's; each step where first needed) and, per row, the keys of the steps it
+    needs over all subjects."""
     unknown = [r for r in rows if r not in ROWS]
     if unknown:
         raise ValueError(f"unknown row(s) {', '.join(unknown)} (choose from {', '.join(ROW_IDS)})")
     order: list[Step] = []
     seen: set[str] = set()
-    needs: dict[str, list[str]] = {}
-    for rid in rows:
-        steps = row_steps(st, ROWS[rid])
-        needs[rid] = [s.key for s in steps]
-        for s in steps:
-            if s.key not in seen:
-                seen.add(s.key)
-                order.append(s)
+    needs: dict[str, list[str]] = {rid: [] for rid in rows}
+    for sub in range(st.subjects):
+        sk = st.for_subject(sub)
+        for rid in rows:
+            steps = row_steps(sk, ROWS[rid])
+            needs[rid] += [s.key for s in steps]
+            for s in steps:
+                if s.key not in seen:
+                    seen.add(s.key)
+                    order.append(s)
     return order, needs

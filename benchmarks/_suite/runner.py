@@ -1,8 +1,9 @@
 """Running one ``sage`` command in a subprocess: wall time, peak memory, exit code, log.
 
 Peak resident memory is the child's ``VmHWM`` (the kernel's high-water mark of its resident set)
-read from ``/proc/<pid>/status`` every ``poll_s`` seconds once the child runs its own program; the
-mark only grows, so the last reading misses at most what was allocated in the last interval.
+read from ``/proc/<pid>/status`` every ``poll_s`` seconds once the child runs its own program
+(:class:`MemorySampler`); the mark only grows, so the last reading misses at most what was allocated
+in the last interval, and a child that ends before the first reading has none.
 (``ru_maxrss`` from ``wait4`` cannot be used: it starts from the forking parent's resident set.)
 On CUDA machines with ``nvidia-smi`` the process's GPU memory is sampled every ``gpu_poll_s``
 seconds and the largest sample is kept (a lower bound of the true peak between samples).
@@ -99,6 +100,23 @@ def _vm_hwm_mib(pid: int, argv0: bytes) -> float | None:
     return None
 
 
+class MemorySampler:
+    """The peak resident memory (``VmHWM``, MiB) of the process ``pid`` once it runs ``argv0``, as
+    far as :meth:`sample` saw it (the mark only grows, so the last sample is the peak so far)."""
+
+    def __init__(self, pid: int, argv0: bytes) -> None:
+        self.pid = pid
+        self.argv0 = argv0
+        self.peak: float | None = None
+
+    def sample(self) -> float | None:
+        """Read the mark now; returns it (None before the exec, after the exit, or without /proc)."""
+        v = _vm_hwm_mib(self.pid, self.argv0)
+        if v is not None:
+            self.peak = v if self.peak is None else max(self.peak, v)
+        return v
+
+
 def run_process(
     argv: list[str],
     log_path: Path,
@@ -113,7 +131,6 @@ def run_process(
     poll_gpu: also sample the process's GPU memory with nvidia-smi (when available).
     """
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    rss: list[float] = []
     gpu: list[float] = []
     stop = threading.Event()
     use_gpu = poll_gpu and shutil.which("nvidia-smi") is not None
@@ -123,13 +140,12 @@ def run_process(
         log.flush()
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env)
+        memory = MemorySampler(proc.pid, argv0)
 
         def poll() -> None:
             last_gpu = 0.0
             while not stop.is_set():
-                v = _vm_hwm_mib(proc.pid, argv0)
-                if v is not None:
-                    rss.append(v)
+                memory.sample()
                 now = time.perf_counter()
                 if use_gpu and now - last_gpu >= gpu_poll_s:
                     last_gpu = now
@@ -151,4 +167,4 @@ def run_process(
         wall = time.perf_counter() - t0
         proc.returncode = os.waitstatus_to_exitcode(status)
         poller.join(timeout=15)
-    return ProcResult(proc.returncode, wall, max(rss) if rss else None, max(gpu) if gpu else None, log_tail(log_path))
+    return ProcResult(proc.returncode, wall, memory.peak, max(gpu) if gpu else None, log_tail(log_path))

@@ -21,7 +21,8 @@ def capture_is_current(capture: Path, argv: list[str]) -> bool:
     if not info.is_file():
         return False
     opts = _synth_options(argv)
-    opts.setdefault("tracking", "fitted")  # sage synth's default
+    opts.setdefault("tracking", "fitted")  # sage synth's defaults
+    opts.setdefault("appearance", "detailed")
     try:
         cfg = preset(opts.pop("preset", "default"), regime=opts.pop("regime", "multiview"), **opts)
         return json.loads(info.read_text(encoding="utf-8"))["config"] == cfg.to_dict()
@@ -32,7 +33,7 @@ def capture_is_current(capture: Path, argv: list[str]) -> bool:
 def _synth_options(argv: list[str]) -> dict:
     names = {"--regime": ("regime", str), "--preset": ("preset", str), "--cameras": ("n_cameras", int), "--width": ("width", int),
              "--height": ("height", int), "--train-timesteps": ("train_timesteps", int), "--test-timesteps": ("test_timesteps", int),
-             "--seed": ("seed", int), "--tracking": ("tracking", str)}  # fmt: skip
+             "--seed": ("seed", int), "--tracking": ("tracking", str), "--appearance": ("appearance", str)}  # fmt: skip
     out: dict = {}
     for i, a in enumerate(argv[:-1]):
         if a in names:

@@ -15,14 +15,14 @@ def config(
     preset: PresetOpt = "default",
     config: ConfigOpt = None,
     set_: SetOpt = None,
-    explain: Annotated[bool, typer.Option("--explain", help="List every field with its value, allowed values or range and help text instead of YAML.")] = False,
+    explain: Annotated[bool, typer.Option("--explain", help="List every field (dotted names of nested sections) with its value, allowed values or range and help text instead of YAML.")] = False,
     regime: Annotated[Optional[str], typer.Option("--regime", help="Apply a regime's defaults (mv-sf, mv-mf, sv-hr, one-shot), as a workspace ingested with it does.")] = None,
 ) -> None:
     """Print the configuration a stage would run with, as YAML (usable as a --config file)."""
     with cli_errors():
         import yaml
 
-        from sage_core.config import STAGE_CONFIGS, describe, describe_allowed, section_name, to_dict
+        from sage_core.config import STAGE_CONFIGS, describe, describe_allowed, legacy_aliases, section_name, to_dict
         from sage_core.errors import ConfigError
 
         if stage not in STAGE_CONFIGS:
@@ -42,10 +42,13 @@ def config(
             t.add_column("allowed")
             t.add_column("meaning")
             allowed = describe_allowed(type(cfg))
+            former = {new: old for old, new in legacy_aliases(type(cfg)).items()}
             for name, help_text, _ in describe(type(cfg)):
                 obj = cfg
                 for part in name.split("."):
                     obj = getattr(obj, part)
+                if name in former:
+                    help_text += f" (flat name {former[name]})"
                 t.add_row(name, str(obj), allowed.get(name, ""), help_text)
             console.print(t)
             return

@@ -1,4 +1,4 @@
-"""``sage eval WS``: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (formats.md §8).
+"""``sage eval WS``: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (docs/formats.md §8).
 
 Every frame of a split is rendered with that frame's FLAME parameters and camera on the dataset
 background and compared with its ground truth. ``WS/eval/`` is a workspace stage that accumulates
@@ -131,6 +131,8 @@ def show(r: EvalResult, ws: Path) -> None:
         if doc.get("frontal") is not None:
             rows.append(("frontal PSNR / SSIM / LPIPS", _means(doc["frontal"])))
         rows.append(("visible region PSNR / SSIM / LPIPS", _means(doc["visible_region"]["overall"])))
+        for group, g in (doc.get("view_groups") or {}).items():
+            rows.append((f"{group} views PSNR / SSIM / LPIPS", f"{_means(g['overall'])} (cameras {', '.join(str(c) for c in g['cameras'])})"))
         paths = [("novel metrics", out_dir / name / "metrics.json"), ("novel samples", out_dir / name / "images")]
         lpips_label, notes = "LPIPS", []
     else:

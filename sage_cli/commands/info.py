@@ -88,7 +88,8 @@ def _reenact_table(root: Path) -> object | None:
         try:
             doc = json.loads(path.read_text())
             rep = doc.get("report") or {}
-            outputs = [p for p in (rep.get("video_path"), rep.get("frames_dir")) if p]
+            # paths in the record are relative to its folder (absolute in records of older versions)
+            outputs = [str(path.parent / p) for p in (rep.get("video_path"), rep.get("frames_dir")) if p]
             fps = rep.get("render_fps")
             t.add_row(path.parent.name, _age(doc.get("finished_at")), str(rep.get("n_frames", "")), str(doc.get("cameras", "")),
                       f"{fps:.2f}" if isinstance(fps, (int, float)) else "", "\n".join(outputs))  # fmt: skip
@@ -97,7 +98,10 @@ def _reenact_table(root: Path) -> object | None:
     return t
 
 
-def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
+def info(
+    ws: Annotated[Path, typer.Argument(help="Workspace folder.")],
+    verify: Annotated[bool, typer.Option("--verify", help="Also check every output of every complete stage against the SHA-256 its manifest recorded (reads every file); exit 4 when one changed.")] = False,
+) -> None:
     """Show every stage of a workspace: status, age, wall time, device / threads / render backend, and key metrics."""
     from rich.table import Table
 
@@ -114,14 +118,21 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
         t.add_column("ran on", overflow="fold")
         t.add_column("key metrics", overflow="fold")
         colours = {"complete": "green", "stale": "yellow", "missing": "dim", "interrupted": "yellow", "failed": "red",
-                   "incomplete": "red", "corrupt": "red"}
+                   "incomplete": "red", "corrupt": "red", "running": "cyan", "changed": "red"}
+        changed: list[str] = []
         for st in w.stages():
             m = st.manifest or {}
             status = st.status + (f" ({st.reason})" if st.reason else "")
+            if verify and st.status == "complete":
+                problems = w.verify(st.stage)
+                if problems:
+                    more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+                    status = f"[{colours['changed']}]changed ({problems[0]}{more})[/]"
+                    changed += [f"{st.folder.name}/{p}" for p in problems]
             wall = m.get("wall_time_s")
             t.add_row(
                 f"{st.stage} ({st.folder.name}/)",
-                f"[{colours.get(st.status, 'white')}]{status}[/]",
+                status if status.startswith("[") else f"[{colours.get(st.status, 'white')}]{status}[/]",
                 _age(m.get("finished_at")),
                 f"{wall:.1f} s" if isinstance(wall, (int, float)) else "",
                 _ran_on(st.manifest),
@@ -131,3 +142,11 @@ def info(ws: Annotated[Path, typer.Argument(help="Workspace folder.")]) -> None:
         runs = _reenact_table(w.root)
         if runs is not None:
             console.print(runs)
+        if verify:
+            if changed:
+                from sage_core.errors import StageError
+
+                raise StageError(f"{w.root}: {len(changed)} output(s) changed since their stage finished: " + "; ".join(changed[:5])
+                                 + (" ..." if len(changed) > 5 else "") + "; re-run those stages with --force")
+            console.print("verified: every output of every complete stage matches its manifest"
+                          if any(st.status == "complete" for st in w.stages()) else "nothing to verify")

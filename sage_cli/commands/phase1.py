@@ -46,7 +46,7 @@ def phase1(
     """Train the avatar: surfels bound to FLAME, jointly with the canonical SDF (phase 1)."""
     with cli_errors():
 
-        flags = {"attributes": attributes, "iterations": iterations, "n_surfels": surfels, "render_backend": render_backend, **parse_sets(set_)}
+        flags = {"attributes": attributes, "iterations": iterations, "surfels.count": surfels, "render_backend": render_backend, **parse_sets(set_)}
         require_workspace(ws, " (run `sage ingest` and `sage init-mesh` first)")
         from sage_core.config import load_config_file, resolve_config
         from sage_core.stages import StageSettings, phase1_stage, workspace_regime

@@ -40,7 +40,7 @@ def _fmt_means(m: dict[str, Any] | None) -> str:
 
 def phase2(
     ws: Annotated[Path, typer.Argument(help="Workspace folder (after `sage phase1`).")],
-    correction: Annotated[Optional[str], typer.Option("--correction", help="Surfel correction from the local stretch (correction_mode: affine or the paper's curvature): on or off.")] = None,
+    correction: Annotated[Optional[str], typer.Option("--correction", help="Surfel correction from the local stretch (correction.mode: affine or the paper's curvature): on or off.")] = None,
     iterations: Annotated[Optional[int], typer.Option("--iterations", help="Optimisation steps.")] = None,
     lpips_weights: Annotated[Optional[Path], typer.Option("--lpips-weights", help="LPIPS AlexNet v0.1 weights for the evaluation (default: $SAGE_LPIPS_WEIGHTS or the cache).")] = None,
     preset: PresetOpt = "default",
@@ -63,7 +63,7 @@ def phase2(
             if correction.lower() not in ("on", "off"):
                 raise ConfigError(f"--correction must be on or off, got {correction!r}")
             corr = correction.lower() == "on"
-        flags = {"correction": corr, "iterations": iterations, "render_backend": render_backend, **parse_sets(set_)}
+        flags = {"correction.enabled": corr, "iterations": iterations, "render_backend": render_backend, **parse_sets(set_)}
         cfg = resolve_stage_config("phase2", preset, config, flags)
         require_workspace(ws, " (run `sage ingest`, `sage init-mesh` and `sage phase1` first)")
         from sage_core.stages import StageSettings, phase2_stage

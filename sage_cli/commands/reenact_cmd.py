@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from .._common import DeviceOpt, VerboseOpt, cli_errors, require_workspace, summary_panel
+from .._common import DeviceOpt, ThreadsOpt, VerboseOpt, cli_errors, require_workspace, summary_panel
 from .._stage import StageDisplay
 
 if TYPE_CHECKING:
@@ -38,16 +38,19 @@ def reenact(
     fps: Annotated[Optional[float], typer.Option("--fps", help="Video frame rate (default: the motion's, else 25).")] = None,
     max_frames: Annotated[Optional[int], typer.Option("--max-frames", help="Render only the first N frames of the motion.")] = None,
     bundle: Annotated[Optional[Path], typer.Option("--bundle", help="Avatar bundle folder from `sage export --bundle` (no workspace needed).")] = None,
+    flame_model: Annotated[Optional[Path], typer.Option("--flame-model", help="With --bundle: the FLAME model file the bundle names (a bundle does not carry the licensed model unless exported with --include-flame-model); checked by SHA-256 before it is read.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Output folder (default: WS/reenact/<name>, or <bundle>/reenact/<name>).")] = None,
+    size: Annotated[Optional[str], typer.Option("--size", help="Output size: WIDTHxHEIGHT, or a HEIGHT (the width follows the camera's aspect ratio); the camera's intrinsics are rescaled (default: the camera's own size).")] = None,
     device: DeviceOpt = "auto",
     verbose: VerboseOpt = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Drive the avatar with a FLAME sequence (self- or cross-reenactment) and write frames and an MP4."""
     with cli_errors():
         from sage_core.stages.reenact import check_output_name, check_reenact_options
 
         check_reenact_options(ws=ws, bundle=bundle, flame_seq=flame_seq, camera=camera, cameras_from=cameras_from, orbit=orbit,
-                              frame_format=frame_format, video=video, fps=fps, max_frames=max_frames)  # fmt: skip
+                              frame_format=frame_format, video=video, fps=fps, max_frames=max_frames, size=size)  # fmt: skip
         if ws is not None:
             require_workspace(ws)
         check_output_name(name)
@@ -56,7 +59,8 @@ def reenact(
         with StageDisplay(verbose) as display:
             r = reenact_stage(ws=ws, flame_seq=flame_seq, camera=camera, cameras_from=cameras_from, orbit=orbit, orbit_arc=orbit_arc,
                               orbit_elevation=orbit_elevation, frame_format=frame_format, video=video, name=name, stage=stage, fps=fps,
-                              max_frames=max_frames, bundle=bundle, out=out, device=device, on_event=display)  # fmt: skip
+                              max_frames=max_frames, bundle=bundle, out=out, device=device, size=size, threads=threads, flame_model=flame_model,
+                              on_event=display)  # fmt: skip
         show(r)
 
 

@@ -1,8 +1,9 @@
 """``sage run DATASET WS``: every stage in order (:func:`sage_core.stages.run_pipeline`), shown as
 the single stage commands show them.
 
-ingest → init-mesh → phase1 → phase2 (``--skip-phase2`` leaves it out) → eval (test and val) →
-export (PLY at the canonical pose + the avatar bundle). A finished stage with the same config and
+ingest → init-mesh → phase1 → phase2 (``--skip-phase2`` leaves it out) → eval (the workspace's test
+and val frames, and the capture's held-out ground truth ``gt/novel`` when it has one) → export (PLY
+at the canonical pose + the avatar bundle). A finished stage with the same config and
 inputs is skipped, an interrupted one resumes from its checkpoint, and a failing one stops the
 chain with its own message and exit code. ``--set stage.key=value`` addresses one stage's config (``--set
 phase1.iterations=500``); a ``--config`` file holds one section per stage.
@@ -114,13 +115,14 @@ def pipeline_rows(res: Any) -> tuple[list[tuple[str, Any]], list[tuple[str, Path
     ws = res.ws
     paths: list[tuple[str, Path]] = []
     if res.avatar_stage is not None:
-        for split in ("val", "test"):
+        labels = {"val": "novel view (val)", "test": "self-reenactment (test)", "novel": "held-out views and expressions (gt/novel)"}
+        for split, label in labels.items():
             p = ws / "eval" / res.avatar_stage / split / "metrics.json"
             if p.is_file():
-                o = read_json(p)["overall"]
-                lp = "unavailable" if o.get("lpips") is None else f"{o['lpips']:.4f}"
-                label = "novel view (val)" if split == "val" else "self-reenactment (test)"
-                rows.append((f"{label} PSNR / SSIM / LPIPS", f"{_num(o['psnr'], 2)} dB / {_num(o['ssim'], 4)} / {lp}"))
+                doc = read_json(p)
+                rows.append((f"{label} PSNR / SSIM / LPIPS", _means(doc["overall"])))
+                if split == "novel" and doc.get("visible_region"):
+                    rows.append(("  on the surface the training views saw", _means(doc["visible_region"]["overall"])))
                 paths.append((f"{split} metrics", p))
         paths.append(("avatar", ws / res.avatar_stage / "avatar.pt"))
     for label, rel in (("viewer PLY", "export/ply/canonical.ply"), ("avatar bundle", "export/bundle")):
@@ -128,6 +130,11 @@ def pipeline_rows(res: Any) -> tuple[list[tuple[str, Any]], list[tuple[str, Path
             paths.append((label, ws / rel))
     rows.append(("wall time", f"{res.wall_time_s:.1f} s"))
     return rows, paths
+
+
+def _means(o: dict[str, Any]) -> str:
+    lp = "unavailable" if o.get("lpips") is None else f"{o['lpips']:.4f}"
+    return f"{_num(o['psnr'], 2)} dB / {_num(o['ssim'], 4)} / {lp}"
 
 
 def _num(v: Any, digits: int) -> str:
@@ -157,7 +164,7 @@ def run(
     threads: ThreadsOpt = None,
     render_backend: RenderBackendOpt = None,
 ) -> None:
-    """Run every stage: ingest, init-mesh, phase1, phase2, eval (test and val), export (PLY + bundle); finished stages are skipped, interrupted ones resume."""
+    """Run every stage: ingest, init-mesh, phase1, phase2, eval (test, val and the capture's gt/novel), export (PLY + bundle); finished stages are skipped, interrupted ones resume."""
     with cli_errors():
         from sage_core.stages import split_sets
 

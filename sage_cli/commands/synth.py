@@ -8,10 +8,13 @@ from typing import Annotated, Optional
 
 import typer
 
+INGEST_SPELLINGS: dict[str, str] = {"one-shot": "oneshot", "one_shot": "oneshot", "sv-hr": "monocular", "mv-sf": "multiview", "mv-mf": "multiview"}
+"""``sage ingest``'s regime names, accepted for the synthetic capture of that regime."""
+
 
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the capture into (VHAP / GaussianAvatars layout).")],
-    regime: Annotated[str, typer.Option("--regime", help="multiview (16-camera arc, train/val/test), monocular (one camera, head turns) or oneshot (one frontal image).")] = "multiview",
+    regime: Annotated[str, typer.Option("--regime", help="multiview (16-camera arc, train/val/test), monocular (one camera, head turns; also sv-hr) or oneshot (one frontal image; also one-shot).")] = "multiview",
     preset: Annotated[str, typer.Option("--preset", help="tiny (128x186 images, seconds on a CPU), small (256x372) or default (550x802, more timesteps).")] = "default",
     cameras: Annotated[Optional[int], typer.Option("--cameras", help="Number of multiview cameras (camera 8 is frontal and held out as val).")] = None,
     width: Annotated[Optional[int], typer.Option("--width", help="Image width in pixels.")] = None,
@@ -20,6 +23,7 @@ def synth(
     test_timesteps: Annotated[Optional[int], typer.Option("--test-timesteps", help="Held-out timesteps with novel expressions (monocular: novel head poses).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Identity, texture and expression seed; the same seed writes identical files.")] = 0,
     tracking: Annotated[str, typer.Option("--tracking", help="fitted: the truth deforms beyond the written FLAME-format model and flame_param/ is a tracker-like fit with pose noise (error in gt/info.json); exact: the written model and parameters are the truth.")] = "fitted",
+    appearance: Annotated[str, typer.Option("--appearance", help="detailed: pixel-scale skin detail, brows, lashes and hair strands, hair volume off the scalp, and (monocular, oneshot) held-out views all around the head; smooth: the smooth head of earlier versions (same seed, same files).")] = "detailed",
     sets: Annotated[Optional[list[str]], typer.Option("--set", help="Override a synth config field, e.g. --set crease_depth_mm=3 or --set pose_noise_deg=0 (repeatable; fields in docs/synthetic.md).")] = None,
     preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a grid of views x expressions.")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace OUT if it already holds files.")] = False,
@@ -34,8 +38,8 @@ def synth(
         from sage_core.data.synthetic.config import parse_sets
 
         options = {"seed": seed, "n_cameras": cameras, "width": width, "height": height, "train_timesteps": train_timesteps,
-                   "test_timesteps": test_timesteps, "tracking": tracking}
-        cfg = make_preset(preset, regime=regime, **{**options, **parse_sets(sets)})
+                   "test_timesteps": test_timesteps, "tracking": tracking, "appearance": appearance}
+        cfg = make_preset(preset, regime=INGEST_SPELLINGS.get(regime.strip().lower(), regime), **{**options, **parse_sets(sets)})
         t0 = time.time()
         with ProgressDisplay("synth", enabled=verbose) as progress:
             path = write_capture(out, cfg, progress=progress, preview=preview, force=force)
@@ -54,6 +58,7 @@ def synth(
             ("images train/val/test", f"{counts['train_images']}/{counts['val_images']}/{counts['test_images']}"),
             ("model", f"{counts['vertices']} vertices, {counts['faces']} faces"),
             ("tracking", _tracking_row(info)),
+            ("appearance", _appearance_row(info)),
             ("wall time", f"{elapsed:.1f} s"),
         ]
         paths = [
@@ -64,6 +69,8 @@ def synth(
         ]
         if "novel" in info:
             paths.append(("held-out views", path / info["novel"]["folder"]))
+        if "hair" in info:
+            paths.append(("hair volume", path / info["hair"]["folder"]))
         if preview:
             paths.append(("preview", path / "preview.png"))
         summary_panel("sage synth", rows, paths)
@@ -76,3 +83,16 @@ def _tracking_row(info: dict) -> str:
         return "exact (the written FLAME parameters are the ground truth)"
     err = tr["error"]["all"]
     return f"fitted: vertex error mean {err['mean_mm']:.2f} mm, max {err['max_mm']:.2f} mm over {err['timesteps']} timesteps"
+
+
+def _appearance_row(info: dict) -> str:
+    """The appearance line of the summary: smooth, or the detailed subject's main traits."""
+    d = info.get("identity", {}).get("appearance", {}).get("detail")
+    if not d:
+        return "smooth"
+    traits = [f"{d['hair_style']} hair"]
+    if d.get("freckles", 0) > 0:
+        traits.append("freckles")
+    if d.get("stubble", 0) > 0:
+        traits.append("stubble")
+    return "detailed: " + ", ".join(traits)

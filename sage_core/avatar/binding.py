@@ -2,7 +2,7 @@
 
 Frames are sage's surfel frames (:func:`sage_core.flame.surfel_frames`): per face f a rotation
 R_f (3, 3) whose first two columns span the triangle's plane and whose third column is the face
-normal, the centroid T_f and the scale k_f (formats.md §6). For a surfel bound to face b:
+normal, the centroid T_f and the scale k_f (docs/formats.md §6). For a surfel bound to face b:
 
     μ = k_b·R_b·μ_loc + T_b,    s = k_b·exp(ŝ_loc)  (two in-plane axes),    q = q(R_b) ⊗ normalize(q_loc)
 

@@ -4,7 +4,7 @@ Notation. Every triangle j has a canonical → posed transform, the one that pos
 it. Its linear part is measured two ways:
 
 * the *binding* (similarity) part r_j·Q_j with Q_j = R_j^d·(R_j^c)ᵀ and r_j = k_j^d / k_j^c, from the
-  per-face frames (R, T, k) of formats.md §6 (the canonical → posed map a bound surfel follows);
+  per-face frames (R, T, k) of docs/formats.md §6 (the canonical → posed map a bound surfel follows);
 * the *affine* part F_j = A_j^d·(A_j^c)⁻¹ with A_j = [v1 − v0 | v2 − v0 | n̂_j] (edges from the first
   vertex and the unit face normal): the exact deformation gradient of the triangle's plane, which
   maps canonical edges to posed edges and the canonical normal to the posed normal. For a triangle

@@ -1,9 +1,9 @@
 """The animatable avatar: FLAME rig, triangle-bound surfels, canonical SDF and attribute networks.
 
 Canonical space is the FLAME mesh of the canonical timestep with zero global rotation and
-translation (design.md "Canonical space"). Every surfel has a canonical state (centre x_c, rotation
+translation (docs/method.md §2). Every surfel has a canonical state (centre x_c, rotation
 R_canon, in-plane scales s_c) and is bound to a triangle b. A frame's FLAME mesh poses it through
-the triangle's canonical frame (R_c, T_c, k_c) and posed frame (R_p, T_p, k_p) (formats.md §6,
+the triangle's canonical frame (R_c, T_c, k_c) and posed frame (R_p, T_p, k_p) (docs/formats.md §6,
 surfel convention):
 
     μ = k_p·R_p·R_cᵀ·(x_c − T_c)/k_c + T_p,    R = R_p·R_cᵀ·R_canon,    s = s_c·k_p/k_c
@@ -136,7 +136,9 @@ class Avatar(nn.Module):
         sdf_args: :class:`SDFNetwork` constructor kwargs (plain data).
         attributes: "mlp" or "free".
         app_args: :class:`AppearanceNetwork` kwargs other than the feature size and box.
-        shape_args: :class:`ShapeNetwork` kwargs other than in_features and box (mlp mode).
+        shape_args: :class:`ShapeNetwork` kwargs other than in_features and box (mlp mode), and
+            ``detail_grid``: the shape network also reads the appearance network's hash-grid
+            features (:attr:`shape_reads_detail`).
         base_scale: (N,) world base size of each surfel for the shape network (mlp mode); default
             the surfel set's current canonical scale (geometric mean of the two).
         neus_variance: initial NeuS s-variance (``variance`` module, inv_s per SDF box half extent).
@@ -206,7 +208,9 @@ class Avatar(nn.Module):
         self.exposure_gains: dict[tuple[int, int], torch.Tensor] = {}
         self.shape: ShapeNetwork | None = None
         if attributes == "mlp":
-            self.shape = ShapeNetwork(self.sdf.encoding.output_dim, *box, **self.shape_args).to(device)
+            net_args = {k: v for k, v in self.shape_args.items() if k != "detail_grid"}
+            in_features = self.sdf.encoding.output_dim + (self.appearance.grid.output_dim if self.shape_reads_detail else 0)
+            self.shape = ShapeNetwork(in_features, *box, **net_args).to(device)
             with torch.no_grad():
                 last = self.shape.mlp[-1]
                 assert isinstance(last, nn.Linear)
@@ -276,10 +280,11 @@ class Avatar(nn.Module):
         return _storage.save_avatar(self, path, embed_flame=embed_flame)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | torch.device = "cpu") -> Avatar:
+    def load(cls, path: str | Path, device: str | torch.device = "cpu", flame_model: FlameModelData | None = None) -> Avatar:
         """Read a file written by :meth:`save`; InputError when it is not a readable avatar
-        (UnsafeFileError for an old pickle avatar file, which is refused without being loaded)."""
-        return _storage.load_avatar_file(cls, path, device)
+        (UnsafeFileError for an old pickle avatar file, which is refused without being loaded).
+        flame_model: the model of a file that does not carry it (an avatar bundle's)."""
+        return _storage.load_avatar_file(cls, path, device, flame_model)
 
     # ------------------------------------------------------------------ FLAME inputs
     def frame_inputs(self, timestep: int) -> dict[str, torch.Tensor]:
@@ -357,6 +362,12 @@ class Avatar(nn.Module):
     def pose_mesh(self, flame_inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """(V, 3) posed FLAME vertices of one frame (batch-1 kwargs)."""
         return _posing.pose_mesh(self, flame_inputs)
+
+    @property
+    def shape_reads_detail(self) -> bool:
+        """Whether the shape network reads the appearance hash grid's features beside the SDF's
+        (``shape_args["detail_grid"]``; needs an appearance grid)."""
+        return bool(self.shape_args.get("detail_grid")) and self.appearance.grid is not None
 
     def posed(
         self,

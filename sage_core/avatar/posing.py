@@ -7,7 +7,7 @@ hash-grid features at x_c, whose symmetric matrix is added to the flat-on-triang
 I − n_b·n_bᵀ (:func:`shape_forward`).
 
 Posing (:func:`posed` -> :class:`PosedSurfels`): a frame's FLAME mesh (:func:`pose_mesh`) moves the
-surfels through the canonical (R_c, T_c, k_c) and posed (R_p, T_p, k_p) triangle frames (formats.md
+surfels through the canonical (R_c, T_c, k_c) and posed (R_p, T_p, k_p) triangle frames (docs/formats.md
 §6, surfel convention):
 
     μ = k_p·R_p·R_cᵀ·(x_c − T_c)/k_c + T_p,    R = R_p·R_cᵀ·R_canon,    s = s_c·k_p/k_c
@@ -167,10 +167,13 @@ def shape_forward(avatar: Avatar, x: torch.Tensor, prior_normal: torch.Tensor, e
     """The avatar's shape network with the flat-on-triangle prior (mlp mode).
 
     x, prior_normal: (N, 3); enc: (N, L·F) hash features at x -> R (N, 3, 3), s (N, 2); the size
-    multiplier is relative to ``avatar.base_scale`` (N,).
+    multiplier is relative to ``avatar.base_scale`` (N,). With :attr:`Avatar.shape_reads_detail` the
+    appearance grid's features at x join ``enc``.
     """
     net = avatar.shape
     assert net is not None
+    if avatar.shape_reads_detail:
+        enc = torch.cat([enc, avatar.appearance.grid(x)], -1)
     xn = (x - net.center.to(x.dtype)) / net.half_extent
     out = net.mlp(torch.cat([xn, enc], -1))
     eye = torch.eye(3, dtype=x.dtype, device=x.device)

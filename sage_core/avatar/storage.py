@@ -4,8 +4,12 @@ An avatar file is a safetensors file (:mod:`sage_core.serialization`, format :da
 kind :data:`AVATAR_KIND`) holding the constructor data (:func:`avatar_args`), the subject's FLAME
 parameters, the state dict without the FLAME buffers, the exposure gains, and either the FLAME model
 arrays (``flame``, self-contained) or a reference to the workspace's ``init/flame_model.npz`` with
-its content hash (``flame_ref``, :func:`flame_model_sha256`), found again on loading in one of the
-:data:`FLAME_REF_SEARCH_DEPTH` folders above the file. Loading runs no code from the file.
+the SHA-256 of its bytes and its content hash (``flame_ref``: ``file``, ``file_sha256``,
+``sha256`` = :func:`flame_model_sha256`), found again on loading in one of the
+:data:`FLAME_REF_SEARCH_DEPTH` folders above the file. Loading runs no code from the file: the
+referenced model is read only as the project's npz, and only after its bytes match
+``file_sha256`` (references written before that field existed are checked by content after the
+strict npz read).
 """
 
 from __future__ import annotations
@@ -17,10 +21,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, StageError
 from ..flame.model_data import FlameModelData
 from ..flame.params import FlameParams
 from ..serialization import AVATAR_FORMAT, AVATAR_KIND
+from ..workspace import file_sha256
 from .rendering import exposure_gains_plain
 from .surfels import SurfelSet
 
@@ -89,12 +94,20 @@ def flame_reference(avatar: Avatar, path: Path) -> dict[str, Any] | None:
         path.resolve().relative_to(root)
     except ValueError:
         return None
-    return {"file": src.relative_to(root).as_posix(), "sha256": flame_model_sha256(avatar.model_data)}
+    return {"file": src.relative_to(root).as_posix(), "file_sha256": file_sha256(src),
+            "sha256": flame_model_sha256(avatar.model_data)}
 
 
-def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = None) -> Path:
-    """Write the avatar file atomically (the arguments of :meth:`Avatar.save`); returns its path."""
-    from .. import __version__
+
+def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = None,
+                external_flame: dict[str, Any] | None = None) -> Path:
+    """Write the avatar file atomically (the arguments of :meth:`Avatar.save`); returns its path.
+
+    external_flame: store this plain-data description of the FLAME model (``flame_external``,
+    holding at least ``sha256`` = :func:`flame_model_sha256` of the avatar's model) instead of the
+    model: the file then loads only with the model given (an avatar bundle that does not hand out
+    the licensed model, :mod:`sage_core.export.bundle`)."""
+    from .._version import __version__
     from ..serialization import save_file
 
     p = Path(path)
@@ -107,8 +120,10 @@ def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = 
         "params": plain(avatar.params),
         "state": state,
     }
-    ref = None if embed_flame else flame_reference(avatar, p)
-    if ref is None:
+    ref = None if embed_flame or external_flame is not None else flame_reference(avatar, p)
+    if external_flame is not None:
+        blob["flame_external"] = {**external_flame, "sha256": flame_model_sha256(avatar.model_data)}
+    elif ref is None:
         blob["flame"] = plain(avatar.model_data)
     else:
         blob["flame_ref"] = ref
@@ -117,9 +132,11 @@ def save_avatar(avatar: Avatar, path: str | Path, *, embed_flame: bool | None = 
     return save_file(p, blob, AVATAR_KIND, AVATAR_FORMAT)
 
 
-def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.device = "cpu") -> Avatar:
+def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.device = "cpu",
+                     flame_model: FlameModelData | None = None) -> Avatar:
     """Read a file written by :func:`save_avatar` into a new ``cls`` (the arguments of
-    :meth:`Avatar.load`)."""
+    :meth:`Avatar.load`). flame_model: the model of a file written with ``external_flame`` (its
+    content hash must be the recorded one; InputError without it or on a mismatch)."""
     from ..serialization import load_file
 
     p = Path(path)
@@ -129,7 +146,13 @@ def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.de
     source: Path | None = None
     try:
         args = blob["args"]
-        if "flame_ref" in blob:
+        if "flame_external" in blob:
+            if flame_model is None:
+                raise InputError(p, "does not carry its FLAME model; give the model it was built with")
+            if flame_model_sha256(flame_model) != blob["flame_external"].get("sha256"):
+                raise InputError(p, "the FLAME model given is not the one this avatar was built with")
+            model_data = flame_model
+        elif "flame_ref" in blob:
             model_data, source = resolve_flame_ref(p, blob["flame_ref"])
         else:
             model_data = FlameModelData(**blob["flame"])
@@ -155,20 +178,34 @@ def load_avatar_file(cls: type[Avatar], path: str | Path, device: str | torch.de
 
 def resolve_flame_ref(path: Path, ref: dict[str, Any]) -> tuple[FlameModelData, Path]:
     """Find and check the FLAME model an avatar file references: ``ref["file"]`` relative to one of
-    the folders above the avatar file (its workspace), with the recorded content hash."""
+    the folders above the avatar file (its workspace). The file's bytes are checked against
+    ``ref["file_sha256"]`` before anything parses it, it is read only as the project's npz, and its
+    content against ``ref["sha256"]``. A missing model inside a workspace is a StageError naming
+    the stage that writes it."""
     from ..flame import load_flame_model
 
-    rel = str(ref["file"])
-    if Path(rel).is_absolute() or ".." in Path(rel).parts:
-        raise InputError(path, f"references the FLAME model {rel!r} outside its workspace")
+    if not isinstance(ref, dict) or not isinstance(ref.get("file"), str):
+        raise InputError(path, "malformed FLAME model reference")
+    rel = ref["file"]
+    if Path(rel).is_absolute() or ".." in Path(rel).parts or Path(rel).suffix != ".npz":
+        raise InputError(path, f"references the FLAME model {rel!r}, which is not a workspace npz file")
     for anc in list(path.resolve().parents)[:FLAME_REF_SEARCH_DEPTH]:
         cand = anc / rel
         if cand.is_file():
-            md = load_flame_model(cand)
+            expected = ref.get("file_sha256")
+            if expected is not None and file_sha256(cand) != expected:
+                raise InputError(path, f"the FLAME model it references ({cand}) changed since the avatar was saved; "
+                                       "re-run the stage that wrote the avatar")
+            md = load_flame_model(cand, npz_only=True)
             if flame_model_sha256(md) != ref.get("sha256"):
                 raise InputError(path, f"the FLAME model it references ({cand}) changed since the avatar was saved; "
                                        "re-run the stage that wrote the avatar")
             return md, cand
+    for anc in list(path.resolve().parents)[:FLAME_REF_SEARCH_DEPTH]:
+        stage_folder = (anc / rel).parent
+        if stage_folder.name == "init" and (anc / "data").is_dir() and stage_folder.is_dir():
+            raise StageError(f"{path}: the workspace's FLAME model {rel} is missing: "
+                             f"re-run `sage init-mesh {anc} --force`")
     raise InputError(path, f"references the workspace FLAME model {rel}, which is not found in the folders above it; "
                            "keep avatar files inside their workspace, or export a self-contained bundle "
                            "(`sage export WS --bundle`)")

@@ -12,7 +12,7 @@ State (per-surfel tensors have N index-aligned rows):
   replaces the attribute colour of surfels no training view saw (the mouth interior), set by phase 2
   with :meth:`SurfelSet.set_color_prior`; absent (None) otherwise;
 * parameters ``mu_loc`` (N, 3), ``q_loc`` (N, 4) wxyz and ``s_loc`` (N, 2) log in-plane scales,
-  all relative to the bound triangle's frame (formats.md §6, surfel convention);
+  all relative to the bound triangle's frame (docs/formats.md §6, surfel convention);
 * with ``attributes="free"``: ``sh_dc`` (N, 1, 3), ``sh_rest`` (N, (d+1)²−1, 3) (absent at degree
   0) and ``opacity`` (N,) logit. With ``attributes="mlp"`` colour and opacity come from networks
   elsewhere and the set holds none.

@@ -1,7 +1,8 @@
 """A subject's live status from its stages' events (:mod:`sage_core.stages.events`).
 
 :class:`StatusWriter` is the ``on_event`` callback of a batch subject's chain: it keeps
-``WS/.batch_status.json`` up to date with the running stage, its step and total, the progress
+``WS/.batch_status.json`` up to date with the stage that started last (so a failure names the
+stage that failed, even one that stops before its work begins), its step and total, the progress
 message and the training PSNR (the ``psnr`` metric of a progress event), at most every
 ``min_interval`` seconds except for a stage's start, end and last step.
 """
@@ -32,7 +33,10 @@ class StatusWriter:
             pass
 
     def _write(self, ev: StageEvent) -> None:
-        if ev.kind == "running":
+        if ev.kind == "started":  # the stage a failure before its work belongs to
+            write_status(self.ws, stage=ev.stage, done=0, total=None, message="starting")
+            self._last = time.time()
+        elif ev.kind == "running":
             write_status(self.ws, stage=ev.stage, done=0, total=None, message="started")
             self._last = time.time()
         elif ev.kind == "finished" and ev.result is not None:

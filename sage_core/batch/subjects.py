@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..config import REGIMES, canonical_regime
 from ..errors import InputError
 
 FIELDS: tuple[str, ...] = ("id", "capture", "regime", "timestep", "camera", "flame_model", "flame_masks", "set")
-REGIMES: tuple[str, ...] = ("mv-sf", "mv-mf", "sv-hr", "one-shot")
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
@@ -173,7 +173,7 @@ def _subject(path: Path, where: str, row: dict[str, Any]) -> Subject:
 
     regime = row.get("regime")
     if regime is not None:
-        regime = str(regime).strip()
+        regime = canonical_regime(str(regime))
         if regime not in REGIMES:
             raise fail(f"unknown regime {regime!r} (choose {', '.join(REGIMES)})")
     sets_raw = row.get("set", ())

@@ -20,7 +20,11 @@ from ..workspace import Workspace, atomic_write_json, atomic_write_text, now_iso
 STATUS_NAME = ".batch_status.json"
 SUMMARY_JSON = "batch_summary.json"
 SUMMARY_MD = "batch_summary.md"
-METRIC_KEYS: tuple[str, ...] = ("val_psnr", "val_ssim", "val_lpips", "test_psnr", "test_ssim", "test_lpips")
+METRIC_KEYS: tuple[str, ...] = ("val_psnr", "val_ssim", "val_lpips", "test_psnr", "test_ssim", "test_lpips",
+                                 "novel_psnr", "novel_ssim", "novel_lpips")
+"""Metrics of a subject in the summary: the eval of its avatar on the workspace's val (novel view) and
+test (self-reenactment) frames, and on the capture's held-out ground truth (``novel``, ``gt/novel``:
+the only held-out measure of a one-shot subject)."""
 
 
 def status_path(ws: str | Path) -> Path:
@@ -60,7 +64,7 @@ def subject_finished(ws: str | Path, stages: Iterable[str], run_key: str) -> boo
 
 
 def subject_metrics(ws: str | Path) -> dict[str, Any]:
-    """Evaluation metrics of the subject's avatar from the eval manifest: val/test PSNR, SSIM, LPIPS.
+    """Evaluation metrics of the subject's avatar from the eval manifest: val/test/novel PSNR, SSIM, LPIPS.
 
     The avatar stage is phase2 when it is complete, else phase1; keys are :data:`METRIC_KEYS`
     (None where not measured) plus ``avatar_stage``.
@@ -86,8 +90,9 @@ def stages_wall_time(ws: str | Path, stages: Iterable[str]) -> float:
 class SubjectOutcome:
     """One subject's line in the summary.
 
-    status: "finished" (ran now), "skipped" (already finished), "failed", or "not run" (the
-    batch was interrupted before it finished).
+    status: "finished" (ran now), "skipped" (already finished), "failed", "interrupted" or "not
+    run" (the batch was interrupted before it started). stage: the stage that failed or was
+    interrupted (None otherwise).
     """
 
     id: str
@@ -100,6 +105,7 @@ class SubjectOutcome:
     attempts: int = 0
     device: str | None = None
     log: str | None = None
+    stage: str | None = None
 
 
 def write_summary(root: str | Path, outcomes: list[SubjectOutcome], meta: dict[str, Any]) -> tuple[Path, Path]:
@@ -116,21 +122,23 @@ def write_summary(root: str | Path, outcomes: list[SubjectOutcome], meta: dict[s
 
 
 def summary_markdown(outcomes: list[SubjectOutcome], counts: dict[str, int] | None = None) -> str:
-    """A markdown table: subject, status, wall time, val/test PSNR and SSIM, error."""
+    """A markdown table: subject, status, the stage that failed, wall time, PSNR and SSIM on val
+    (novel view), test (self-reenactment) and gt/novel (held-out views and expressions), error."""
 
     def num(v: Any, d: int) -> str:
         return f"{v:.{d}f}" if isinstance(v, (int, float)) and not isinstance(v, bool) and v == v else "—"
 
     lines = [
-        "| subject | status | wall time (s) | val PSNR | val SSIM | test PSNR | test SSIM | error |",
-        "|---|---|---:|---:|---:|---:|---:|---|",
+        "| subject | status | failed stage | wall time (s) | val PSNR | val SSIM | test PSNR | test SSIM | novel PSNR | novel SSIM | error |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for o in outcomes:
         m = o.metrics
         err = (o.error or "").replace("|", "\\|").replace("\n", " ")
         lines.append(
-            f"| {o.id} | {o.status} | {o.wall_time_s:.1f} | {num(m.get('val_psnr'), 2)} | {num(m.get('val_ssim'), 4)} "
-            f"| {num(m.get('test_psnr'), 2)} | {num(m.get('test_ssim'), 4)} | {err} |"
+            f"| {o.id} | {o.status} | {o.stage or ''} | {o.wall_time_s:.1f} | {num(m.get('val_psnr'), 2)} | {num(m.get('val_ssim'), 4)} "
+            f"| {num(m.get('test_psnr'), 2)} | {num(m.get('test_ssim'), 4)} | {num(m.get('novel_psnr'), 2)} "
+            f"| {num(m.get('novel_ssim'), 4)} | {err} |"
         )
     if counts:
         lines += ["", ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))]

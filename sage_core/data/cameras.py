@@ -61,7 +61,7 @@ class Camera:
         return uv, z
 
     def resized(self, width: int, height: int) -> "Camera":
-        """The same camera for an image resized to (width, height); K scales per axis (formats.md §2.3)."""
+        """The same camera for an image resized to (width, height); K scales per axis (docs/formats.md §2.2)."""
         sx = width / self.width
         sy = height / self.height
         K = self.K.copy()

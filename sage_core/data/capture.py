@@ -1,6 +1,6 @@
 """Read and validate a VHAP "NeRF-style" capture export (single sequence or union).
 
-Layout (formats.md §1): ``transforms_{train,val,test}.json`` whose per-frame entries name an image,
+Layout (docs/formats.md §1): ``transforms_{train,val,test}.json`` whose per-frame entries name an image,
 an optional foreground mask and a per-timestep FLAME npz, plus an optional
 ``canonical_flame_param.npz``. Frame paths are resolved relative to the JSON file's folder and then
 normalised, so union exports (``../<sequence>/images/...``) work when they sit beside their
@@ -144,13 +144,14 @@ def _resolve(json_dir: Path, rel: str) -> Path:
     return Path(os.path.normpath(p if p.is_absolute() else json_dir / p))
 
 
-def _outside_capture(json_dir: Path, rel: str) -> str | None:
+def _outside_capture(json_dir: Path, rel: str, follow_symlinks: bool = False) -> str | None:
     """Why the frame path ``rel`` (relative to the split file's folder) leaves the capture, or None.
 
     A path stays in the capture when it is relative and resolves inside the capture folder or inside
     a sequence folder beside it (union exports name ``../<sequence>/images/...``). Absolute paths and
     anything that climbs further (``../../etc/hostname``) are refused, so a capture can never make
-    sage read files elsewhere on the machine.
+    sage read files elsewhere on the machine; so are symbolic links (of the file or of a folder on
+    its way) whose target lies outside, unless ``follow_symlinks``.
     """
     if Path(rel).is_absolute():
         return "is an absolute path; capture paths are relative to the split file"
@@ -162,6 +163,13 @@ def _outside_capture(json_dir: Path, rel: str) -> str | None:
         return "points outside the capture folder and the sequence folders beside it"
     if len(inner.parts) < 2:
         return "points outside the capture folder and the sequence folders beside it"
+    if not follow_symlinks:
+        sequence = Path(os.path.realpath(root / inner.parts[0]))  # the capture, or the sequence folder beside it
+        try:
+            Path(os.path.realpath(resolved)).relative_to(sequence)
+        except ValueError:
+            return ("is a symbolic link (or lies in a linked folder) whose target is outside the capture; "
+                    "copy the files into the capture or ingest with --set follow_symlinks=true")
     return None
 
 
@@ -270,7 +278,8 @@ def _check_image(path: Path, w: int, h: int, what: str, channels: tuple[int, ...
         problems.add(path, f"{what} has {ic} channels, expected {' or '.join(map(str, channels))}")
 
 
-def read_capture(path: str | Path, *, check_images: bool = True, progress: Progress | None = None) -> Capture:
+def read_capture(path: str | Path, *, check_images: bool = True, progress: Progress | None = None,
+                 follow_symlinks: bool = False) -> Capture:
     """Read a VHAP NeRF-style export (single sequence or union) and validate all of it.
 
     path: the folder holding ``transforms_{train,val,test}.json`` (``transforms.json`` is used, all
@@ -278,6 +287,8 @@ def read_capture(path: str | Path, *, check_images: bool = True, progress: Progr
     check_images: read every image/mask header (size and channels) — skip only for speed in tools
         that do not use the images.
     progress: ``progress(done, total, message)`` while checking frames.
+    follow_symlinks: accept frame files reached through symbolic links that point outside the
+        capture (refused by default, like ``../`` paths that leave it).
     Raises InputError naming the first offending file; its message lists up to 10 problems.
     """
     from ..flame.params import load_param_npz, stack_params
@@ -336,7 +347,7 @@ def read_capture(path: str | Path, *, check_images: bool = True, progress: Progr
         seen[key] = jpath
         cam = camera_from_nerf_frame(fr)
         bad = [(k, why) for k in ("file_path", "fg_mask_path", "flame_param_path")
-               if isinstance(fr.get(k), str) and fr.get(k) and (why := _outside_capture(jdir, fr[k]))]
+               if isinstance(fr.get(k), str) and fr.get(k) and (why := _outside_capture(jdir, fr[k], follow_symlinks))]
         if bad:
             for k, why in bad:
                 problems.add(jpath, f"frame for timestep {ti}, camera {ci}: {k} '{fr[k]}' {why}")
@@ -440,11 +451,24 @@ def offset_rows_compatible(rows: int, n_vertices: int, n_base_vertices: int) -> 
     return None
 
 
-def validate_against_model(capture: Capture, n_vertices: int, n_base_vertices: int) -> list[str]:
+def validate_against_model(capture: Capture, n_vertices: int, n_base_vertices: int,
+                           n_expr: int | None = None) -> list[str]:
     """Check that the capture's FLAME offsets fit a model with ``n_vertices`` (``n_base_vertices``
-    before extensions). Returns notes on padding/trimming; raises InputError naming the npz.
+    before extensions), and that no timestep has a non-zero expression coefficient beyond the
+    model's ``n_expr`` components (they would be dropped, changing the expression). Returns notes
+    on padding/trimming; raises InputError naming the npz.
     """
+    from ..flame.params import EXPR_DROP_TOL, expr_overflow
+
     notes: list[str] = []
+    if n_expr is not None:
+        for prm, own_file in ((capture.params, None), (capture.canonical, capture.root / "canonical_flame_param.npz")):
+            problem = None if prm is None else expr_overflow(prm, n_expr)
+            if problem is None:
+                continue
+            extra = np.abs(np.asarray(prm.expr, np.float64)[:, n_expr:]).max(axis=1)
+            ts = int(prm.timesteps[int(np.argmax(extra > EXPR_DROP_TOL))])
+            raise InputError(own_file or capture.param_paths.get(ts, capture.root), f"timestep {ts}: {problem}")
     checks: list[tuple[Path, FlameParams]] = []
     if capture.params.n_offset_vertices is not None:
         first_ts = int(capture.params.timesteps[0])

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from ..errors import InputError
+from ..errors import InputError, require_file
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -21,8 +21,7 @@ def read_image(path: str | Path) -> np.ndarray:
     import OpenImageIO as oiio
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "image file not found")
+    require_file(path, "image file")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise InputError(path, f"cannot open image: {oiio.geterror()}")
@@ -44,8 +43,7 @@ def image_size(path: str | Path) -> tuple[int, int, int]:
     import OpenImageIO as oiio
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "image file not found")
+    require_file(path, "image file")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise InputError(path, f"cannot open image: {oiio.geterror()}")

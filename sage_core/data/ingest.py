@@ -482,7 +482,7 @@ def ingest(
     model_path = Path(model_path)
     model = load_flame_model(model_path)
     warnings = list(capture.warnings)
-    warnings += validate_against_model(capture, model.n_vertices, model.n_base_vertices)
+    warnings += validate_against_model(capture, model.n_vertices, model.n_base_vertices, model.n_expr)
 
     masks_file: Path | None = Path(masks_path) if masks_path is not None else None
     if masks_file is None and (model_path.parent / "FLAME_masks.pkl").is_file():

@@ -3,7 +3,7 @@
 :class:`~sage_core.data.synthetic.ceiling.TrackedTruth` renders the capture's ground-truth
 appearance on its written model posed with the workspace's FLAME parameters: the avatar every
 FLAME-driven method would be if it learned the head perfectly. Evaluated like an avatar
-(formats.md §8: the same frames, ground truth, PSNR / SSIM / LPIPS), it tells how much of a row's
+(docs/formats.md §8: the same frames, ground truth, PSNR / SSIM / LPIPS), it tells how much of a row's
 error on held-out expressions is the tracking's and how much the method's. On the training
 timesteps it is no reference: an avatar fitted to those images absorbs their tracking error, the
 ceiling does not.

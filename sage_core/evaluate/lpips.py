@@ -10,7 +10,6 @@ report ``None`` (:func:`load_lpips_or_none`, :func:`lpips_or_none`), never a num
 
 from __future__ import annotations
 
-import hashlib
 import os
 import pickle
 import zipfile
@@ -19,7 +18,8 @@ from pathlib import Path
 import torch
 import torch.nn as nn
 
-from ..errors import InputError
+from ..errors import InputError, require_file
+from ..workspace import file_sha256
 
 ENV_VAR = "SAGE_LPIPS_WEIGHTS"
 DEFAULT_CACHE_PATH = Path("~/.cache/sage/lpips_alex_v0.1.pth")
@@ -60,26 +60,15 @@ def find_lpips_weights(explicit: str | Path | None = None) -> Path | None:
     """
     if explicit is not None and str(explicit) != "":
         p = Path(explicit).expanduser()
-        if not p.is_file():
-            raise InputError(p, "LPIPS weights file given with --lpips-weights does not exist")
+        require_file(p, "LPIPS weights file (--lpips-weights)")
         return p
     env = os.environ.get(ENV_VAR, "")
     if env:
         p = Path(env).expanduser()
-        if not p.is_file():
-            raise InputError(p, f"LPIPS weights file named by ${ENV_VAR} does not exist")
+        require_file(p, f"LPIPS weights file (${ENV_VAR})")
         return p
     p = default_weights_path()
     return p if p.is_file() else None
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex sha256 of a file, read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def load_lpips_state_dict(path: str | Path, check_sha256: bool = False) -> dict[str, torch.Tensor]:
@@ -90,8 +79,7 @@ def load_lpips_state_dict(path: str | Path, check_sha256: bool = False) -> dict[
     :data:`LPIPS_ALEX_SHA256`.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "LPIPS weights file does not exist")
+    require_file(path, "LPIPS weights file")
     if check_sha256:
         digest = file_sha256(path)
         if digest != LPIPS_ALEX_SHA256:

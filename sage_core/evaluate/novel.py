@@ -22,6 +22,11 @@ keeps its own shape and static offset) and compared with the ground truth twice:
 "frontal" is the held-out camera marked ``frontal_camera`` in ``gt/info.json`` (block ``novel``)
 when present, else the held-out camera whose direction from the head centre is closest to a
 training camera's.
+
+View groups: when ``gt/info.json`` (block ``novel``) lists ``view_groups`` (group name -> camera
+indices: "front", "side", "back" for captures with views all around the head), the report adds the
+means of each group (full image and visible region) under ``view_groups``; captures without them
+report no groups.
 """
 
 from __future__ import annotations
@@ -85,7 +90,8 @@ class NovelSet:
 
     root: ``CAPTURE/gt/novel``; frames: held-out images (views first, then expressions); params:
     their FLAME parameters; frontal_camera, frontal_rule: the frontal camera and how it was chosen;
-    background: 1.0 (white) or 0.0 (black).
+    background: 1.0 (white) or 0.0 (black); view_groups: group name -> camera indices (empty when
+    the capture does not group its views).
     """
 
     root: Path
@@ -94,6 +100,7 @@ class NovelSet:
     frontal_camera: int
     frontal_rule: str
     background: float = 1.0
+    view_groups: dict[str, list[int]] = field(default_factory=dict)
 
     def fingerprint_files(self) -> list[Path]:
         """Files whose content defines the set (transforms of both subsets)."""
@@ -120,6 +127,17 @@ def _size_ratio(data: IngestedData) -> tuple[float, float]:
         return float(cam["width"]) / float(w), float(cam["height"]) / float(h)
     except (OSError, StopIteration, KeyError, TypeError, ValueError, json.JSONDecodeError, InputError):
         return 1.0, 1.0
+
+
+def _view_groups(info_path: Path, cameras: dict[int, Camera]) -> dict[str, list[int]]:
+    """``novel.view_groups`` of ``gt/info.json`` restricted to the held-out cameras (empty when the
+    file or the block is missing or unreadable)."""
+    try:
+        groups = json.loads(info_path.read_text(encoding="utf-8")).get("novel", {}).get("view_groups") or {}
+        out = {str(g): sorted(int(c) for c in cams if int(c) in cameras) for g, cams in groups.items()}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return {}
+    return {g: c for g, c in out.items() if c}
 
 
 def _frontal(data: IngestedData, cameras: dict[int, Camera], info_path: Path) -> tuple[int, str]:
@@ -203,6 +221,16 @@ def _read_novel_frames(root: Path) -> tuple[list[tuple[str, int, int, Path, Path
     return out, stack_params(loaded, sources)
 
 
+def has_novel_ground_truth(data: IngestedData) -> bool:
+    """Whether the capture the data was ingested from has held-out ground truth (``gt/novel`` with
+    a transforms file), without reading it."""
+    src = data.summary.get("source")
+    if not src:
+        return False
+    root = Path(src) / NOVEL_FOLDER
+    return root.is_dir() and any((root / f"transforms_{s}.json").is_file() for s in SUBSETS)
+
+
 def open_novel_set(data: IngestedData, n_vertices: int | None = None, n_base_vertices: int | None = None) -> NovelSet:
     """Read ``CAPTURE/gt/novel`` for the ingested data.
 
@@ -238,7 +266,7 @@ def open_novel_set(data: IngestedData, n_vertices: int | None = None, n_base_ver
         raise InputError(root, "lists no held-out frames")
     frontal, rule = _frontal(data, cams, cap_root / "gt" / "info.json")
     bg = 0.0 if str(data.summary.get("background", "white")) == "black" else 1.0
-    return NovelSet(root, frames, params, frontal, rule, bg)
+    return NovelSet(root, frames, params, frontal, rule, bg, _view_groups(cap_root / "gt" / "info.json", cams))
 
 
 def load_novel_image(novel: NovelSet, frame: NovelFrame) -> np.ndarray:
@@ -335,7 +363,8 @@ def region_metrics(pred: torch.Tensor, gt: torch.Tensor, region: torch.Tensor, b
 @dataclass
 class NovelReport:
     """Result of :func:`evaluate_novel`: full-image and visible-region reports over all held-out
-    images, the frontal camera, per-subset means and the visible fraction of each image."""
+    images, the frontal camera, per-subset means, the visible fraction of each image, and the
+    camera indices of each view group (``NovelSet.view_groups``)."""
 
     full: EvalReport
     visible: EvalReport
@@ -346,6 +375,7 @@ class NovelReport:
     source: Path
     samples: list[Path] = field(default_factory=list)
     metrics_path: Path | None = None
+    view_groups: dict[str, list[int]] = field(default_factory=dict)
 
     def _means(self, report: EvalReport, idx: list[int]) -> dict[str, Any]:
         rows = [report.images[i] for i in idx]
@@ -370,6 +400,16 @@ class NovelReport:
         for row, cov in zip(vis["images"], self.coverage):
             row["coverage"] = cov
         doc["visible_region"] = vis
+        if self.view_groups:
+            doc["view_groups"] = {}
+            for g, cams in self.view_groups.items():
+                idx = [i for i, m in enumerate(self.full.images) if m.camera in set(cams)]
+                doc["view_groups"][g] = {
+                    "cameras": cams,
+                    "overall": MetricMeans.of([self.full.images[i] for i in idx]).to_dict(),
+                    "visible_region": MetricMeans.of([self.visible.images[i] for i in idx]).to_dict(),
+                    "mean_coverage": float(np.mean([self.coverage[i] for i in idx])) if idx else None,
+                }
         doc["samples"] = sample_refs(self.samples, self.metrics_path)
         return doc
 
@@ -442,7 +482,7 @@ def evaluate_novel(
     visible = _with_frontal(EvalReport.build(vis_rows, **kw), novel.frontal_camera)
     subsets = {name: [i for i, f in enumerate(frames) if f.subset == name] for name in SUBSETS.values()}
     report = NovelReport(full, visible, novel.frontal_camera, novel.frontal_rule,
-                         {k: v for k, v in subsets.items() if v}, coverage, novel.root, written)
+                         {k: v for k, v in subsets.items() if v}, coverage, novel.root, written, view_groups=novel.view_groups)
     full.samples = written
     if out_dir is not None:
         from ..workspace import atomic_write_json

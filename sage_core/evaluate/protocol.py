@@ -1,6 +1,6 @@
 """Evaluation protocol: render every frame of a split and compare it with its ground truth.
 
-Protocol (formats.md §8): the caller's ``render_fn`` poses the avatar with the frame's FLAME
+Protocol (docs/formats.md §8): the caller's ``render_fn`` poses the avatar with the frame's FLAME
 parameters and renders it with the frame's camera on the dataset background (white). The render
 and the ground-truth PNG are both clamped to [0, 1] and compared over the full image, without a
 mask. Per image this computes
@@ -81,10 +81,13 @@ class MetricMeans:
 
     @staticmethod
     def of(images: list[ImageMetrics]) -> MetricMeans:
-        """Means of ``images`` (NaN for an empty list)."""
+        """Means of ``images`` (NaN for an empty list). Images whose PSNR is NaN (a region metric over an
+        empty region, e.g. a view of the back of the head that no training view saw) are left out;
+        ``count`` is the number of images in the means."""
         def mean(values: list[float]) -> float:
             return float(np.mean(np.asarray(values, dtype=np.float64))) if values else math.nan
 
+        images = [m for m in images if not math.isnan(m.psnr)]
         lp = [m.lpips for m in images]
         return MetricMeans(
             count=len(images),
@@ -274,7 +277,7 @@ def evaluate_frames(
     psnr_cap: float | None = None,
     progress: Progress | None = None,
 ) -> EvalReport:
-    """Evaluate ``render_fn`` on ``frames`` with the protocol of formats.md §8.
+    """Evaluate ``render_fn`` on ``frames`` with the protocol of docs/formats.md §8.
 
     render_fn: ``frame -> (H, W, 3)`` float tensor in [0, 1], H×W the frame's ground-truth size.
         It runs under ``torch.no_grad()`` (use ``torch.enable_grad()`` inside if it needs autograd).

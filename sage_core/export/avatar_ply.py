@@ -3,7 +3,7 @@
 The avatar's colours come from its appearance network (or per-surfel SH) evaluated for one view
 direction (the caller poses the surfels, e.g. ``AvatarRenderer.posed``), so a viewer PLY stores them
 as SH degree 0: ``f_dc = (rgb − 0.5) / C0`` with
-C0 = 0.28209479 (formats.md §7.1), which a viewer turns back into ``rgb = 0.5 + C0·f_dc``. Which view
+C0 = 0.28209479 (docs/formats.md §7.1), which a viewer turns back into ``rgb = 0.5 + C0·f_dc``. Which view
 the colours are baked for is the caller's choice when posing: a camera centre, or None for each
 surfel seen along its own normal.
 

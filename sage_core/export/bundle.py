@@ -1,11 +1,12 @@
-"""The avatar bundle: a self-contained, animatable avatar folder (formats.md §7.2).
+"""The avatar bundle: a self-contained, animatable avatar folder (docs/formats.md §7.2).
 
-Layout of a bundle folder (format 2; ``docs/workspace.md`` "Bundle format" describes every array)::
+Layout of a bundle folder (format 3; ``docs/workspace.md`` "Bundle format" describes every array)::
 
-    avatar.safetensors the avatar (Avatar.save with the FLAME model embedded: FLAME model arrays with
-                       the face table, the subject's FLAME parameters, surfels with their bindings,
-                       SDF and attribute networks), a safetensors file whose header metadata holds the
-                       structure as JSON (:mod:`sage_core.serialization`); loading it runs no code
+    avatar.safetensors the avatar (Avatar.save: the subject's FLAME parameters, surfels with their
+                       bindings, SDF and attribute networks, the canonical mesh and triangle frames
+                       derived from FLAME; the FLAME model itself only with ``include_flame_model``),
+                       a safetensors file whose header metadata holds the structure as JSON
+                       (:mod:`sage_core.serialization`); loading it runs no code
     flame_param.npz    the subject's FLAME parameters with exactly GaussianAvatars' keys and dtypes,
                        all float32: shape (S,), expr (T,E), rotation/neck_pose/jaw_pose/translation
                        (T,3), eyes_pose (T,6), static_offset (1,V,3), dynamic_offset (T,V,3) (zeros
@@ -13,10 +14,19 @@ Layout of a bundle folder (format 2; ``docs/workspace.md`` "Bundle format" descr
     bundle.json        versioned metadata (see :func:`bundle_metadata`), with an ``arrays`` section
                        listing every array of both files: dtype, shape and meaning
 
+The FLAME model is licensed and is not handed out with a bundle: ``bundle.json`` ("flame" →
+"model") names the user's model file and its SHA-256, and records what sage appended to it (the
+mouth interior: the lip vertex ids it is placed from, whether it has a cavity). :func:`load_bundle`
+then needs that model file (``sage reenact --bundle DIR --flame-model PATH``): its bytes are
+checked against the SHA-256 before it is parsed, the appended parts are rebuilt, and the result
+must have the content hash the avatar file records. ``sage export --include-flame-model`` embeds
+the model instead, as format 2 did.
+
 Nothing in it refers back to the workspace: :func:`load_bundle` rebuilds the avatar from the
-folder alone and checks it against the metadata (vertex and face counts, face-table hash). Format-1
-bundles (``avatar.pt``) still load when their avatar file was converted with ``sage convert``;
-an unconverted one (a pickle) is refused with a message saying how.
+folder (and the model file) alone and checks it against the metadata (vertex and face counts,
+face-table hash). Format-2 bundles (model embedded) load as before; format-1 bundles
+(``avatar.pt``) still load when their avatar file was converted with ``sage convert``; an
+unconverted one (a pickle) is refused with a message saying how.
 """
 
 from __future__ import annotations
@@ -37,7 +47,7 @@ if TYPE_CHECKING:
     from ..avatar.model import Avatar
     from ..data.cameras import Camera
 
-BUNDLE_FORMAT = 2
+BUNDLE_FORMAT = 3
 BUNDLE_KIND = "sage-avatar-bundle"
 BUNDLE_JSON = "bundle.json"
 AVATAR_FILE = "avatar.safetensors"
@@ -68,6 +78,59 @@ class RenderSettings:
         corr = d.get("correction")
         return RenderSettings(float(d.get("near", 0.2)), float(d.get("far", 100.0)), float(d.get("background", 1.0)),
                               dict(corr) if isinstance(corr, dict) else None)  # fmt: skip
+
+
+@dataclass
+class FlameSource:
+    """Where a bundle's FLAME model comes from when it is not embedded.
+
+    file_name: the user's model file name (e.g. ``flame2023.pkl``); file_sha256: the SHA-256 of its
+    bytes (64 hex), or only its first 16 hex digits (``file_sha256_prefix``) when the file was no
+    longer at hand at export; base: the model as sage reads that file (with GaussianAvatars-order
+    teeth for FLAME's 5023-vertex topology); lips: the lip vertex ids the mouth interior was placed
+    from (None: sage appended nothing); cavity: whether the mouth interior has its cavity.
+    """
+
+    file_name: str
+    file_sha256: str | None
+    file_sha256_prefix: str
+    base: Any
+    lips: list[int] | None = None
+    cavity: bool = True
+
+    def reference(self) -> dict[str, Any]:
+        """The plain-data reference written into ``bundle.json`` and the avatar file."""
+        from ..avatar.storage import flame_model_sha256
+
+        return {"included": False, "file": self.file_name, "file_sha256": self.file_sha256,
+                "file_sha256_prefix": self.file_sha256_prefix, "base_sha256": flame_model_sha256(self.base),
+                "mouth_interior": None if self.lips is None else {"lips": [int(i) for i in self.lips], "cavity": bool(self.cavity)}}  # fmt: skip
+
+
+def rebuild_model(base: Any, ref: dict[str, Any]) -> Any:
+    """The avatar's FLAME model from the user's model ``base`` and a bundle's reference: the mouth
+    interior appended as sage's init-mesh appended it."""
+    mouth = ref.get("mouth_interior")
+    if not mouth:
+        return base
+    from ..flame import add_mouth_interior
+
+    return add_mouth_interior(base, {"lips": np.asarray(mouth["lips"], dtype=np.int64)}, cavity=bool(mouth.get("cavity", True)))
+
+
+def check_model_file(path: Path, ref: dict[str, Any], where: Path) -> None:
+    """InputError unless the bytes of ``path`` have the SHA-256 the reference records (checked
+    before anything parses the file)."""
+    from ..workspace import file_sha256
+
+    if not path.is_file():
+        raise InputError(path, "FLAME model file not found")
+    digest = file_sha256(path)
+    full, prefix = ref.get("file_sha256"), str(ref.get("file_sha256_prefix") or "")
+    if (full and digest != full) or (not full and not digest.startswith(prefix)):
+        want = full or f"{prefix}…"
+        raise InputError(path, f"is not the FLAME model the bundle {where} was built with ({ref.get('file')}, "
+                               f"SHA-256 {want}; this file's is {digest})")  # fmt: skip
 
 
 @dataclass
@@ -105,7 +168,7 @@ def bundle_metadata(
     primitive (2D surfels), attribute mode and SH degree, the up axis, the canonical timestep, the
     row → dataset-timestep map, the render settings, a reference camera and the head centre.
     """
-    from .. import __version__
+    from .._version import __version__
 
     md = avatar.model_data
     params = avatar.params
@@ -163,18 +226,32 @@ def write_bundle(
     head_center: np.ndarray | None = None,
     up_axis: str = "y",
     source: dict[str, Any] | None = None,
+    flame_source: FlameSource | None = None,
 ) -> Path:
-    """Write ``avatar.safetensors`` (FLAME model embedded), ``flame_param.npz`` (GaussianAvatars'
-    keys) and (last) ``bundle.json`` with the description of every array into ``out_dir``; returns it."""
+    """Write ``avatar.safetensors``, ``flame_param.npz`` (GaussianAvatars' keys) and (last)
+    ``bundle.json`` with the description of every array into ``out_dir``; returns it.
+
+    flame_source: reference the user's FLAME model instead of embedding it (module doc); the model
+    rebuilt from it must be the avatar's (ValueError otherwise). None embeds the model."""
+    from ..avatar.storage import flame_model_sha256, save_avatar
     from ..workspace import atomic_write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / LEGACY_AVATAR_FILE).unlink(missing_ok=True)
-    avatar.save(out / AVATAR_FILE, embed_flame=True)
+    ref: dict[str, Any] = {"included": True}
+    if flame_source is not None:
+        ref = flame_source.reference()
+        if flame_model_sha256(rebuild_model(flame_source.base, ref)) != flame_model_sha256(avatar.model_data):
+            raise ValueError("the avatar's FLAME model cannot be rebuilt from the user's model file; "
+                             "export with --include-flame-model")  # fmt: skip
+        save_avatar(avatar, out / AVATAR_FILE, external_flame=ref)
+    else:
+        avatar.save(out / AVATAR_FILE, embed_flame=True)
     write_ga_flame_params(out / PARAMS_FILE, avatar.params, int(np.asarray(avatar.model_data.v_template).shape[0]))
     meta = bundle_metadata(avatar, render, reference_camera=reference_camera, head_center=head_center,
                            up_axis=up_axis, source=source)  # fmt: skip
+    meta["flame"]["model"] = ref
     meta["arrays"] = {AVATAR_FILE: describe_avatar_file(out / AVATAR_FILE), PARAMS_FILE: describe_npz(out / PARAMS_FILE)}
     atomic_write_json(out / BUNDLE_JSON, meta)
     return out
@@ -326,8 +403,11 @@ def read_bundle_metadata(root: str | Path) -> dict[str, Any]:
     return meta
 
 
-def load_bundle(root: str | Path, device: str | torch.device = "cpu") -> Bundle:
-    """Load a bundle folder without any workspace; InputError when it is incomplete or inconsistent."""
+def load_bundle(root: str | Path, device: str | torch.device = "cpu", flame_model: str | Path | None = None) -> Bundle:
+    """Load a bundle folder without any workspace; InputError when it is incomplete or inconsistent.
+
+    flame_model: the user's FLAME model file, needed by a bundle that does not embed it (its bytes
+    are checked against the recorded SHA-256 before it is parsed; module doc); ignored otherwise."""
     from ..avatar.model import Avatar
     from ..data.cameras import Camera
 
@@ -339,7 +419,25 @@ def load_bundle(root: str | Path, device: str | torch.device = "cpu") -> Bundle:
     avatar_path = root / name
     if not avatar_path.is_file():
         raise InputError(avatar_path, "avatar file of the bundle is missing")
-    avatar = Avatar.load(avatar_path, device)
+    ref = meta["flame"].get("model") or {"included": True}
+    model = None
+    if not ref.get("included", True):
+        if flame_model is None:
+            raise InputError(root, f"this bundle does not carry the licensed FLAME model: give the model file it was built "
+                                   f"with ({ref.get('file')}) with --flame-model PATH")  # fmt: skip
+        from ..flame import load_flame_model
+        from ..avatar.storage import flame_model_sha256
+
+        path = Path(flame_model)
+        check_model_file(path, ref, root)
+        base = load_flame_model(path)
+        if flame_model_sha256(base) != ref.get("base_sha256"):
+            raise InputError(path, f"reads as another model than the one the bundle {root} was built with")
+        try:
+            model = rebuild_model(base, ref)
+        except ValueError as e:
+            raise InputError(root / BUNDLE_JSON, f"cannot rebuild the mouth interior: {e}") from None
+    avatar = Avatar.load(avatar_path, device, flame_model=model)
     fl = meta["flame"]
     faces = avatar.model_data.faces
     found = {

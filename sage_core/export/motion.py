@@ -1,6 +1,6 @@
 """Driving motion for reenactment: FLAME expression and pose sequences, and orbit cameras.
 
-A motion comes from one of three sources (formats.md §1.3, §7.2):
+A motion comes from one of three sources (docs/formats.md §1.3, §7.2):
 
 - a GaussianAvatars motion npz: T-leading float32 ``expr, rotation, neck_pose, jaw_pose,
   eyes_pose, translation`` and optionally ``dynamic_offset (T,V,3)`` and a scalar ``fps``;
@@ -12,7 +12,7 @@ A motion comes from one of three sources (formats.md §1.3, §7.2):
 Only the dynamic part is kept. ``shape`` and ``static_offset`` of the source are ignored, so the
 driven avatar keeps its own identity (cross-reenactment). Everything is validated when the motion
 is loaded, before anything renders; in particular every T-leading key must have the same number of
-rows (GaussianAvatars indexes past the end on a mismatch, formats.md §7.2).
+rows (GaussianAvatars indexes past the end on a mismatch, docs/formats.md §7.2).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 
 from ..data.cameras import Camera, look_at
 from ..errors import InputError
-from ..flame.params import DYNAMIC_KEYS, FlameParams, params_from_arrays, stack_params
+from ..flame.params import DYNAMIC_KEYS, FlameParams, expr_overflow, params_from_arrays, stack_params
 from ..npz import read_npz
 
 if TYPE_CHECKING:
@@ -216,7 +216,8 @@ def load_motion(source: str | Path, *, n_expr: int | None = None) -> Motion:
     source: a GaussianAvatars motion ``.npz``, a folder of per-timestep ``*.npz`` (or a folder
         holding ``flame_param/``), or a capture folder (``transforms*.json``).
     n_expr: the avatar's number of expression coefficients; the motion's ``expr`` columns are
-        truncated or zero-padded to it (None keeps them as stored).
+        zero-padded to it, or truncated when the dropped columns are all (near) zero — non-zero ones
+        raise InputError (None keeps them as stored).
     Raises InputError naming the offending file: missing keys, keys that disagree on T, wrong
     shapes, NaN/Inf, unreadable files.
     """
@@ -231,6 +232,10 @@ def load_motion(source: str | Path, *, n_expr: int | None = None) -> Motion:
         motion = _load_folder_motion(path / "flame_param", path)
     else:
         motion = _load_folder_motion(path, path)
+    if n_expr is not None:
+        problem = expr_overflow(motion.params, n_expr)
+        if problem is not None:
+            raise InputError(path, problem)
     motion.params = _fit_expr(motion.params, n_expr)
     return motion
 

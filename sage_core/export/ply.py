@@ -1,4 +1,4 @@
-"""World-space 3DGS PLY in the INRIA layout (formats.md §7.1), its reader, and ``.splat``.
+"""World-space 3DGS PLY in the INRIA layout (docs/formats.md §7.1), its reader, and ``.splat``.
 
 :func:`encode_ply` is a pure function returning the file's bytes; :func:`decode_ply` inverts it
 (reading by property name, any SH degree, any scalar property types); :func:`write_ply` and
@@ -17,7 +17,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .. import __version__
+from .._version import __version__
 from ..errors import InputError
 from ..workspace import atomic_write_bytes
 
@@ -370,7 +370,7 @@ def encode_splat(
     opacities: ArrayLike,
     sh_dc: ArrayLike,
 ) -> tuple[bytes, int]:
-    """Encode Gaussians in the 32-byte ``.splat`` layout (formats.md §7.1), Morton-sorted.
+    """Encode Gaussians in the 32-byte ``.splat`` layout (docs/formats.md §7.1), Morton-sorted.
 
     Per splat: float32 x y z, float32 linear scales (3; surfels get the same thin third axis as
     the PLY), uint8 R G B A with RGB = clip(0.5 + C0·f_dc) and A = opacity, uint8 quaternion wxyz

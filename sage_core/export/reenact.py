@@ -73,8 +73,17 @@ class ReenactReport:
     height: int
     paths: list[Path] = field(default_factory=list)
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-data form (paths as strings); ``paths`` lists the top-level outputs."""
+    def to_dict(self, relative_to: Path | None = None) -> dict[str, Any]:
+        """Plain-data form (paths as strings); ``paths`` lists the top-level outputs.
+
+        relative_to: write the paths relative to this folder (POSIX, with ``..`` steps as needed);
+        None keeps them absolute."""
+
+        def path(p: Path | None) -> str | None:
+            if p is None:
+                return None
+            return Path(os.path.relpath(p, relative_to)).as_posix() if relative_to is not None else str(p)
+
         return {
             "n_frames": self.n_frames,
             "render_fps": self.render_fps,
@@ -82,12 +91,12 @@ class ReenactReport:
             "render_seconds": self.render_seconds,
             "total_seconds": self.total_seconds,
             "fps": self.fps,
-            "frames_dir": None if self.frames_dir is None else str(self.frames_dir),
+            "frames_dir": path(self.frames_dir),
             "frame_format": self.frame_format,
-            "video_path": None if self.video_path is None else str(self.video_path),
+            "video_path": path(self.video_path),
             "width": self.width,
             "height": self.height,
-            "paths": [str(p) for p in self.paths],
+            "paths": [path(p) for p in self.paths],
         }
 
 
@@ -155,7 +164,7 @@ def reenact(
         raise ValueError(f"fps must be positive, got {rate}")
     width, height = cams[0].width, cams[0].height
 
-    out = Path(out_dir).resolve()  # the report's paths are absolute, like the manifests'
+    out = Path(out_dir).resolve()  # the report's paths are absolute (its record may write them relative)
     out.mkdir(parents=True, exist_ok=True)
     frames_dir = out / FRAMES_DIR if frames_format != "none" else None
     tmp_frames = out / f".{FRAMES_DIR}.{os.getpid()}.{time.monotonic_ns()}.tmp" if frames_dir else None

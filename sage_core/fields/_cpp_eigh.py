@@ -18,27 +18,16 @@ could be.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import torch
 
-from ..native_build import NativeExtension
+from ..native_build import native_extension
 
 __all__ = ["EXT", "available", "eigh3", "eigh3_backward", "supports", "warn_unavailable_once"]
 
-EXT = NativeExtension(
-    name="sage_eigh3_cpu",
-    source=Path(__file__).parent / "csrc" / "eigh3_cpu.cpp",
-    namespace="sage_eigh3_cpu",
-    probe_op="eigh3",
-    what="3x3 eigensolver",
-    fallback="torch.linalg.eigh",
-)
+EXT = native_extension(__file__, "eigh3_cpu", probe_op="eigh3", what="3x3 eigensolver", fallback="torch.linalg.eigh")
 
-available = EXT.available
-"""(True, where it was loaded from) once the extension is built and loaded, else (False, reason); the
-first call compiles it unless a cached build exists, and the result is remembered for the process."""
-warn_unavailable_once = EXT.warn_unavailable_once
+available, warn_unavailable_once = EXT.available, EXT.warn_unavailable_once
 
 
 def supports(a: torch.Tensor) -> str | None:

@@ -14,28 +14,17 @@ built on first use by ``sage_core.native_build``; ``available()`` reports whethe
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from ..native_build import NativeExtension
+from ..native_build import native_extension
 
 __all__ = ["EXT", "available", "encode", "warn_unavailable_once"]
 
-EXT = NativeExtension(
-    name="sage_hashgrid_cpu",
-    source=Path(__file__).parent / "csrc" / "hashgrid_cpu.cpp",
-    namespace="sage_hashgrid_cpu",
-    probe_op="double_backward",
-    what="hash-grid encoding",
-    fallback="pure-torch encoding",
-)
+EXT = native_extension(__file__, "hashgrid_cpu", probe_op="double_backward", what="hash-grid encoding", fallback="pure-torch encoding")
 
-available = EXT.available
-"""(True, where it was loaded from) once the extension is built and loaded, else (False, reason); the
-first call compiles it unless a cached build exists, and the result is remembered for the process."""
-warn_unavailable_once = EXT.warn_unavailable_once
+available, warn_unavailable_once = EXT.available, EXT.warn_unavailable_once
 
 
 def _ops():  # noqa: ANN202 - a torch.ops namespace

@@ -18,29 +18,18 @@ extension is built on first use by ``sage_core.native_build``; ``available()`` r
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from ..native_build import NativeExtension
+from ..native_build import native_extension
 from ._cpp_hashgrid import _needed
 
 __all__ = ["EXT", "Layout", "available", "evaluate", "warn_unavailable_once"]
 
-EXT = NativeExtension(
-    name="sage_sdf_cpu",
-    source=Path(__file__).parent / "csrc" / "sdf_cpu.cpp",
-    namespace="sage_sdf_cpu",
-    probe_op="backward",
-    what="SDF network",
-    fallback="autograd SDF network",
-)
+EXT = native_extension(__file__, "sdf_cpu", probe_op="backward", what="SDF network", fallback="autograd SDF network")
 
-available = EXT.available
-"""(True, where it was loaded from) once the extension is built and loaded, else (False, reason); the
-first call compiles it unless a cached build exists, and the result is remembered for the process."""
-warn_unavailable_once = EXT.warn_unavailable_once
+available, warn_unavailable_once = EXT.available, EXT.warn_unavailable_once
 
 
 def _ops():  # noqa: ANN202 - a torch.ops namespace

@@ -1,197 +1,677 @@
-"""Read FLAME pickles without chumpy installed.
+"""Read FLAME pickles without chumpy, and without running anything a file names.
 
-The official FLAME pickles (``generic_model.pkl``, ``flame2023.pkl``) were written by Python 2 with
-chumpy objects and a scipy sparse matrix inside. This module loads them with a restricted
-unpickler that replaces those classes by small stand-ins and then turns every value into a plain
-numpy array.
+The official FLAME pickles (``generic_model.pkl``, ``flame2023.pkl``) and ``FLAME_masks.pkl`` were
+written by Python 2 with chumpy objects and a scipy sparse matrix inside. Python's own unpickler
+imports and calls whatever global a file names, so a crafted file runs code however the
+unpickler's ``find_class`` is restricted (dotted names, builtins reachable through modules,
+``BUILD`` on classes). This module therefore does not use it: :class:`_Machine` is a small pickle
+interpreter of its own. ``pickletools.genops`` decodes the opcodes (pure decoding, nothing is
+resolved or called), and the machine executes only the opcodes a FLAME file needs:
 
-What is handled:
+- literals (ints, floats, strings, bytes, ``None``, bools), tuples, lists, dicts, sets, the memo,
+  ``MARK``/``POP``/``DUP``, protocol and framing opcodes;
+- ``GLOBAL``/``STACK_GLOBAL`` resolve an exact ``(module, name)`` pair from :data:`ALLOWED` to one
+  of this module's own :class:`_Global` handlers. Nothing is imported and no attribute of any
+  module is looked up; a dotted name, any other pair, and any chumpy class other than the four
+  stand-ins are refused;
+- ``REDUCE``, ``NEWOBJ`` and ``BUILD`` act only on those handlers and the builders they return
+  (arrays, dtypes, chumpy and sparse stand-ins);
+- every other opcode (``INST``, ``OBJ``, ``NEWOBJ_EX``, extension registry codes, persistent ids,
+  out-of-band buffers) is refused.
 
-- any class from a ``chumpy`` module becomes a :class:`ChumpyStub` that keeps its state dict;
-- ``Ch`` (and any other chumpy object whose state has ``x``) evaluates to ``np.asarray(state["x"])``;
-- ``chumpy.reordering.Select`` evaluates to ``a.ravel()[idxs].reshape(preferred_shape)`` (``a`` is
-  evaluated recursively; without ``preferred_shape`` the result stays flat);
-- ``chumpy.reordering.Reshape`` evaluates to ``a.reshape(shape)`` and ``Transpose`` to
-  ``a.transpose(axes)``;
-- ``scipy.sparse.csc_matrix`` / ``csr_matrix`` under their old (``scipy.sparse.csc``) or new
-  (``scipy.sparse._csc``) module names are rebuilt from ``data``, ``indices``, ``indptr`` and
-  ``_shape`` and densified.
+What the handlers rebuild: numpy arrays (``_reconstruct`` + state, protocol-5 ``_frombuffer``),
+dtypes of plain numeric, bool and string kinds (no object, structured or sub-array dtypes), numpy
+scalars, ``_codecs.encode`` for latin-1 bytes, ``OrderedDict`` (as a dict), sets; chumpy ``Ch``
+(evaluates to its ``x``), ``Select`` (``a.ravel()[idxs].reshape(preferred_shape)``), ``Reshape``
+and ``Transpose``; scipy ``csc_matrix``/``csr_matrix`` under their old and new module names
+(densified). A chumpy expression that needs chumpy's graph machinery (a lazy sum, say) raises
+:class:`UnsupportedPickle` naming the class.
 
-Any other chumpy expression (for example a lazily evaluated sum) cannot be evaluated without
-chumpy's graph machinery and raises :class:`UnsupportedPickle` naming the class. Other globals are
-limited to numpy's array reconstruction, ``copyreg._reconstructor``, ``_codecs.encode`` and plain
-builtin containers; anything else is refused, so reading a file never runs foreign code.
+The guarantee, by construction: the only callables a file can reach are the handlers below, and
+each of them checks its arguments' types; reading a file can build arrays and plain containers,
+nothing else. ``tests/test_unpickle_security.py`` runs a corpus of known bypass payloads through
+every route a FLAME file takes and checks that none of them runs (docs/workspace.md "Files that
+cannot run code").
 """
 
 from __future__ import annotations
 
-import pickle
+import io
+import pickletools
+import re
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
-import scipy.sparse
 
 
 class UnsupportedPickle(ValueError):
-    """A pickled object cannot be turned into a plain array."""
+    """A pickle cannot be read into plain arrays (malformed, or a construct this reader lacks)."""
 
 
-class ChumpyStub:
-    """Stand-in for any chumpy class: remembers its module, name and state dict."""
-
-    _sage_module: str = "chumpy"
-    _sage_name: str = "Ch"
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.__dict__["_sage_args"] = args
-        self.__dict__.update(kwargs)
-
-    def __setstate__(self, state: Any) -> None:
-        if isinstance(state, tuple) and len(state) == 2:
-            merged: dict[str, Any] = {}
-            for part in state:
-                if isinstance(part, dict):
-                    merged.update(part)
-            state = merged
-        if isinstance(state, dict):
-            self.__dict__.update(state)
-        else:
-            self.__dict__["_sage_raw_state"] = state
-
-    @property
-    def state(self) -> dict[str, Any]:
-        return {k: v for k, v in self.__dict__.items() if not k.startswith("_sage_")}
+class RefusedPickle(UnsupportedPickle):
+    """A pickle names a global or uses an opcode outside the allow-list; nothing of it ran."""
 
 
-class SparseStub:
-    """Stand-in for a pickled scipy sparse matrix (any format with data/indices/indptr)."""
-
-    _sage_format: str = "csc"
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.__dict__["_sage_args"] = args
-
-    def __setstate__(self, state: Any) -> None:
-        if isinstance(state, tuple) and len(state) == 2:
-            merged: dict[str, Any] = {}
-            for part in state:
-                if isinstance(part, dict):
-                    merged.update(part)
-            state = merged
-        if not isinstance(state, dict):
-            raise UnsupportedPickle("sparse matrix state is not a dict")
-        self.__dict__.update(state)
+MAX_DEPTH = 64
+"""Deepest nesting of containers and chumpy expressions accepted in a FLAME pickle."""
 
 
-_chumpy_classes: dict[tuple[str, str], type] = {}
-_sparse_classes: dict[str, type] = {}
+# --------------------------------------------------------------------------------------------
+# Builders: objects a file can construct, and how BUILD fills them
+# --------------------------------------------------------------------------------------------
 
 
-def _chumpy_class(module: str, name: str) -> type:
-    key = (module, name)
-    if key not in _chumpy_classes:
-        _chumpy_classes[key] = type(name, (ChumpyStub,), {"_sage_module": module, "_sage_name": name})
-    return _chumpy_classes[key]
+class _Builder:
+    """Something a handler made that a ``BUILD`` opcode may complete."""
+
+    def build(self, state: Any) -> None:
+        raise RefusedPickle(f"BUILD is not allowed on {type(self).__name__}")
 
 
-def _sparse_class(fmt: str) -> type:
-    if fmt not in _sparse_classes:
-        _sparse_classes[fmt] = type(f"{fmt}_matrix", (SparseStub,), {"_sage_format": fmt})
-    return _sparse_classes[fmt]
+@dataclass(eq=False)
+class _DtypeBuilder(_Builder):
+    dtype: np.dtype
+
+    def build(self, state: Any) -> None:
+        # numpy's dtype state: (version, byteorder, subarray, names, fields, elsize, alignment, flags[, metadata])
+        if not isinstance(state, tuple) or len(state) < 5:
+            raise UnsupportedPickle("malformed dtype state")
+        order, subarray, names, fields = state[1], state[2], state[3], state[4]
+        if subarray is not None or names is not None or fields is not None:
+            raise RefusedPickle("structured and sub-array dtypes are not accepted")
+        if order in ("<", ">") and self.dtype.itemsize > 1:
+            self.dtype = self.dtype.newbyteorder(order)
+        if self.dtype.kind in "SU" and len(state) > 5 and isinstance(state[5], int) and state[5] > 0:
+            size = state[5] // (4 if self.dtype.kind == "U" else 1)
+            self.dtype = np.dtype(f"{self.dtype.byteorder if self.dtype.byteorder in '<>' else ''}{self.dtype.kind}{size}")
 
 
-# Globals a model or mask pickle may legitimately name besides chumpy and scipy.sparse; anything
-# else (e.g. os.system) is refused, so a hostile file cannot run code while being read.
-_NUMPY_NAMES = {"_reconstruct", "scalar", "_frombuffer", "dtype", "ndarray"}
-_NUMPY_MODULES = {"numpy", "numpy.core.multiarray", "numpy._core.multiarray", "numpy.core.numeric",
-                  "numpy._core.numeric"}
-_SAFE_GLOBALS = {
-    ("copyreg", "_reconstructor"), ("copy_reg", "_reconstructor"), ("_codecs", "encode"),
-    ("collections", "OrderedDict"),
-    *(("builtins", n) for n in ("object", "set", "frozenset", "slice", "complex", "bytearray", "list",
-                                "dict", "tuple", "int", "float", "str", "bytes", "bool", "range")),
-    *(("__builtin__", n) for n in ("object", "set", "frozenset", "slice", "complex", "bytearray", "list",
-                                   "dict", "tuple", "int", "float", "str", "bool", "long", "unicode")),
+@dataclass(eq=False)
+class _ArrayBuilder(_Builder):
+    array: np.ndarray | None = None
+
+    def build(self, state: Any) -> None:
+        # ndarray state: (version, shape, dtype, is_fortran, raw) or, without the version, the last four
+        if not isinstance(state, tuple) or len(state) not in (4, 5):
+            raise UnsupportedPickle("malformed array state")
+        shape, dtype, fortran, raw = state[-4:]
+        self.array = _array_from_bytes(raw, _dtype(dtype), shape, "F" if fortran else "C")
+
+
+@dataclass(eq=False)
+class ChumpyStub(_Builder):
+    """A chumpy object: its module, class name and state dict (evaluated by :func:`to_plain`)."""
+
+    module: str
+    name: str
+    state: dict[str, Any] = field(default_factory=dict)
+
+    def build(self, state: Any) -> None:
+        self.state.update(_state_dict(state, f"chumpy object {self.module}.{self.name}"))
+
+
+@dataclass(eq=False)
+class SparseStub(_Builder):
+    """A scipy sparse matrix (``csc`` or ``csr``) as its state dict (densified by :func:`to_plain`)."""
+
+    fmt: str
+    state: dict[str, Any] = field(default_factory=dict)
+
+    def build(self, state: Any) -> None:
+        self.state.update(_state_dict(state, f"sparse {self.fmt} matrix"))
+
+
+def _state_dict(state: Any, what: str) -> dict[str, Any]:
+    """An object's pickled state as one dict (``(dict, slots)`` pairs merged); strings as keys."""
+    parts = state if isinstance(state, tuple) and len(state) == 2 else (state,)
+    out: dict[str, Any] = {}
+    for part in parts:
+        if part is None:
+            continue
+        if not isinstance(part, dict) or not all(isinstance(k, str) for k in part):
+            raise UnsupportedPickle(f"{what}: state is not a dict with string keys")
+        out.update(part)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Globals: the exact (module, name) pairs a file may name, each mapped to a handler
+# --------------------------------------------------------------------------------------------
+
+_DTYPE_CODE = re.compile(r"^[<>=|]?(?:[?bBhHiIlLqQefdgFDG]|[biufc][1-9][0-9]?|[SU][0-9]{0,9})$")
+
+
+def _dtype(x: Any) -> np.dtype:
+    if isinstance(x, _DtypeBuilder):
+        return x.dtype
+    raise UnsupportedPickle(f"expected a dtype, found {type(x).__name__}")
+
+
+def _new_dtype(code: Any, *_flags: Any) -> _DtypeBuilder:
+    if isinstance(code, bytes):
+        code = code.decode("latin1")
+    if not isinstance(code, str) or not _DTYPE_CODE.match(code):
+        raise RefusedPickle(f"dtype {code!r} is not accepted (numeric, bool and string dtypes only)")
+    dt = np.dtype(code)
+    if dt.kind not in "biufcSU" or dt.hasobject:
+        raise RefusedPickle(f"dtype {code!r} is not accepted")
+    return _DtypeBuilder(dt)
+
+
+def _as_bytes(raw: Any) -> bytes:
+    if isinstance(raw, (bytes, bytearray)):
+        return bytes(raw)
+    if isinstance(raw, str):  # Python 2 str read with encoding="latin1"
+        return raw.encode("latin1")
+    raise RefusedPickle(f"array data must be bytes, found {type(raw).__name__} (object arrays are not accepted)")
+
+
+def _shape(shape: Any) -> tuple[int, ...]:
+    if isinstance(shape, int) and not isinstance(shape, bool):
+        shape = (shape,)
+    if not isinstance(shape, (tuple, list)) or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
+        raise UnsupportedPickle(f"malformed array shape {shape!r}")
+    return tuple(shape)
+
+
+def _array_from_bytes(raw: Any, dtype: np.dtype, shape: Any, order: str) -> np.ndarray:
+    data = _as_bytes(raw)
+    shp = _shape(shape)
+    count = int(np.prod(shp, dtype=np.int64)) if shp else 1
+    if count * dtype.itemsize != len(data):
+        raise UnsupportedPickle(f"array data holds {len(data)} bytes, shape {shp} of {dtype} needs {count * dtype.itemsize}")
+    flat = np.frombuffer(data, dtype=dtype, count=count)
+    return flat.reshape(shp, order=order).copy(order="C")
+
+
+class _Global:
+    """What a permitted global stands for: how ``REDUCE`` calls it and ``NEWOBJ`` instantiates it."""
+
+    def __init__(self, label: str, reduce: Callable[..., Any] | None = None,
+                 newobj: Callable[..., Any] | None = None) -> None:
+        self.label = label
+        self._reduce = reduce
+        self._newobj = newobj
+
+    def reduce(self, args: tuple) -> Any:
+        if self._reduce is None:
+            raise RefusedPickle(f"{self.label} cannot be called")
+        try:
+            return self._reduce(*args)
+        except TypeError as exc:
+            raise UnsupportedPickle(f"{self.label}: bad arguments ({exc})") from None
+
+    def newobj(self, args: tuple) -> Any:
+        if self._newobj is None:
+            raise RefusedPickle(f"{self.label} cannot be instantiated")
+        return self._newobj(*args)
+
+    def __repr__(self) -> str:
+        return f"<{self.label}>"
+
+
+_NDARRAY = _Global("numpy.ndarray")
+_OBJECT = _Global("object")
+
+
+def _reconstruct(cls: Any, shape: Any, dtype_code: Any) -> _ArrayBuilder:
+    if cls is not _NDARRAY:
+        raise RefusedPickle("numpy _reconstruct is only accepted for numpy.ndarray")
+    return _ArrayBuilder()
+
+
+def _frombuffer(buf: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
+    if order not in ("C", "F"):
+        raise UnsupportedPickle(f"bad array order {order!r}")
+    return _array_from_bytes(buf, _dtype(dtype), shape, order)
+
+
+def _scalar(dtype: Any, raw: Any = None) -> Any:
+    dt = _dtype(dtype)
+    return _array_from_bytes(raw, dt, (), "C")[()]
+
+
+def _codecs_encode(text: Any, encoding: Any = "utf-8") -> bytes:
+    if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
+        raise RefusedPickle("_codecs.encode is only accepted for latin-1 text")
+    return text.encode("latin1")
+
+
+def _empty_bytes() -> bytes:
+    # protocols 0-2 write an empty bytes object as bytes() (non-empty ones go through _codecs.encode)
+    return b""
+
+
+def _ordered_dict(items: Any = ()) -> dict:
+    out: dict = {}
+    for pair in items:
+        if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+            raise UnsupportedPickle("OrderedDict items are not pairs")
+        out[_key(pair[0])] = pair[1]
+    return out
+
+
+def _set(items: Any = ()) -> set:
+    if not isinstance(items, (list, tuple, set, frozenset)):
+        raise UnsupportedPickle("set items are not a list")
+    return {_key(v) for v in items}
+
+
+def _frozenset(items: Any = ()) -> frozenset:
+    return frozenset(_set(items))
+
+
+def _stub_global(label: str, make: Callable[[], _Builder]) -> _Global:
+    return _Global(label, reduce=lambda *args: make(), newobj=lambda *args: make())
+
+
+def _reconstructor(cls: Any, base: Any, state: Any = None) -> _Builder:
+    # copyreg._reconstructor(cls, object, None): the protocol 0/1 form of "a new instance of cls"
+    if not isinstance(cls, _Global) or base is not _OBJECT or state is not None:
+        raise RefusedPickle("copyreg._reconstructor is only accepted for the chumpy and sparse stand-ins")
+    return cls.newobj(())
+
+
+_CHUMPY_NAMES = (("chumpy.ch", "Ch"), ("chumpy", "Ch"), ("chumpy.reordering", "Select"),
+                 ("chumpy.reordering", "Reshape"), ("chumpy.reordering", "Transpose"))
+_SPARSE_NAMES = (("scipy.sparse.csc", "csc_matrix"), ("scipy.sparse._csc", "csc_matrix"),
+                 ("scipy.sparse.csr", "csr_matrix"), ("scipy.sparse._csr", "csr_matrix"))
+
+
+def _build_allowed() -> dict[tuple[str, str], _Global]:
+    table: dict[tuple[str, str], _Global] = {}
+    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        table[(mod, "_reconstruct")] = _Global(f"{mod}._reconstruct", reduce=_reconstruct)
+        table[(mod, "scalar")] = _Global(f"{mod}.scalar", reduce=_scalar)
+    for mod in ("numpy.core.numeric", "numpy._core.numeric"):
+        table[(mod, "_frombuffer")] = _Global(f"{mod}._frombuffer", reduce=_frombuffer)
+    table[("numpy", "ndarray")] = _NDARRAY
+    table[("numpy", "dtype")] = _Global("numpy.dtype", reduce=_new_dtype)
+    table[("_codecs", "encode")] = _Global("_codecs.encode", reduce=_codecs_encode)
+    table[("collections", "OrderedDict")] = _Global("collections.OrderedDict", reduce=_ordered_dict)
+    for mod in ("copyreg", "copy_reg"):
+        table[(mod, "_reconstructor")] = _Global(f"{mod}._reconstructor", reduce=_reconstructor)
+    for mod in ("builtins", "__builtin__"):
+        table[(mod, "object")] = _OBJECT
+        table[(mod, "set")] = _Global(f"{mod}.set", reduce=_set)
+        table[(mod, "frozenset")] = _Global(f"{mod}.frozenset", reduce=_frozenset)
+        table[(mod, "bytes")] = _Global(f"{mod}.bytes", reduce=_empty_bytes)
+    for mod, name in _CHUMPY_NAMES:
+        table[(mod, name)] = _stub_global(f"{mod}.{name}", lambda m=mod, n=name: ChumpyStub(m, n))
+    for mod, name in _SPARSE_NAMES:
+        table[(mod, name)] = _stub_global(f"{mod}.{name}", lambda f=name[:3]: SparseStub(f))
+    return table
+
+
+ALLOWED: dict[tuple[str, str], _Global] = _build_allowed()
+"""The exact ``(module, name)`` pairs a FLAME pickle may name, and what each stands for."""
+
+_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def resolve_global(module: str, name: str) -> _Global:
+    """The handler of an exact ``(module, name)`` pair; :class:`RefusedPickle` for anything else."""
+    handler = ALLOWED.get((module, name))
+    if handler is not None:
+        return handler
+    if (module == "chumpy" or module.startswith("chumpy.")) and _IDENT.match(name):
+        raise UnsupportedPickle(f"cannot evaluate chumpy object {module}.{name} without chumpy")
+    raise RefusedPickle(f"refusing to load global {module}.{name} (not on the allow-list)")
+
+
+# --------------------------------------------------------------------------------------------
+# The machine
+# --------------------------------------------------------------------------------------------
+
+
+class _Mark:
+    pass
+
+
+_MARK = _Mark()
+
+
+def _key(k: Any) -> Any:
+    if isinstance(k, (str, bytes, int, float, bool, type(None))):
+        return k
+    if isinstance(k, tuple) and all(isinstance(v, (str, bytes, int, float, bool, type(None))) for v in k):
+        return k
+    raise UnsupportedPickle(f"unsupported dict key of type {type(k).__name__}")
+
+
+class _Machine:
+    """Executes the decoded opcodes of one pickle (see the module doc for what is accepted)."""
+
+    def __init__(self) -> None:
+        self.stack: list[Any] = []
+        self.memo: dict[int, Any] = {}
+        self.done = False
+        self.result: Any = None
+
+    # stack helpers
+    def pop(self) -> Any:
+        if not self.stack:
+            raise UnsupportedPickle("stack underflow")
+        v = self.stack.pop()
+        if v is _MARK:
+            raise UnsupportedPickle("unexpected mark")
+        return v
+
+    def top(self) -> Any:
+        if not self.stack or self.stack[-1] is _MARK:
+            raise UnsupportedPickle("stack underflow")
+        return self.stack[-1]
+
+    def pop_mark(self) -> list[Any]:
+        for i in range(len(self.stack) - 1, -1, -1):
+            if self.stack[i] is _MARK:
+                items = self.stack[i + 1:]
+                del self.stack[i:]
+                return items
+        raise UnsupportedPickle("mark not found")
+
+    def run(self, stream: io.BufferedIOBase | io.BytesIO) -> Any:
+        try:
+            for op, arg, _pos in pickletools.genops(stream):
+                if self.done:
+                    break
+                handler = _OPS.get(op.name)
+                if handler is None:
+                    raise RefusedPickle(f"opcode {op.name} is not accepted")
+                handler(self, arg)
+        except (ValueError, EOFError, OverflowError, MemoryError) as exc:
+            if isinstance(exc, UnsupportedPickle):
+                raise
+            raise UnsupportedPickle(f"not a readable pickle ({exc})") from None
+        if not self.done:
+            raise UnsupportedPickle("pickle ends before its STOP opcode")
+        return self.result
+
+
+def _push(value_of: Callable[[Any], Any]) -> Callable[[_Machine, Any], None]:
+    def op(m: _Machine, arg: Any) -> None:
+        m.stack.append(value_of(arg))
+    return op
+
+
+def _op_stop(m: _Machine, _arg: Any) -> None:
+    m.result = m.pop()
+    m.done = True
+
+
+def _op_string(m: _Machine, arg: Any) -> None:
+    m.stack.append(arg.decode("latin1") if isinstance(arg, bytes) else arg)
+
+
+def _op_value(m: _Machine, arg: Any) -> None:
+    m.stack.append(arg)
+
+
+def _op_mark(m: _Machine, _arg: Any) -> None:
+    m.stack.append(_MARK)
+
+
+def _op_pop(m: _Machine, _arg: Any) -> None:
+    if not m.stack:
+        raise UnsupportedPickle("stack underflow")
+    m.stack.pop()
+
+
+def _op_pop_mark(m: _Machine, _arg: Any) -> None:
+    m.pop_mark()
+
+
+def _op_dup(m: _Machine, _arg: Any) -> None:
+    m.stack.append(m.top())
+
+
+def _op_put(m: _Machine, arg: Any) -> None:
+    m.memo[int(arg)] = m.top()
+
+
+def _op_memoize(m: _Machine, _arg: Any) -> None:
+    m.memo[len(m.memo)] = m.top()
+
+
+def _op_get(m: _Machine, arg: Any) -> None:
+    if arg not in m.memo:
+        raise UnsupportedPickle(f"memo key {arg} not found")
+    m.stack.append(m.memo[arg])
+
+
+def _op_tuple(m: _Machine, _arg: Any) -> None:
+    m.stack.append(tuple(m.pop_mark()))
+
+
+def _tuple_n(n: int) -> Callable[[_Machine, Any], None]:
+    def op(m: _Machine, _arg: Any) -> None:
+        items = [m.pop() for _ in range(n)][::-1]
+        m.stack.append(tuple(items))
+    return op
+
+
+def _op_list(m: _Machine, _arg: Any) -> None:
+    m.stack.append(m.pop_mark())
+
+
+def _op_append(m: _Machine, _arg: Any) -> None:
+    v = m.pop()
+    target = m.top()
+    if not isinstance(target, list):
+        raise RefusedPickle(f"APPEND on {type(target).__name__}")
+    target.append(v)
+
+
+def _op_appends(m: _Machine, _arg: Any) -> None:
+    items = m.pop_mark()
+    target = m.top()
+    if not isinstance(target, list):
+        raise RefusedPickle(f"APPENDS on {type(target).__name__}")
+    target.extend(items)
+
+
+def _op_dict(m: _Machine, _arg: Any) -> None:
+    items = m.pop_mark()
+    if len(items) % 2:
+        raise UnsupportedPickle("odd number of items for DICT")
+    m.stack.append({_key(items[i]): items[i + 1] for i in range(0, len(items), 2)})
+
+
+def _op_setitem(m: _Machine, _arg: Any) -> None:
+    v = m.pop()
+    k = m.pop()
+    target = m.top()
+    if not isinstance(target, dict):
+        raise RefusedPickle(f"SETITEM on {type(target).__name__}")
+    target[_key(k)] = v
+
+
+def _op_setitems(m: _Machine, _arg: Any) -> None:
+    items = m.pop_mark()
+    target = m.top()
+    if not isinstance(target, dict) or len(items) % 2:
+        raise RefusedPickle("SETITEMS on something that is not a dict")
+    for i in range(0, len(items), 2):
+        target[_key(items[i])] = items[i + 1]
+
+
+def _op_additems(m: _Machine, _arg: Any) -> None:
+    items = m.pop_mark()
+    target = m.top()
+    if not isinstance(target, set):
+        raise RefusedPickle(f"ADDITEMS on {type(target).__name__}")
+    target.update(_key(v) for v in items)
+
+
+def _op_frozenset(m: _Machine, _arg: Any) -> None:
+    m.stack.append(frozenset(_key(v) for v in m.pop_mark()))
+
+
+def _op_global(m: _Machine, arg: Any) -> None:
+    if not isinstance(arg, str) or arg.count(" ") != 1:
+        raise UnsupportedPickle("malformed GLOBAL")
+    module, name = arg.split(" ")
+    m.stack.append(resolve_global(module, name))
+
+
+def _op_stack_global(m: _Machine, _arg: Any) -> None:
+    name = m.pop()
+    module = m.pop()
+    if not isinstance(module, str) or not isinstance(name, str):
+        raise UnsupportedPickle("STACK_GLOBAL needs two strings")
+    m.stack.append(resolve_global(module, name))
+
+
+def _op_reduce(m: _Machine, _arg: Any) -> None:
+    args = m.pop()
+    func = m.pop()
+    if not isinstance(func, _Global) or not isinstance(args, tuple):
+        raise RefusedPickle(f"REDUCE of {type(func).__name__} is not accepted")
+    m.stack.append(func.reduce(args))
+
+
+def _op_newobj(m: _Machine, _arg: Any) -> None:
+    args = m.pop()
+    cls = m.pop()
+    if not isinstance(cls, _Global) or not isinstance(args, tuple):
+        raise RefusedPickle(f"NEWOBJ of {type(cls).__name__} is not accepted")
+    m.stack.append(cls.newobj(args))
+
+
+def _op_build(m: _Machine, _arg: Any) -> None:
+    state = m.pop()
+    target = m.top()
+    if not isinstance(target, _Builder):
+        raise RefusedPickle(f"BUILD on {type(target).__name__} is not accepted")
+    target.build(state)
+    if isinstance(target, _ArrayBuilder):  # a finished array replaces its builder (memo entries follow in to_plain)
+        m.stack[-1] = target.array
+
+
+def _op_bytearray(m: _Machine, arg: Any) -> None:
+    m.stack.append(bytes(arg))
+
+
+_OPS: dict[str, Callable[[_Machine, Any], None]] = {
+    "PROTO": lambda m, a: None, "FRAME": lambda m, a: None, "STOP": _op_stop,
+    "MARK": _op_mark, "POP": _op_pop, "POP_MARK": _op_pop_mark, "DUP": _op_dup,
+    "NONE": _push(lambda a: None), "NEWTRUE": _push(lambda a: True), "NEWFALSE": _push(lambda a: False),
+    "INT": _op_value, "BININT": _op_value, "BININT1": _op_value, "BININT2": _op_value,
+    "LONG": _op_value, "LONG1": _op_value, "LONG4": _op_value, "FLOAT": _op_value, "BINFLOAT": _op_value,
+    "STRING": _op_string, "BINSTRING": _op_string, "SHORT_BINSTRING": _op_string,
+    "UNICODE": _op_value, "BINUNICODE": _op_value, "SHORT_BINUNICODE": _op_value, "BINUNICODE8": _op_value,
+    "BINBYTES": _op_value, "SHORT_BINBYTES": _op_value, "BINBYTES8": _op_value, "BYTEARRAY8": _op_bytearray,
+    "EMPTY_TUPLE": _push(lambda a: ()), "TUPLE": _op_tuple, "TUPLE1": _tuple_n(1), "TUPLE2": _tuple_n(2),
+    "TUPLE3": _tuple_n(3), "EMPTY_LIST": _push(lambda a: []), "LIST": _op_list, "APPEND": _op_append,
+    "APPENDS": _op_appends, "EMPTY_DICT": _push(lambda a: {}), "DICT": _op_dict, "SETITEM": _op_setitem,
+    "SETITEMS": _op_setitems, "EMPTY_SET": _push(lambda a: set()), "ADDITEMS": _op_additems,
+    "FROZENSET": _op_frozenset,
+    "PUT": _op_put, "BINPUT": _op_put, "LONG_BINPUT": _op_put, "MEMOIZE": _op_memoize,
+    "GET": _op_get, "BINGET": _op_get, "LONG_BINGET": _op_get,
+    "GLOBAL": _op_global, "STACK_GLOBAL": _op_stack_global,
+    "REDUCE": _op_reduce, "NEWOBJ": _op_newobj, "BUILD": _op_build,
 }
+"""Opcode name -> implementation; any opcode not listed is refused."""
 
 
-class _FlameUnpickler(pickle.Unpickler):
-    """Restricted unpickler: chumpy and sparse stand-ins, numpy arrays and plain containers only."""
-
-    def find_class(self, module: str, name: str) -> Any:
-        if module == "chumpy" or module.startswith("chumpy."):
-            return _chumpy_class(module, name)
-        if module.startswith("scipy.sparse") and name in ("csc_matrix", "csr_matrix"):
-            return _sparse_class(name[:3])
-        allowed = (
-            (module in _NUMPY_MODULES and name in _NUMPY_NAMES)
-            or module == "numpy.dtypes"
-            or (module, name) in _SAFE_GLOBALS
-        )
-        if not allowed:
-            raise pickle.UnpicklingError(f"refusing to load global {module}.{name}")
-        return super().find_class(module, name)
+# --------------------------------------------------------------------------------------------
+# Plain values
+# --------------------------------------------------------------------------------------------
 
 
-def _sparse_to_dense(obj: SparseStub) -> np.ndarray:
-    st = obj.__dict__
+def _sparse_to_dense(obj: SparseStub, depth: int) -> np.ndarray:
+    import scipy.sparse
+
+    st = obj.state
     try:
-        data = np.asarray(st["data"])
-        indices = np.asarray(st["indices"])
-        indptr = np.asarray(st["indptr"])
+        data = np.asarray(to_plain(st["data"], depth + 1))
+        indices = np.asarray(to_plain(st["indices"], depth + 1))
+        indptr = np.asarray(to_plain(st["indptr"], depth + 1))
     except KeyError as exc:
         raise UnsupportedPickle(f"sparse matrix lacks {exc.args[0]!r}") from None
     shape = st.get("_shape", st.get("shape"))
     if shape is None:
         raise UnsupportedPickle("sparse matrix lacks its shape")
-    shape = tuple(int(s) for s in shape)
-    cls = scipy.sparse.csc_matrix if obj._sage_format == "csc" else scipy.sparse.csr_matrix
-    return np.asarray(cls((data, indices, indptr), shape=shape).toarray())
+    shape = _shape(tuple(shape) if isinstance(shape, list) else shape)
+    if len(shape) != 2:
+        raise UnsupportedPickle(f"sparse matrix shape {shape} is not 2-D")
+    for name, arr in (("data", data), ("indices", indices), ("indptr", indptr)):
+        if arr.dtype.kind not in ("iuf" if name == "data" else "iu"):
+            raise UnsupportedPickle(f"sparse matrix {name} has dtype {arr.dtype}")
+    cls = scipy.sparse.csc_matrix if obj.fmt == "csc" else scipy.sparse.csr_matrix
+    try:
+        return np.asarray(cls((data, indices, indptr), shape=shape).toarray())
+    except (ValueError, IndexError, TypeError) as exc:
+        raise UnsupportedPickle(f"malformed sparse matrix ({exc})") from None
 
 
-def _chumpy_to_array(obj: ChumpyStub) -> np.ndarray:
+def _chumpy_to_array(obj: ChumpyStub, depth: int) -> np.ndarray:
     st = obj.state
-    name = obj._sage_name
-    if name == "Select" and "a" in st and "idxs" in st:
-        base = to_plain(st["a"])
-        out = np.asarray(base).ravel()[np.asarray(st["idxs"]).ravel()]
-        shape = st.get("preferred_shape")
-        return out.reshape(tuple(int(s) for s in shape)) if shape is not None else out
-    if name == "Reshape" and "a" in st and "shape" in st:
-        return np.asarray(to_plain(st["a"])).reshape(tuple(int(s) for s in st["shape"]))
-    if name == "Transpose" and "a" in st:
-        axes = st.get("axes")
-        arr = np.asarray(to_plain(st["a"]))
-        return arr.transpose(tuple(int(a) for a in axes)) if axes is not None else arr.T
+    name = obj.name
+    try:
+        if name == "Select" and "a" in st and "idxs" in st:
+            base = np.asarray(to_plain(st["a"], depth + 1))
+            out = base.ravel()[np.asarray(to_plain(st["idxs"], depth + 1)).ravel()]
+            shape = to_plain(st.get("preferred_shape"), depth + 1)
+            return out.reshape(tuple(int(s) for s in shape)) if shape is not None else out
+        if name == "Reshape" and "a" in st and "shape" in st:
+            return np.asarray(to_plain(st["a"], depth + 1)).reshape(tuple(int(s) for s in to_plain(st["shape"], depth + 1)))
+        if name == "Transpose" and "a" in st:
+            axes = to_plain(st.get("axes"), depth + 1)
+            arr = np.asarray(to_plain(st["a"], depth + 1))
+            return arr.transpose(tuple(int(a) for a in axes)) if axes is not None else arr.T
+    except (ValueError, IndexError, TypeError) as exc:
+        raise UnsupportedPickle(f"malformed chumpy object {obj.module}.{name} ({exc})") from None
     if "x" in st:
-        return np.asarray(to_plain(st["x"]))
-    raise UnsupportedPickle(f"cannot evaluate chumpy object {obj._sage_module}.{name} without chumpy")
+        return np.asarray(to_plain(st["x"], depth + 1))
+    raise UnsupportedPickle(f"cannot evaluate chumpy object {obj.module}.{name} without chumpy")
 
 
-def to_plain(value: Any) -> Any:
-    """Recursively turn stubs into numpy arrays; dicts, lists and tuples are walked."""
+def to_plain(value: Any, depth: int = 0) -> Any:
+    """Recursively turn stand-ins into numpy arrays; dicts, lists and tuples are walked.
+
+    Raises :class:`UnsupportedPickle` past :data:`MAX_DEPTH` levels, for a builder a file never
+    completed, and for any value that is not plain data.
+    """
+    if depth > MAX_DEPTH:
+        raise UnsupportedPickle(f"nested deeper than {MAX_DEPTH} levels")
     if isinstance(value, ChumpyStub):
-        return _chumpy_to_array(value)
+        return _chumpy_to_array(value, depth)
     if isinstance(value, SparseStub):
-        return _sparse_to_dense(value)
-    if scipy.sparse.issparse(value):
-        return np.asarray(value.toarray())
+        return _sparse_to_dense(value, depth)
+    if isinstance(value, _ArrayBuilder):
+        if value.array is None:
+            raise UnsupportedPickle("an array without its data")
+        return value.array
+    if isinstance(value, _DtypeBuilder):
+        return value.dtype
+    if isinstance(value, _Global):
+        raise UnsupportedPickle(f"a bare reference to {value.label} is not a value")
     if isinstance(value, dict):
-        return {k: to_plain(v) for k, v in value.items()}
+        return {k: to_plain(v, depth + 1) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return type(value)(to_plain(v) for v in value)
+        return type(value)(to_plain(v, depth + 1) for v in value)
+    if isinstance(value, (set, frozenset)):
+        return type(value)(value)
     return value
 
 
+def loads_flame_pickle(data: bytes) -> Any:
+    """Run the restricted machine on pickle bytes; the raw result (stand-ins not yet evaluated)."""
+    return _Machine().run(io.BytesIO(data))
+
+
 def load_flame_pickle(path: str | Path) -> dict[str, Any]:
-    """Load a FLAME-style pickle into a dict of plain values.
+    """Load a FLAME-style pickle into a dict of plain values, without running anything it names.
 
     Arrays (including chumpy and sparse values) come back as numpy arrays; strings stay strings.
-    Raises ``pickle.UnpicklingError``, ``UnsupportedPickle`` or ``OSError`` on failure.
+    Raises :class:`UnsupportedPickle` (:class:`RefusedPickle` for a forbidden global or opcode) or
+    ``OSError``.
     """
     with open(path, "rb") as fh:
-        raw = _FlameUnpickler(fh, encoding="latin1").load()
+        raw = _Machine().run(fh)
     if not isinstance(raw, dict):
         raise UnsupportedPickle(f"expected a dict at the top level, found {type(raw).__name__}")
     out: dict[str, Any] = {}

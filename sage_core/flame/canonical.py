@@ -1,4 +1,4 @@
-"""Canonical space (design.md "Canonical space"): the FLAME mesh of the canonical timestep with its
+"""Canonical space (docs/method.md §2): the FLAME mesh of the canonical timestep with its
 expression, jaw, eyes and neck pose, but zero global rotation and translation."""
 
 from __future__ import annotations

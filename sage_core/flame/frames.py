@@ -1,4 +1,4 @@
-"""Per-triangle frames for binding Gaussians and surfels to a mesh (formats.md §6)."""
+"""Per-triangle frames for binding Gaussians and surfels to a mesh (docs/formats.md §6)."""
 
 from __future__ import annotations
 

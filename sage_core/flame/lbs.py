@@ -1,4 +1,4 @@
-"""FLAME linear blend skinning in torch (formats.md §3.5), batched and differentiable."""
+"""FLAME linear blend skinning in torch (docs/formats.md §3.2), batched and differentiable."""
 
 from __future__ import annotations
 

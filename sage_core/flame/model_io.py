@@ -11,14 +11,13 @@ Layout of the project's npz (all arrays, ``allow_pickle=False``):
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 
 import numpy as np
 
 from ..atomic import atomic_writer
-from ..errors import InputError
-from ..npz import shape_str
+from ..errors import InputError, require_file
+from ..npz import read_npz, shape_str
 from ._unpickle import UnsupportedPickle, load_flame_pickle
 from .model_data import FlameModelData
 from .teeth import FLAME_N_VERTICES, add_teeth as _add_teeth, has_teeth
@@ -140,30 +139,34 @@ def _from_pickle_dict(path: Path, d: dict) -> FlameModelData:
     return data
 
 
-def _str_item(path: Path, z: np.lib.npyio.NpzFile, key: str) -> str:
-    if key not in z.files:
+def _str_item(path: Path, z: dict[str, np.ndarray], key: str) -> str:
+    if key not in z:
         raise InputError(path, f"npz lacks key '{key}'")
     return str(z[key].item() if z[key].ndim == 0 else z[key])
 
 
+def _numeric(path: Path, key: str, arr: np.ndarray) -> np.ndarray:
+    if arr.dtype.kind not in "biuf":
+        raise InputError(path, f"key '{key}' has dtype {arr.dtype}, expected numbers")
+    return arr
+
+
 def _from_npz(path: Path) -> FlameModelData:
-    try:
-        z = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"cannot read npz ({exc})") from None
-    with z:
-        fmt = _str_item(path, z, "format")
-        if fmt != NPZ_FORMAT:
-            raise InputError(path, f"npz format is '{fmt}', expected '{NPZ_FORMAT}'")
-        arrays = {}
-        for key in ("v_template", "faces", "shapedirs", "exprdirs", "posedirs", "j_regressor",
-                    "lbs_weights", "parents", "n_base_vertices"):
-            if key not in z.files:
-                raise InputError(path, f"npz lacks key '{key}'")
-            arrays[key] = z[key]
-        groups = {k[len(_GROUP_PREFIX):]: z[k].astype(np.int64) for k in z.files if k.startswith(_GROUP_PREFIX)}
-        face_table = _str_item(path, z, "face_table")
-        version = _str_item(path, z, "version")
+    z = read_npz(path, "FLAME model file")
+    fmt = _str_item(path, z, "format")
+    if fmt != NPZ_FORMAT:
+        raise InputError(path, f"npz format is '{fmt}', expected '{NPZ_FORMAT}'")
+    arrays = {}
+    for key in ("v_template", "faces", "shapedirs", "exprdirs", "posedirs", "j_regressor",
+                "lbs_weights", "parents", "n_base_vertices"):
+        if key not in z:
+            raise InputError(path, f"npz lacks key '{key}'")
+        arrays[key] = _numeric(path, key, z[key])
+    groups = {k[len(_GROUP_PREFIX):]: _numeric(path, k, z[k]).astype(np.int64) for k in z if k.startswith(_GROUP_PREFIX)}
+    face_table = _str_item(path, z, "face_table")
+    version = _str_item(path, z, "version")
+    if arrays["n_base_vertices"].size != 1:
+        raise InputError(path, "key 'n_base_vertices' is not a single number")
     data = FlameModelData(
         v_template=arrays["v_template"].astype(np.float64),
         faces=arrays["faces"].astype(np.int64),
@@ -182,30 +185,35 @@ def _from_npz(path: Path) -> FlameModelData:
     return data
 
 
-def load_flame_model(path: str | Path, add_teeth: bool | None = None) -> FlameModelData:
+def load_flame_model(path: str | Path, add_teeth: bool | None = None, *, npz_only: bool = False) -> FlameModelData:
     """Load a FLAME model from the official pickle or the project's npz.
 
-    path: ``.pkl`` (FLAME 2020 ``generic_model.pkl``, FLAME 2023 ``flame2023.pkl``; chumpy is not
-        needed) or ``.npz`` written by :func:`save_flame_npz` (loaded exactly).
-    add_teeth: append the 120 teeth vertices (formats.md §4). None = only when the model has the
-        plain 5023-vertex FLAME topology; True on any other topology raises InputError.
+    path: ``.pkl`` (FLAME 2020 ``generic_model.pkl``, FLAME 2023 ``flame2023.pkl``; read by the
+        restricted reader of :mod:`sage_core.flame._unpickle`, chumpy is not needed) or ``.npz``
+        written by :func:`save_flame_npz` (loaded exactly). A file named ``.npz`` is read only as a
+        zip archive of plain arrays; another name is read by its content (zip or pickle).
+    add_teeth: append the 120 teeth vertices (docs/formats.md §4). None = only when the model
+        has the plain 5023-vertex FLAME topology; True on any other topology raises InputError.
+    npz_only: accept only the project's npz, whatever the file's name (for files sage wrote itself).
     Raises InputError(path, ...) for a missing file, bad keys, shapes or values.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "FLAME model file not found")
+    require_file(path, "FLAME model file")
     with open(path, "rb") as fh:
         magic = fh.read(4)
-    if magic.startswith(b"PK"):
+    is_zip = magic.startswith(b"PK")
+    if (npz_only or path.suffix.lower() == ".npz") and not is_zip:
+        raise InputError(path, "not a zip archive: an .npz FLAME model must be the project's npz "
+                               "(sage reads pickles only from .pkl files)")
+    if is_zip:
         data = _from_npz(path)
     else:
         try:
             d = load_flame_pickle(path)
         except UnsupportedPickle as exc:
-            raise InputError(path, str(exc)) from None
-        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError,
-                TypeError, ValueError) as exc:
-            raise InputError(path, f"not a readable FLAME pickle or npz ({type(exc).__name__}: {exc})") from None
+            raise InputError(path, f"not a readable FLAME pickle: {exc}") from None
+        except OSError as exc:
+            raise InputError(path, f"cannot read the FLAME model ({exc.strerror or exc})") from None
         data = _from_pickle_dict(path, d)
 
     if add_teeth is None:

@@ -1,6 +1,6 @@
 """FLAME parameter files: VHAP per-timestep npz, GaussianAvatars T-leading npz, stacked workspace npz.
 
-All arrays are float32 numpy with the timestep axis first (formats.md §1.3, §7.2):
+All arrays are float32 numpy with the timestep axis first (docs/formats.md §1.3, §7.2):
 
 - VHAP ``flame_param/{ti:05d}.npz`` (one timestep): ``translation, rotation, neck_pose, jaw_pose
   (1,3)``, ``eyes_pose (1,6)``, ``expr (1,E)``, ``shape (S,)``, optional ``static_offset (1,V,3)``
@@ -111,7 +111,7 @@ class FlameParams:
         """A copy whose offsets have ``n_vertices`` rows, zero-padded at the end.
 
         A 5023-row FLAME offset becomes 5143 rows for the teeth-extended model (the teeth vertices are
-        appended after the FLAME ones, formats.md §4). Raises ValueError when there are more rows.
+        appended after the FLAME ones, docs/formats.md §4). Raises ValueError when there are more rows.
         """
         def pad(arr: np.ndarray, axis: int) -> np.ndarray:
             rows = arr.shape[axis]

@@ -1,14 +1,13 @@
-"""FLAME vertex/face regions (formats.md §5): official masks, derived sets, face clusters."""
+"""FLAME vertex/face regions (docs/formats.md §5): official masks, derived sets, face clusters."""
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, require_file
 from ._unpickle import UnsupportedPickle, load_flame_pickle
 
 REGIONS_FORMAT = "sage-regions-v1"
@@ -21,13 +20,13 @@ def load_masks(path: str | Path) -> dict[str, np.ndarray]:
     missing, unreadable, not a dict, or a value is not a 1-D array of non-negative integers.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "mask file not found")
+    require_file(path, "FLAME mask file")
     try:
         raw = load_flame_pickle(path)
-    except (UnsupportedPickle, pickle.UnpicklingError, EOFError, AttributeError, ImportError,
-            IndexError, TypeError, ValueError) as exc:
-        raise InputError(path, f"not a readable mask pickle ({type(exc).__name__}: {exc})") from None
+    except UnsupportedPickle as exc:
+        raise InputError(path, f"not a readable mask pickle: {exc}") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read the mask file ({exc.strerror or exc})") from None
     out: dict[str, np.ndarray] = {}
     for name, ids in raw.items():
         arr = np.asarray(ids)

@@ -1,4 +1,4 @@
-"""Teeth extension of the 5023-vertex FLAME mesh (formats.md §4): V 5023 -> 5143.
+"""Teeth extension of the 5023-vertex FLAME mesh (docs/formats.md §4): V 5023 -> 5143.
 
 The 120 vertices follow the GaussianAvatars/VHAP order exactly, so per-vertex data indexed in that
 layout (e.g. VHAP's 5143-row ``static_offset``) lines up. The faces are this project's own table

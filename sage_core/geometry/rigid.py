@@ -1,4 +1,4 @@
-"""The rigid head map between canonical space and a frame's world (design.md "Canonical space").
+"""The rigid head map between canonical space and a frame's world (docs/method.md §2).
 
 A frame that differs from canonical only in FLAME's global rotation R0 (axis-angle ``rotation``) and
 ``translation`` t moves every canonical point rigidly about the root joint J0 (FLAME turns the whole

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from sage_core.data.cameras import Camera
+if TYPE_CHECKING:  # the rasterizer reads any object with K, w2c, width and height
+    from ..data.cameras import Camera
 
 
 @dataclass

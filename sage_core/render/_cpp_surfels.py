@@ -21,11 +21,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
-from ..native_build import NativeExtension, cache_dir
+from ..native_build import cache_dir, native_extension
 from ._packed import IMAGE_OUTPUTS, PackedImages
 
 __all__ = [
@@ -41,20 +40,9 @@ __all__ = [
     "warn_unavailable_once",
 ]
 
-EXT = NativeExtension(
-    name="sage_surfels_cpu",
-    source=Path(__file__).parent / "csrc" / "surfels_cpu.cpp",
-    namespace="sage_surfels_cpu",
-    probe_op="render_forward",
-    what="rasterizer",
-    fallback="pure-torch backend for rendering",
-)
+EXT = native_extension(__file__, "surfels_cpu", probe_op="render_forward", what="rasterizer", fallback="pure-torch backend for rendering")
 
-available = EXT.available
-"""(True, where it was loaded from) once the extension is built and loaded, else (False, reason); the
-first call compiles it unless a cached build exists, and the result is remembered for the process."""
-warn_unavailable_once = EXT.warn_unavailable_once
-
+available, warn_unavailable_once = EXT.available, EXT.warn_unavailable_once
 
 
 def _ops():  # noqa: ANN202 - a torch.ops namespace

@@ -209,7 +209,7 @@ def render_dense_reference(
 
 
 def distortion_grad_closed_form(w: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact gradients of L = Σ_i w_i Σ_{j<i} w_j (m_i − m_j)² for one pixel's contributors (rendering.md §2.3).
+    """Exact gradients of L = Σ_i w_i Σ_{j<i} w_j (m_i − m_j)² for one pixel's contributors (docs/rendering.md §2.3).
 
     w, m: (K,) -> (∂L/∂w (K,), ∂L/∂m (K,)) with ∂L/∂w_k = m_k²A − 2m_kM1 + M2 and
     ∂L/∂m_k = 2w_k(m_kA − M1), where A = Σw, M1 = Σwm, M2 = Σwm² over all contributors.

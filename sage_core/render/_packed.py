@@ -1,4 +1,4 @@
-"""Packed pure-torch 2DGS compositing for one camera (rendering.md §3).
+"""Packed pure-torch 2DGS compositing for one camera (docs/rendering.md §3).
 
 Stage A (no grad, chunked): enumerate (surfel, pixel) candidates inside each surfel's tile
 rectangle (trimmed to where α can reach 1/255), evaluate α, and keep significant pairs.

@@ -58,7 +58,7 @@ def project_surfels(
     near: float,
     squeeze: bool = False,
 ) -> Projection:
-    """Project N surfels into C cameras (rendering.md §1.2, §1.7).
+    """Project N surfels into C cameras (docs/rendering.md §1.2, §1.7).
 
     means: (N, 3), quats: (N, 4) wxyz, scales: (N, 2), K: (C, 3, 3), w2c: (C, 4, 4).
     Culls: centre depth ≤ near, d = C*_33 ≥ 0 (the 3σ disc crosses the camera plane), a normal

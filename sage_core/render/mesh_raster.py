@@ -272,7 +272,7 @@ def warp_points_to_canonical(
     """Map points through the similarity transform of the triangle they belong to.
 
     points: (R, 3) in the deformed (posed) space; face_id: (R,) int ≥ 0; frames_*: (R_f (F, 3, 3),
-    T_f (F, 3), k_f (F,)) per-face frames of the deformed and canonical meshes (formats.md §6; the GA
+    T_f (F, 3), k_f (F,)) per-face frames of the deformed and canonical meshes (docs/formats.md §6; the GA
     or the surfel convention, as long as both use the same one). Returns (R, 3):
     x_c = T_c + k_c · R_c · R_dᵀ · (x − T_d) / k_d.
     """

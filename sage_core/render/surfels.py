@@ -1,7 +1,7 @@
 """Differentiable 2D Gaussian surfel rasterizer (2DGS / hbb1 maths, packed pure-torch backend).
 
 Conventions: OpenCV cameras, pixel centres at +0.5, images channels-last ``(H, W, ch)`` (a leading
-C for a batch of cameras). Rendering rules follow rendering.md §1–2: α = min(0.99, o·e^(−ρ/2)) with
+C for a batch of cameras). Rendering rules follow docs/rendering.md §1–2: α = min(0.99, o·e^(−ρ/2)) with
 the low-pass ρ = min(ρ3d, 2‖c − x‖²); pairs with h_z = 0, depth < near or α < 1/255 are skipped;
 compositing stops before the first surfel with T·(1 − α) < 1e-4; each pixel composites its surfels
 in order of their centre view depth. On the low-pass (2D) branch the depth of a pair is the surfel's
@@ -78,7 +78,7 @@ def depth_to_points(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 
 def depth_to_normal(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """Camera-frame normals from depth by central differences (rendering.md §2.2).
+    """Camera-frame normals from depth by central differences (docs/rendering.md §2.2).
 
     N = normalize((P(y+1,x) − P(y−1,x)) × (P(y,x+1) − P(y,x−1))), zero on the 1-px border.
     depth: (H, W), K: (3, 3) -> (H, W, 3). A fronto-parallel plane gives (0, 0, −1).

@@ -5,7 +5,7 @@ Sampling: rays are clipped to the SDF box (slab test); ``n_samples`` stratified 
 using a fixed ``inv_s = 64 * 2**h`` and the exact discrete NeuS alpha of each section from the SDF at its two
 end points, and drawing new samples by inverse-CDF sampling of those section weights (no gradient).
 The final pass evaluates the SDF, its gradient and the appearance at section mid points and uses the NeuS
-alpha with cos annealing (rendering.md 7.2):
+alpha with cos annealing (docs/rendering.md §9.2):
 
     c = d . grad f,  c~ = -(relu(-c/2 + 1/2) (1 - r) + relu(-c) r),  r = cos_anneal_ratio
     f_prev = f - c~ delta/2,  f_next = f + c~ delta/2,  Phi = sigmoid(inv_s * . / length_unit)

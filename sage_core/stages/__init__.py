@@ -28,7 +28,7 @@ from .init_mesh import init_mesh_stage
 from .phase1 import ingest_summary, phase1_stage, workspace_regime
 from .phase2 import phase2_stage
 from .reenact import ReenactResult, reenact_stage
-from .run import PIPELINE_STAGES, RENDER_STAGES, STAGE_PREFIXES, PipelineResult, pipeline_stages, run_pipeline, split_sets
+from .run import PIPELINE_STAGES, RENDER_STAGES, STAGE_PREFIXES, PipelineResult, pipeline_configs, pipeline_stages, run_pipeline, split_sets
 
 __all__ = [
     "EVENT_KINDS",
@@ -54,6 +54,7 @@ __all__ = [
     "init_mesh_stage",
     "phase1_stage",
     "phase2_stage",
+    "pipeline_configs",
     "pipeline_stages",
     "reenact_stage",
     "run_demo",

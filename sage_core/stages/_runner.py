@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..errors import ConfigError
 from ..workspace import StageRun, Workspace
 from .events import Emitter
 
@@ -29,6 +30,12 @@ class StageSettings:
     force: bool = False
     threads: int | None = None
 
+    def __post_init__(self) -> None:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**32:
+            raise ConfigError(f"--seed must be an integer in 0..{2**32 - 1}, got {self.seed!r}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1):
+            raise ConfigError(f"--threads = {self.threads!r} is out of range (allowed: integers >= 1)")
+
 
 @dataclass
 class StageResult:
@@ -37,7 +44,7 @@ class StageResult:
     skipped: already complete with the same config and inputs (nothing was run). resumed: the run
     continued an interrupted one from its checkpoint. manifest: the stage's manifest (on a skip, the
     one already there). metrics: the manifest's key numbers. outputs: the files written (name ->
-    path). device / render_backend / threads: where it ran. duration_s: wall time of this call.
+    path; relative to the workspace in the manifest). device / render_backend / threads: where it ran. duration_s: wall time of this call.
     """
 
     stage: str
@@ -62,7 +69,8 @@ class StageResult:
         self.manifest = manifest
         if manifest is not None:
             self.metrics = dict(manifest.get("metrics") or {})
-            self.outputs = {k: Path(v) for k, v in (manifest.get("outputs") or {}).items() if v}
+            # manifests written since outputs became workspace-relative hold relative paths
+            self.outputs = {k: self.workspace / v for k, v in (manifest.get("outputs") or {}).items() if v}
             self.device = manifest.get("device", self.device)
         self.duration_s = time.time() - t0
 
@@ -128,11 +136,12 @@ def execute_stage(
     with ``remove_new_workspace_on_failure``.
     """
     from ..config import config_hash, to_dict
-    from ..runtime import apply_threads, resolve_render_backend
+    from ..runtime import apply_thread_choice, resolve_render_backend
     from ..workspace import begin_stage, resolve_device, stage_up_to_date
 
     device = resolve_device(settings.device)
-    threads = apply_threads(settings.threads)
+    choice = apply_thread_choice(settings.threads)
+    threads = choice.threads
     backend = resolve_render_backend(cfg.render_backend, device) if hasattr(cfg, "render_backend") else None
     if validate is not None:
         validate()
@@ -166,12 +175,22 @@ def execute_stage(
                 run.metrics["sdf_backend"] = resolve_fused_backend("auto", device)
             log_path = setup_logging(ws.root, stage)
             log = logging.getLogger("sage")
-            log.info("stage %s started: config %s, seed %s, device %s, resumed %s, threads %s, render backend %s",
-                     stage, run.config_hash, settings.seed, device, run.resumed, threads, backend)  # fmt: skip
+            log.info("stage %s started: config %s, seed %s, device %s, resumed %s, %s, render backend %s",
+                     stage, run.config_hash, settings.seed, device, run.resumed, choice.describe(), backend)  # fmt: skip
+            if choice.warning() is not None:
+                log.warning("%s", choice.warning())
+                emitter.note(str(choice.warning()), level="warning")
             emitter.emit("running", title=emitter.title, metrics={"resumed": run.resumed, "device": device, "threads": threads,
-                                                                   "render_backend": backend})  # fmt: skip
+                                                                   "threads_basis": choice.describe(), "render_backend": backend})  # fmt: skip
             try:
                 body(run, emitter)
+            except KeyboardInterrupt:
+                log.warning("stage %s interrupted", stage)
+                if discard_work_on_failure:
+                    shutil.rmtree(run.work_dir, ignore_errors=True)
+                else:
+                    run.interrupted()
+                raise
             except BaseException as e:
                 log.exception("stage %s failed", stage)
                 if discard_work_on_failure:

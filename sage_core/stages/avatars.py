@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -58,15 +58,26 @@ def resolve_avatar_stage(ws: Workspace, requested: str, by: str) -> str:
     raise StageError(f"'{by}' needs a trained avatar, but neither phase2 nor phase1 has completed: run `sage phase1 {ws.root}` first")
 
 
-CORRECTION_KEYS: dict[str, str] = {
-    "correction_radius_edges": "radius_edges",
-    "correction_max_neighbours": "max_neighbours",
-    "correction_w_s": "w_s",
-    "correction_umbilic_tol": "umbilic_tol",
-    "correction_anisotropy_tol": "anisotropy_tol",
-    "correction_mode": "mode",
-}
-"""Stage-config fields of the surfel correction -> ``CorrectedPosing`` keyword arguments."""
+CORRECTION_KEYS: tuple[str, ...] = ("radius_edges", "max_neighbours", "w_s", "umbilic_tol", "anisotropy_tol", "mode")
+"""Fields of the phase-2 config's ``correction`` section that are ``CorrectedPosing`` keyword arguments
+(a config saved before the sections existed names them ``correction_<field>`` at the top level)."""
+
+
+def saved_correction(cfg: dict[str, Any]) -> dict[str, Any] | None:
+    """``CorrectedPosing`` keyword arguments from a saved phase-2 config (plain data, nested or of
+    the earlier flat form), or None when the correction is off or the config is not phase 2's."""
+    section = cfg.get("correction")
+    if isinstance(section, dict):
+        if section.get("enabled") is not True:
+            return None
+        out = {k: section[k] for k in CORRECTION_KEYS if k in section}
+    elif section is True:
+        out = {k: cfg[f"correction_{k}"] for k in CORRECTION_KEYS if f"correction_{k}" in cfg}
+    else:
+        return None
+    # phase-2 avatars trained before the affine mode existed used the curvature mode
+    out.setdefault("mode", "curvature")
+    return out
 
 
 def stage_render_settings(stage_dir: Path, data: IngestedData | None) -> RenderSettings:
@@ -82,10 +93,7 @@ def stage_render_settings(stage_dir: Path, data: IngestedData | None) -> RenderS
             raise InputError(cfg_path, f"cannot read the stage's config: {e}") from None
         near = float(cfg.get("near", near))
         far = float(cfg.get("far", far))
-        if cfg.get("correction") is True:
-            correction = {kw: cfg[key] for key, kw in CORRECTION_KEYS.items() if key in cfg}
-            # phase-2 avatars trained before the affine mode existed used the curvature mode
-            correction.setdefault("mode", "curvature")
+        correction = saved_correction(cfg)
     bg = 1.0
     if data is not None:
         bg = 0.0 if str(data.summary.get("background", "white")) == "black" else 1.0

@@ -26,8 +26,9 @@ from .events import Emitter, EventFn
 FAST_SETS: dict[str, list[str]] = {
     "ingest": [],
     "init-mesh": ["pretrain.steps=20", "pretrain.bank_size=4000", "pretrain.batch_size=1024", "pretrain.eval_samples=2000", "mc_resolution=32"],
-    "phase1": ["iterations=2", "n_surfels=800", "eval_every=0", "mc_resolution=32", "rays_per_step=64", "neus_samples=8", "neus_importance=8"],
-    "phase2": ["iterations=1", "rays_per_step=64", "neus_samples=8", "neus_importance=8", "eval_phase1=false"],
+    "phase1": ["iterations=2", "surfels.count=800", "schedule.eval_every=0", "mc_resolution=32", "neus.rays_per_step=64", "neus.samples=8",
+               "neus.importance=8"],
+    "phase2": ["iterations=1", "pixels.per_step=64", "neus.samples=8", "neus.importance=8", "eval_phase1=false"],
     "eval": ["samples=2"],
     "export": [],
 }

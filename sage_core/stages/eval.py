@@ -1,4 +1,4 @@
-"""The eval stage: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (formats.md §8).
+"""The eval stage: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (docs/formats.md §8).
 
 Every frame of a split is rendered with that frame's FLAME parameters and camera on the dataset
 background and compared with its ground truth. ``WS/eval/`` accumulates results: each (avatar
@@ -289,6 +289,8 @@ def _eval_novel(w: Workspace, cfg: EvalConfig, lpips_weights: Path | None, setti
         vis = doc["visible_region"]
         entry = {"key": key, "split": "novel", "overall": doc["overall"], "frontal": doc["frontal"],
                  "visible_region": {"overall": vis["overall"], "frontal": vis["frontal"]}}  # fmt: skip
+        if "view_groups" in doc:
+            entry["view_groups"] = {g: {"overall": v["overall"]} for g, v in doc["view_groups"].items()}
         return {name: entry}, {f"{name} visible {k}": vis["overall"][k] for k in ("psnr", "ssim", "lpips")}
 
     emitter.title = f"eval {av_stage} novel"

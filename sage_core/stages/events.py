@@ -7,8 +7,9 @@ A stage function emits, in order:
 * ``skipped`` when the stage (or every item asked of it) is already complete with the same config
   and inputs; ``message`` says so;
 * ``running`` when the work begins (``title``, ``resumed``, ``device``, ``threads``,
-  ``render_backend`` in ``metrics``);
-* ``estimate`` once a training loop knows its duration (``metrics``: ``estimate_s``, ``s_per_step``);
+  ``threads_basis`` (why that many), ``render_backend`` in ``metrics``);
+* ``estimate`` once a training loop knows its duration, then as it re-estimates (``metrics``:
+  ``estimate_s``, ``remaining_s``, ``s_per_step``, ``estimate_basis``, ``estimate_first``);
 * ``progress`` as it goes (``step`` of ``total``, ``message``, ``metrics``: losses, PSNR ...);
 * ``finished`` with the stage's result object (also after a skip).
 

@@ -44,7 +44,7 @@ def ingest_stage(
     """
     from ..data.capture import read_capture
     from ..data.ingest import capture_fingerprint, ingest as run_ingest
-    from ..errors import InputError
+    from ..errors import InputError, require_file
     from ..workspace import HASH_CACHE, file_fingerprint
 
     t0 = time.time()
@@ -53,14 +53,13 @@ def ingest_stage(
     dataset, flame_model = Path(dataset), Path(flame_model)
     w = as_workspace(ws)
     if not dataset.is_dir():
-        raise InputError(dataset, "capture folder not found")
-    if not flame_model.is_file():
-        raise InputError(flame_model, "FLAME model file not found")
+        raise InputError(dataset, "is a file, expected a capture folder" if dataset.exists() else "capture folder not found")
+    require_file(flame_model, "FLAME model file")
     masks = default_masks(flame_model, None if flame_masks is None else Path(flame_masks))
-    if masks is not None and not masks.is_file():
-        raise InputError(masks, "FLAME masks file not found")
+    if masks is not None:
+        require_file(masks, "FLAME masks file")
 
-    capture = read_capture(dataset)  # validates everything before anything is written
+    capture = read_capture(dataset, follow_symlinks=cfg.follow_symlinks)  # validates everything before anything is written
     external = {"flame_model": file_fingerprint(flame_model)}
     if masks is not None:
         external["flame_masks"] = file_fingerprint(masks)

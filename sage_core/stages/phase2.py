@@ -32,15 +32,15 @@ def phase2_stage(
     lpips_weights: LPIPS AlexNet weights for the evaluation (None: ``$SAGE_LPIPS_WEIGHTS`` or the
     cache; InputError when a given file is missing). Resumes an interrupted run.
     """
-    from ..errors import InputError
+    from ..errors import require_file
 
     t0 = time.time()
     emitter = Emitter("phase2", on_event, "phase 2")
     emitter.emit("started")
     w = as_workspace(ws)
     lp = None if lpips_weights is None else Path(lpips_weights)
-    if lp is not None and not lp.is_file():
-        raise InputError(lp, "LPIPS weights file not found")
+    if lp is not None:
+        require_file(lp, "LPIPS weights file")
     external = None
     if lp is not None:
         from ..workspace import file_fingerprint
@@ -78,7 +78,7 @@ def run_phase2(
     ``distortion_curve.json`` and evaluation folders (``eval_test/``, ``eval_val/``) into
     ``out_dir``; resume from the newest checkpoint in ``checkpoint_dir``. Returns the metrics.
 
-    Evaluation (formats.md §8 via :func:`evaluate_frames`): self-reenactment on the test split (all
+    Evaluation (docs/formats.md §8 via :func:`evaluate_frames`): self-reenactment on the test split (all
     cameras and the frontal camera) and novel views on the val split, rendered with the correction
     when it is enabled. With ``cfg.eval_phase1`` the phase-1 avatar is evaluated on the test split too.
     LPIPS uses ``lpips_weights`` (or ``$SAGE_LPIPS_WEIGHTS`` / the cache), else it is unavailable.
@@ -108,7 +108,7 @@ def run_phase2(
     test_frames, val_frames = evenly_spaced_frames(list(data.test), cfg.eval_frames), evenly_spaced_frames(list(data.val), cfg.eval_frames)
 
     backend = resolve_render_backend(cfg.render_backend, str(device))
-    metrics: dict[str, Any] = {"correction": cfg.correction, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
+    metrics: dict[str, Any] = {"correction": cfg.correction.enabled, "attributes": avatar.attributes, "n_surfels": len(avatar.surfels),
                                "iterations": cfg.iterations, "render_backend": backend}  # fmt: skip
     ck = latest_checkpoint(checkpoint_dir) if checkpoint_dir is not None else None
     resumed = ck is not None
@@ -137,7 +137,7 @@ def run_phase2(
 
     total = cfg.iterations
     loop = run_steps(trainer, total, label="phase 2", progress=progress, checkpoint_dir=checkpoint_dir,
-                     checkpoint_every=cfg.checkpoint_every, state_key="trainer", resume_from=ck, map_location=device,
+                     checkpoint_every=cfg.schedule.checkpoint_every, state_key="trainer", resume_from=ck, map_location=device,
                      stats=step_stats)  # fmt: skip
     last = dict(loop.last)
     train_time = loop.train_time_s
@@ -155,7 +155,7 @@ def run_phase2(
         metrics["val"] = _report_dict(rep)
     avatar.save(out_dir / "avatar.pt")
     curve = trainer.distortion_curve
-    atomic_write_json(out_dir / "distortion_curve.json", {"correction": cfg.correction, "steps": list(range(1, len(curve) + 1)),
+    atomic_write_json(out_dir / "distortion_curve.json", {"correction": cfg.correction.enabled, "steps": list(range(1, len(curve) + 1)),
                                                            "distortion": curve})  # fmt: skip
     metrics.update({
         "distortion_first100_mean": float(np.mean(curve)) if curve else float("nan"),

@@ -5,11 +5,13 @@ The motion is a GaussianAvatars motion npz, a folder of per-timestep ``flame_par
 another capture (cross-reenactment: its expressions and poses, this avatar's shape and static
 offset). Cameras: one camera of this capture (default the val / frontal camera), one camera of
 another capture (rescaled to this avatar's image height), or an orbit around the head. Output:
-``<out>/frames/*.png|exr``, ``video.mp4`` and ``reenact.json`` (what was rendered and how fast).
+``<out>/frames/*.png|exr``, ``video.mp4`` and ``reenact.json`` (what was rendered and how fast;
+its paths are relative to the folder it lies in, so a copied workspace or bundle still finds them).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,11 +50,41 @@ def seq_label(seq: Path) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "motion"
 
 
+def parse_size(size: str | None) -> tuple[int | None, int] | None:
+    """``--size``: "WxH" -> (W, H), "H" -> (None, H) (the width follows the camera's aspect ratio),
+    None -> None. ConfigError for anything else or a size below 8 pixels."""
+    from ..errors import ConfigError
+
+    if size is None:
+        return None
+    parts = size.lower().split("x")
+    try:
+        nums = [int(x) for x in parts]
+    except ValueError:
+        nums = []
+    if len(nums) not in (1, 2) or min(nums) < 8 or max(nums) > 16384:
+        raise ConfigError(f"--size {size!r}: give WIDTHxHEIGHT (e.g. 512x744) or a HEIGHT, 8..16384 pixels")
+    return (None, nums[0]) if len(nums) == 1 else (nums[0], nums[1])
+
+
+def sized(cam: Any, size: tuple[int | None, int] | None) -> Any:
+    """The camera at the ``--size`` output size (K rescaled per axis), or as it is."""
+    if size is None:
+        return cam
+    w, h = size
+    if w is None:
+        w = max(1, int(round(cam.width * h / cam.height)))
+    return cam if (w, h) == (cam.width, cam.height) else cam.resized(w, h)
+
+
 def check_reenact_options(*, ws: Path | None, bundle: Path | None, flame_seq: Path | None, camera: int | None = None,
                           cameras_from: Path | None = None, orbit: bool = False, frame_format: str = "png",
-                          video: bool = True, fps: float | None = None, max_frames: int | None = None) -> None:  # fmt: skip
+                          video: bool = True, fps: float | None = None, max_frames: int | None = None,
+                          size: str | None = None) -> None:  # fmt: skip
     """ConfigError for an inconsistent set of reenactment options (before anything is read)."""
     from ..errors import ConfigError
+
+    parse_size(size)
 
     if flame_seq is None:
         raise ConfigError("--flame-seq is required (a motion .npz, a flame_param folder or a capture)")
@@ -121,14 +153,22 @@ def reenact_stage(
     bundle: str | Path | None = None,
     out: str | Path | None = None,
     device: str = "auto",
+    size: str | None = None,
+    threads: int | None = None,
+    flame_model: str | Path | None = None,
     on_event: EventFn | None = None,
 ) -> ReenactResult:
     """Render the avatar of ``ws`` (``stage``: auto, phase1, phase2) or of ``bundle`` driven by
     ``flame_seq`` into ``out`` (default ``WS/reenact/<name>`` or ``<bundle>/reenact/<name>``).
 
+    size: the output size, "WxH" or a height (:func:`parse_size`; default the camera's own).
+    threads: CPU threads (None: ``$SAGE_THREADS``, else the idle cores). flame_model: the FLAME
+    model file a bundle that does not carry its model was built with (checked by SHA-256 first).
     Options as :func:`check_reenact_options` describes (ConfigError); the motion is validated
     against the avatar before anything renders (InputError naming the source).
     """
+    from ..runtime import apply_threads
+
     from ..data.capture import read_capture
     from ..errors import ConfigError, InputError
     from ..export.reenact import reenact as run_engine
@@ -144,16 +184,19 @@ def reenact_stage(
     cameras_from = None if cameras_from is None else Path(cameras_from)
     flame_seq = Path(flame_seq)
     check_reenact_options(ws=ws_path, bundle=bundle, flame_seq=flame_seq, camera=camera, cameras_from=cameras_from, orbit=orbit,
-                          frame_format=frame_format, video=video, fps=fps, max_frames=max_frames)  # fmt: skip
+                          frame_format=frame_format, video=video, fps=fps, max_frames=max_frames, size=size)  # fmt: skip
     check_output_name(name)
+    out_size = parse_size(size)
     dev = resolve_device(device)
+    n_threads = apply_threads(threads)
     # ---- the avatar
     if bundle is not None:
         from ..export.bundle import load_bundle
 
-        b = load_bundle(bundle, dev)
+        b = load_bundle(bundle, dev, flame_model=flame_model)
         avatar, settings, ref_cam, centre = b.avatar, b.render, b.reference_camera, b.head_center
-        avatar_label = f"bundle {b.root}"
+        avatar_label = "bundle"
+        avatar_path = Path(b.root)
     else:
         assert ws_path is not None
         from ..data.dataset import IngestedData
@@ -167,7 +210,8 @@ def reenact_stage(
         avatar, settings = loaded.avatar, loaded.render
         ref_cam = reference_camera(data, camera if cameras_from is None else None)
         centre = head_center(data)
-        avatar_label = f"{av_stage} ({loaded.path})"
+        avatar_label = f"{av_stage} of the workspace"
+        avatar_path = Path(loaded.path)
 
     # ---- the motion (validated before anything renders)
     motion = load_driving_motion(avatar, flame_seq, max_frames)
@@ -177,7 +221,7 @@ def reenact_stage(
     if orbit:
         if ref_cam is None or centre is None:
             raise InputError(bundle or ws_path, "no reference camera or head centre to orbit around")
-        cams, radius = orbit_around(ref_cam, centre, n, orbit_arc, orbit_elevation)
+        cams, radius = orbit_around(sized(ref_cam, out_size), centre, n, orbit_arc, orbit_elevation)
         cam_label, cam_desc = "orbit", f"orbit of {n} views, radius {radius:.3f} m, arc {orbit_arc:g} deg"
     elif cameras_from is not None:
         src = cameras_from.resolve()
@@ -189,6 +233,7 @@ def reenact_stage(
         if ref_cam is not None and cam.height != ref_cam.height:
             h = ref_cam.height
             cam = cam.resized(max(1, int(round(cam.width * h / cam.height))), h)
+        cam = sized(cam, out_size)
         cams = cam
         cam_label, cam_desc = f"{src.name}-cam{idx:02d}", f"camera {idx} of {src} ({cam.width}x{cam.height})"
     else:
@@ -198,8 +243,11 @@ def reenact_stage(
             if camera is not None and camera != ref_cam.index:
                 raise ConfigError(f"a bundle carries only its reference camera ({ref_cam.index}); use --cameras-from CAPTURE --camera {camera}")
         assert ref_cam is not None
-        cams = ref_cam
-        cam_label, cam_desc = f"cam{ref_cam.index:02d}", f"camera {ref_cam.index} of this capture ({ref_cam.width}x{ref_cam.height})"
+        cams = sized(ref_cam, out_size)
+        whose = "the bundle's reference camera (camera" if bundle is not None else "camera"
+        cam_label = f"cam{ref_cam.index:02d}"
+        cam_desc = (f"{whose} {ref_cam.index} of the capture{')' if bundle is not None else ''}"
+                    f" ({cams.width}x{cams.height})")  # fmt: skip
 
     label = name or f"{seq_label(flame_seq)}-{cam_label}"
     if out is not None:
@@ -220,19 +268,24 @@ def reenact_stage(
         return renderer.render(cam, with_identity(avatar, inputs))
 
     emitter.title = f"reenact {label}"
-    emitter.emit("running", title=emitter.title, metrics={"device": dev, "render_backend": renderer.backend})
+    emitter.emit("running", title=emitter.title, metrics={"device": dev, "render_backend": renderer.backend, "threads": n_threads})
     report = run_engine(render_fn, motion, cams, out_dir, frames_format=frame_format, video=video, fps=fps,
                         device=avatar.device, progress=emitter)  # fmt: skip
+    here = out_dir.resolve()
+    home = (ws_path if ws_path is not None else bundle).resolve()  # type: ignore[union-attr]
     doc = {
         "finished_at": now_iso(),
         "avatar": avatar_label,
-        "motion": {"source": str(Path(motion.source).resolve()), "kind": motion.source_kind, "frames": n,
+        "avatar_path": _relative(avatar_path, here, home),
+        "motion": {"source": _relative(Path(motion.source), here, home), "kind": motion.source_kind, "frames": n,
                    "timesteps": [int(t) for t in motion.timesteps]},
         "identity": "the avatar's own shape and static offset; expressions and poses from the motion",
         "cameras": cam_desc,
         "render": settings.to_dict(),
         "render_backend": renderer.backend,
-        "report": report.to_dict(),
+        "report": report.to_dict(relative_to=here),
+        "threads": n_threads,
+        "paths": "relative to this file's folder",
     }
     atomic_write_json(out_dir / "reenact.json", doc)
     outputs: dict[str, Path] = {}
@@ -241,7 +294,18 @@ def reenact_stage(
     if report.video_path is not None:
         outputs["video"] = Path(report.video_path)
     outputs["record"] = out_dir / "reenact.json"
-    result = ReenactResult(out_dir, label, doc, report, avatar_label, f"{motion.source} ({motion.source_kind}, {n} frames)", cam_desc,
+    shown = f"{avatar_label} ({avatar_path})"
+    result = ReenactResult(out_dir, label, doc, report, shown, f"{motion.source} ({motion.source_kind}, {n} frames)", cam_desc,
                            time.time() - t0, outputs, dev, renderer.backend)  # fmt: skip
     emitter.emit("finished", result=result)
     return result
+
+
+def _relative(path: Path, base: Path, home: Path) -> str:
+    """``path`` relative to the folder ``base`` (POSIX, with ``..`` steps) when it lies in ``home``
+    (the workspace or bundle), so that the record keeps pointing at its neighbours when ``home`` is
+    copied or moved; a path outside it (a motion elsewhere) stays absolute."""
+    p = Path(path).resolve()
+    if p != home and home not in p.parents:
+        return str(p)
+    return Path(os.path.relpath(p, base)).as_posix()

@@ -1,17 +1,20 @@
 """The whole chain of stages for one subject (``sage run``, ``sage batch``, ``sage demo``).
 
-ingest → init-mesh → phase1 → phase2 (unless ``skip_phase2``) → eval (test and val) → export (PLY
-at the canonical pose + the avatar bundle). Each stage is its stage function, so a finished stage
-with the same config and inputs is skipped, an interrupted one resumes from its checkpoint, and a
-failing one stops the chain with its own error. Every stage's config is resolved when it starts
-(phase 1 with the ingested regime): preset < regime defaults < config file (one section per stage)
-< the per-stage flags.
+ingest → init-mesh → phase1 → phase2 (unless ``skip_phase2``) → eval → export (PLY at the canonical
+pose + the avatar bundle). Eval scores what the regime has (:func:`eval_splits`): the val and test
+frames of the workspace (novel views, self-reenactment) when it has any, and the capture's held-out
+ground truth (``gt/novel``) when it has one; a one-shot capture has only the latter. Each stage is
+its stage function, so a finished stage with the same config and inputs is skipped, an interrupted
+one resumes from its checkpoint, and a failing one stops the chain with its own error. Every
+stage's config is resolved before the first stage runs (phase 1 with the regime being ingested),
+so a bad value stops the chain before anything is written: preset < regime defaults < config file
+(one section per stage) < the per-stage flags.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +54,20 @@ def split_sets(values: list[str] | None) -> dict[str, list[str]]:
     return out
 
 
+def eval_splits(ws: str | Path) -> list[str]:
+    """The eval splits of a chain on an ingested workspace: ``all`` when it has val or test frames,
+    ``novel`` when its capture has held-out ground truth; at least one of them (a workspace with
+    neither has nothing to evaluate: ``all`` then reports that)."""
+    from ..data.dataset import IngestedData
+    from ..evaluate.novel import has_novel_ground_truth
+
+    data = IngestedData.open(Path(ws) / "data")
+    splits = ["all"] if (data.role("val") or data.role("test")) else []
+    if has_novel_ground_truth(data):
+        splits.append("novel")
+    return splits or ["all"]
+
+
 def pipeline_stages(skip_phase2: bool) -> list[str]:
     """The stages :func:`run_pipeline` runs with these options."""
     return [s for s in PIPELINE_STAGES if not (skip_phase2 and s == "phase2")]
@@ -59,14 +76,49 @@ def pipeline_stages(skip_phase2: bool) -> list[str]:
 @dataclass
 class PipelineResult:
     """What :func:`run_pipeline` did: per-stage outcome lines (``skipped (already complete)``,
-    ``done in 12.3 s``, ``left out (--skip-phase2)``), each stage's result object, the avatar stage
-    evaluated and exported, and the wall time."""
+    ``done in 12.3 s``, ``left out (--skip-phase2)``), each stage's result object (the eval of the
+    held-out ground truth under ``eval novel``), the avatar stage evaluated and exported, the eval
+    splits run, and the wall time."""
 
     ws: Path
     stages: list[tuple[str, str]] = field(default_factory=list)
     results: dict[str, StageResult] = field(default_factory=dict)
     avatar_stage: str | None = None
+    eval_splits: list[str] = field(default_factory=list)
     wall_time_s: float = 0.0
+
+
+def pipeline_configs(
+    preset: str = "default",
+    config_file: str | Path | None = None,
+    flags: dict[str, dict[str, Any]] | None = None,
+    skip_phase2: bool = False,
+    render_backend: str | None = None,
+) -> dict[str, Any]:
+    """Every stage config :func:`run_pipeline` will run with, resolved and checked (ConfigError
+    before anything runs). Phase 1 takes the defaults of the regime ingest will record; eval and
+    export take the avatar stage (phase 2, or phase 1 with ``skip_phase2``)."""
+    from ..config import load_config_file, resolve_config
+
+    per_stage = {s: dict((flags or {}).get(s) or {}) for s in PIPELINE_STAGES}
+    if render_backend is not None:
+        for s in RENDER_STAGES:
+            per_stage[s]["render_backend"] = render_backend
+    cfg_path = None if config_file is None else Path(config_file)
+    data = load_config_file(cfg_path) if cfg_path is not None else None
+    label = str(cfg_path) if cfg_path is not None else "config file"
+
+    def config(stage: str, extra: dict[str, Any] | None = None, regime: str | None = None) -> Any:
+        return resolve_config(stage, preset, data, {**(extra or {}), **per_stage[stage]}, file_label=label, regime=regime)
+
+    av_stage = "phase1" if skip_phase2 else "phase2"
+    cfgs = {"ingest": config("ingest"), "init-mesh": config("init-mesh")}
+    cfgs["phase1"] = config("phase1", regime=cfgs["ingest"].regime)
+    if not skip_phase2:
+        cfgs["phase2"] = config("phase2")
+    cfgs["eval"] = config("eval", {"split": "all", "stage": av_stage})
+    cfgs["export"] = config("export", {"stage": av_stage})
+    return cfgs
 
 
 def run_pipeline(
@@ -94,47 +146,40 @@ def run_pipeline(
     """
     import os
 
-    from ..config import load_config_file, resolve_config
     from ..runtime import THREADS_ENV, apply_threads
     from .eval import eval_stage
     from .export import export_stage
     from .ingest import ingest_stage
     from .init_mesh import init_mesh_stage
-    from .phase1 import phase1_stage, workspace_regime
+    from .phase1 import phase1_stage
     from .phase2 import phase2_stage
 
-    per_stage = {s: dict((flags or {}).get(s) or {}) for s in PIPELINE_STAGES}
-    if render_backend is not None:
-        for s in RENDER_STAGES:
-            per_stage[s]["render_backend"] = render_backend
     if settings.threads is not None:
         os.environ[THREADS_ENV] = str(apply_threads(settings.threads))
-    cfg_path = None if config_file is None else Path(config_file)
-    label = str(cfg_path) if cfg_path is not None else "config file"
-
-    def config(stage: str, extra: dict[str, Any] | None = None, regime: str | None = None) -> Any:
-        data = load_config_file(cfg_path) if cfg_path is not None else None
-        return resolve_config(stage, preset, data, {**(extra or {}), **per_stage[stage]}, file_label=label, regime=regime)
+    cfgs = pipeline_configs(preset, config_file, flags, skip_phase2, render_backend)
+    av_stage = "phase1" if skip_phase2 else "phase2"
 
     t0 = time.time()
     ws = Path(ws)
     res = PipelineResult(ws=ws)
 
-    def record(r: StageResult) -> None:
-        res.results[r.stage] = r
-        res.stages.append((r.stage, "skipped (already complete)" if r.skipped else f"done in {r.duration_s:.1f} s"))
+    def record(r: StageResult, name: str | None = None) -> None:
+        res.results[name or r.stage] = r
+        res.stages.append((name or r.stage, "skipped (already complete)" if r.skipped else f"done in {r.duration_s:.1f} s"))
 
-    record(ingest_stage(dataset, ws, config("ingest"), flame_model, flame_masks, settings, on_event))
-    record(init_mesh_stage(ws, config("init-mesh"), settings, on_event))
-    record(phase1_stage(ws, config("phase1", regime=workspace_regime(ws)), settings, on_event))
+    record(ingest_stage(dataset, ws, cfgs["ingest"], flame_model, flame_masks, settings, on_event))
+    record(init_mesh_stage(ws, cfgs["init-mesh"], settings, on_event))
+    record(phase1_stage(ws, cfgs["phase1"], settings, on_event))
     if skip_phase2:
         res.stages.append(("phase2", "left out (--skip-phase2)"))
     else:
-        record(phase2_stage(ws, config("phase2"), lpips_weights, settings, on_event))
-    av_stage = "phase1" if skip_phase2 else "phase2"
+        record(phase2_stage(ws, cfgs["phase2"], lpips_weights, settings, on_event))
     res.avatar_stage = av_stage
-    record(eval_stage(ws, config("eval", {"split": "all", "stage": av_stage}), lpips_weights, settings, on_event))
-    record(export_stage(ws, config("export", {"stage": av_stage}), viewer=["ply"], bundle=True, settings=settings, on_event=on_event))
+    res.eval_splits = eval_splits(ws)
+    for split in res.eval_splits:
+        cfg = cfgs["eval"] if split == "all" else replace(cfgs["eval"], split=split)
+        record(eval_stage(ws, cfg, lpips_weights, settings, on_event), "eval" if split == "all" else f"eval {split}")
+    record(export_stage(ws, cfgs["export"], viewer=["ply"], bundle=True, settings=settings, on_event=on_event))
     res.wall_time_s = time.time() - t0
     return res
 

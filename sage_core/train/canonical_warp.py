@@ -1,5 +1,5 @@
-"""Canonical warps: how a training frame's pixels become rays of the canonical SDF (design.md
-"Canonical space").
+"""Canonical warps: how a training frame's pixels become rays of the canonical SDF
+(docs/method.md §2).
 
 A :class:`CanonicalWarp` maps flat pixel ids of one camera, for a frame posed by given FLAME inputs,
 to canonical rays (:class:`sage_core.train.warp.CanonicalRays`: origins, unit directions, the ratio of

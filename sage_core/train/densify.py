@@ -4,22 +4,30 @@ SAGE itself never densifies (its surfels are initialised and may rebind); this i
 the GaussianAvatars baseline, which starts from one surfel per triangle and grows the set where
 the photometric loss keeps pulling surfel centres across the image:
 
-* **statistics**: after every backward pass, each surfel that received a gradient adds the norm of
-  the loss gradient with respect to its projected centre in normalised device coordinates,
-  ‖∂L/∂μ_ndc‖, and counts one view (3DGS's ``xyz_gradient_accum`` / ``denom``). It is recovered
-  from the world-space gradient of the posed centre: with the camera-frame centre x_c = R·μ + t at
-  depth z and focal lengths (f_x, f_y), ∂L/∂u ≈ (∂L/∂x_c)_x · z / f_x in pixels (likewise v), and
-  ∂L/∂u_ndc = ∂L/∂u · W / 2;
-* **densify** (every ``densify_every`` steps in [``densify_from``, ``densify_until``)): surfels whose
-  mean statistic reaches ``densify_grad_threshold`` are cloned when their largest world scale is at
-  most ``percent_dense`` × the scene extent, and split into two otherwise: the children are drawn
-  from the parent's 2D Gaussian in its plane and get its scales divided by 1.6; the parent is
-  removed. Children inherit the parent's triangle (binding), region and attributes (their local
-  offsets stay in the parent triangle's frame);
-* **prune** (with every densification): surfels whose opacity is below ``prune_opacity``, and after
-  the first opacity reset those larger than 0.1 × the scene extent;
-* **opacity reset** (every ``opacity_reset_every`` steps): every opacity is lowered to at most 0.01
-  and its Adam state cleared.
+* **statistics**: after every backward pass, each surfel the rasterizer kept for the view (inside
+  the view and touching a tile: 3DGS's ``radii > 0``) adds the norm of the loss gradient with
+  respect to its projected centre in normalised device coordinates, ‖∂L/∂μ_ndc‖, and counts one
+  view (3DGS's ``xyz_gradient_accum`` / ``denom``); a kept surfel that received no gradient
+  (occluded) adds 0 and still counts. The norm is recovered from the world-space gradient of the
+  posed centre: with the camera-frame centre x_c = R·μ + t at depth z and focal lengths
+  (f_x, f_y), ∂L/∂u ≈ (∂L/∂x_c)_x · z / f_x in pixels (likewise v), and ∂L/∂u_ndc = ∂L/∂u · W / 2;
+* **densify** (every ``densify_every`` steps after ``densify_from``, before ``densify_until``):
+  surfels whose mean statistic reaches ``densify_grad_threshold`` are cloned when their largest
+  world scale is at most ``percent_dense`` × the scene extent, and split into two otherwise: the
+  children are drawn from the parent's 2D Gaussian in its plane and get its scales divided by
+  1.6; the parent is removed. Children inherit the parent's triangle (binding), region and
+  attributes (their local offsets stay in the parent triangle's frame);
+* **prune** (with every densification): surfels whose opacity is below ``prune_opacity``, and
+  once the step is past ``opacity_reset_every`` those larger than 0.1 × the scene extent; as in
+  GaussianAvatars a triangle never loses its last surfels (when every surfel of a triangle is
+  marked, none of them is removed);
+* **opacity reset** (every ``opacity_reset_every`` steps before ``densify_until``, and at
+  ``densify_from`` with ``opacity_reset_at_start``, GaussianAvatars' rule on a white background):
+  every opacity is lowered to at most 0.01 and its Adam state cleared.
+
+3DGS also prunes surfels whose screen radius exceeded 20 pixels, but its code (and GaussianAvatars')
+zeroes the radii it compares just before the comparison, so that rule never removes anything; it
+is left out here.
 
 The scene extent is 1.1 × the largest distance of a training camera centre from their mean
 (3DGS's ``cameras_extent``). Shapes: N surfels; statistics are (N,) float64.
@@ -45,8 +53,8 @@ BIG_FRACTION = 0.1
 
 @dataclass
 class DensifySchedule:
-    """When and how strongly to densify (the ``densify*`` / ``opacity_reset_every`` / ``prune_opacity``
-    fields of :class:`sage_core.config.Phase1Config`)."""
+    """When and how strongly to densify (the ``densify`` section of :class:`sage_core.config.Phase1Config`;
+    :meth:`from_config`). Steps are 1-based counts of finished optimisation steps."""
 
     start: int
     stop: int
@@ -55,14 +63,29 @@ class DensifySchedule:
     percent_dense: float
     prune_opacity: float
     reset_every: int
+    reset_at_start: bool = False
+
+    @classmethod
+    def from_config(cls, d: Any) -> DensifySchedule:
+        """From a :class:`sage_core.config.DensifyConfig`."""
+        return cls(d.start, d.until, d.every, d.grad_threshold, d.percent_dense, d.prune_opacity, d.opacity_reset_every, d.reset_at_start)
 
     def densify_now(self, step: int) -> bool:
-        """Whether to densify after optimisation step ``step`` (1-based count of finished steps)."""
-        return self.every > 0 and self.start <= step < self.stop and step % self.every == 0
+        """Whether to densify after step ``step``: past ``start`` (strictly, as 3DGS), before ``stop``,
+        on a multiple of ``every``."""
+        return self.every > 0 and self.start < step < self.stop and step % self.every == 0
 
     def reset_now(self, step: int) -> bool:
-        """Whether to reset the opacities after step ``step`` (only while densifying)."""
-        return self.reset_every > 0 and step < self.stop and step % self.reset_every == 0
+        """Whether to reset the opacities after step ``step`` (only before ``stop``): on a multiple of
+        ``reset_every``, and at ``start`` with ``reset_at_start``."""
+        if step >= self.stop:
+            return False
+        return (self.reset_every > 0 and step % self.reset_every == 0) or (self.reset_at_start and step == self.start)
+
+    def prune_large_now(self, step: int) -> bool:
+        """Whether a densification after step ``step`` also prunes surfels larger than 0.1 × the
+        scene extent: past the first reset interval (3DGS's and GaussianAvatars' rule)."""
+        return step > self.reset_every
 
 
 def scene_extent(camera_centres: torch.Tensor) -> float:
@@ -80,6 +103,18 @@ def ndc_gradient_norm(means: torch.Tensor, grad: torch.Tensor, camera: RenderCam
     gu = g_c[:, 0] * z / fx * (0.5 * camera.width)
     gv = g_c[:, 1] * z / fy * (0.5 * camera.height)
     return torch.sqrt(gu * gu + gv * gv)
+
+
+def keep_last_per_face(remove: torch.Tensor, binding: torch.Tensor) -> torch.Tensor:
+    """``remove`` (N,) bool without the surfels of triangles it would empty (GaussianAvatars' rule:
+    when every surfel bound to a triangle is marked, all of them stay). binding: (N,) int64."""
+    if not bool(remove.any()):
+        return remove
+    n_faces = int(binding.max()) + 1
+    total = torch.bincount(binding, minlength=n_faces)
+    marked = torch.bincount(binding[remove], minlength=n_faces)
+    emptied = (marked == total) & (total > 0)
+    return remove & ~emptied[binding]
 
 
 class DensityControl:
@@ -106,14 +141,14 @@ class DensityControl:
 
     # ------------------------------------------------------------------ statistics
     @torch.no_grad()
-    def accumulate(self, means: torch.Tensor, camera: RenderCamera) -> None:
-        """Add one view's statistic; means: the posed (N, 3) centres whose ``.grad`` is set."""
-        if means.grad is None:
-            return
-        g = means.grad
-        seen = g.abs().sum(-1) > 0
-        norm = ndc_gradient_norm(means, g, camera).to(torch.float64)
-        self.grad_sum += torch.where(seen, norm, torch.zeros_like(norm))
+    def accumulate(self, means: torch.Tensor, camera: RenderCamera, visible: torch.Tensor) -> None:
+        """Add one view's statistic. means: the posed (N, 3) centres whose ``.grad`` is set (None: no
+        gradient reached them, every kept surfel adds 0); visible: (N,) bool, the surfels the
+        rasterizer kept for this view."""
+        seen = visible.to(device=self.count.device, dtype=torch.bool)
+        if means.grad is not None:
+            norm = ndc_gradient_norm(means, means.grad, camera).to(torch.float64)
+            self.grad_sum += torch.where(seen, norm, torch.zeros_like(norm))
         self.count += seen.to(torch.float64)
 
     # ------------------------------------------------------------------ operations
@@ -123,8 +158,9 @@ class DensityControl:
         return (self.avatar.k_c[s.binding][:, None] * torch.exp(s.s_loc.detach())).amax(-1)
 
     @torch.no_grad()
-    def densify_and_prune(self, optimizer: torch.optim.Optimizer) -> dict[str, int]:
-        """Clone, split and prune (see the module doc); clears the statistics. Returns the counts."""
+    def densify_and_prune(self, optimizer: torch.optim.Optimizer, step: int) -> dict[str, int]:
+        """Clone, split and prune after step ``step`` (see the module doc); clears the statistics.
+        Returns the counts."""
         sc, s = self.schedule, self.avatar.surfels
         mean_grad = torch.where(self.count > 0, self.grad_sum / self.count.clamp_min(1.0), torch.zeros_like(self.grad_sum))
         hot = mean_grad >= sc.grad_threshold
@@ -136,10 +172,9 @@ class DensityControl:
         s.extend(added, optimizer)
         remove = torch.cat([split, torch.zeros(len(s) - n0, dtype=torch.bool, device=split.device)])
         remove |= torch.sigmoid(s.opacity.detach()) < sc.prune_opacity
-        if self.resets > 0:
+        if sc.prune_large_now(step):
             remove |= self.world_scale_max() > BIG_FRACTION * self.extent
-        if bool(remove.all()):
-            remove[torch.argmax(torch.sigmoid(s.opacity.detach()))] = False
+        remove = keep_last_per_face(remove, s.binding)
         s.prune(remove, optimizer)
         self._sync_avatar()
         self.clear_statistics()

@@ -1,14 +1,109 @@
-"""Phase-1 losses (SAGE §1–2, 2DGS, NeuS / MonoSDF regularisers). Each returns a 0-d tensor.
+"""Training losses (SAGE §1–2, 2DGS, NeuS / MonoSDF regularisers) and the loss-term table.
 
-Images are channels-last ``(H, W, C)``; per-ray quantities are ``(R, ...)``.
+Each loss function returns a 0-d tensor. Images are channels-last ``(H, W, C)``; per-ray quantities
+are ``(R, ...)``.
+
+A phase declares its objective once, as a tuple of :class:`LossTerm` (name, weight field, first
+step, whether it runs during phase 1's polish, the function that computes it), and
+:func:`add_terms` runs that table each step: it skips the terms that are off (weight 0, not
+started, not applicable to the step), computes the others in table order, records each one under
+its name and returns the weighted sum. The tables are ``sage_core.train.phase1.PHASE1_TERMS`` and
+``sage_core.train.phase2.PHASE2_TERMS``.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Generic, Protocol, TypeVar
 
 import torch
 import torch.nn.functional as F
 
 from ..image_metrics import SSIMTarget, ssim
+
+
+class StepContext(Protocol):
+    """What :func:`add_terms` reads of a phase's per-step context (the rest is the phase's own)."""
+
+    step: int
+    """The step being made (0-based: the trainer's step count before it advances)."""
+    polish: bool
+    """Whether the step lies in phase 1's polish (always False in phase 2)."""
+
+
+Ctx = TypeVar("Ctx", bound=StepContext)
+
+
+@dataclass(frozen=True)
+class LossTerm(Generic[Ctx]):
+    """One term of a phase's objective.
+
+    name: key of the term in the step's output (the per-term metrics). weight: the field of the
+    phase config's ``loss`` section holding its weight, or a function of the step context (e.g. a
+    pseudo view's weight); None: weight 1. compute: the term's value (0-d tensor) for a step
+    context, or None when the step has nothing to measure it on. start: the field of the ``schedule``
+    section holding its first step (None: from step 0). polish: whether the term stays on during
+    phase 1's polish. when: a condition on the step context beyond weight and start (None: always).
+    group: terms of one group are summed on their own before their sum joins the total (the order
+    of the floating-point additions, kept as the phases always summed them).
+    """
+
+    name: str
+    weight: str | Callable[[Ctx], float] | None
+    compute: Callable[[Ctx], torch.Tensor | None]
+    start: str | None = None
+    polish: bool = True
+    when: Callable[[Ctx], bool] | None = None
+    group: str | None = None
+
+    def weight_of(self, ctx: Ctx, weights: Any) -> float:
+        """The term's weight at this step (``weights``: the config's ``loss`` section)."""
+        if self.weight is None:
+            return 1.0
+        if callable(self.weight):
+            return float(self.weight(ctx))
+        return float(getattr(weights, self.weight))
+
+    def active(self, ctx: Ctx, weight: float, schedule: Any) -> bool:
+        """Whether the term is computed at this step (``schedule``: the config's ``schedule`` section)."""
+        if weight <= 0 or (ctx.polish and not self.polish):
+            return False
+        if self.start is not None and ctx.step < int(getattr(schedule, self.start)):
+            return False
+        return self.when is None or bool(self.when(ctx))
+
+
+def add_terms(
+    table: tuple[LossTerm[Ctx], ...], ctx: Ctx, weights: Any, schedule: Any, terms: dict[str, torch.Tensor]
+) -> torch.Tensor | None:
+    """Run a loss-term table for one step: each active term's value goes into ``terms`` under its
+    name; returns Σ weight·value in table order (a group's terms summed first, from zero), or None
+    when no term is active."""
+    total: torch.Tensor | None = None
+    group: str | None = None
+    subtotal: torch.Tensor | None = None
+
+    def close(total: torch.Tensor | None, subtotal: torch.Tensor | None) -> torch.Tensor | None:
+        if subtotal is None:
+            return total
+        return subtotal if total is None else total + subtotal
+
+    for term in table:
+        if term.group != group:
+            total, subtotal, group = close(total, subtotal), None, term.group
+        w = term.weight_of(ctx, weights)
+        if not term.active(ctx, w, schedule):
+            continue
+        value = term.compute(ctx)
+        if value is None:
+            continue
+        terms[term.name] = value
+        part = value if term.weight is None else w * value
+        if group is None:
+            total = part if total is None else total + part
+        else:
+            subtotal = (value.new_zeros(()) if subtotal is None else subtotal) + part
+    return close(total, subtotal)
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -112,11 +207,12 @@ def alpha_mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 def local_position_loss(mu_loc: torch.Tensor, threshold: float = 1.0) -> torch.Tensor:
     """GaussianAvatars' position term: mean relu(‖μ_loc‖ − threshold) of the local offsets (N, 3),
-    in units of the bound triangle's scale k (free surfels may stray that far before it acts)."""
-    return torch.relu(mu_loc.norm(dim=-1) - threshold).mean()
+    in units of the bound triangle's scale k (free surfels may stray that far before it acts); 0
+    for N = 0."""
+    return torch.relu(mu_loc.norm(dim=-1) - threshold).sum() / max(1, mu_loc.shape[0])
 
 
 def local_scale_loss(s_loc: torch.Tensor, threshold: float = 0.6) -> torch.Tensor:
     """GaussianAvatars' scale term: mean ‖relu(exp(s_loc) − threshold)‖ of the log local scales
-    (N, 2), relative to k (keeps surfels from growing far beyond their triangle)."""
-    return torch.relu(torch.exp(s_loc) - threshold).norm(dim=-1).mean()
+    (N, 2), relative to k (keeps surfels from growing far beyond their triangle); 0 for N = 0."""
+    return torch.relu(torch.exp(s_loc) - threshold).norm(dim=-1).sum() / max(1, s_loc.shape[0])

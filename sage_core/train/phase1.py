@@ -17,9 +17,9 @@ parameters, rasterizes them and combines:
 
 Shading (``shading``; :mod:`sage_core.avatar.shading`): with "sh2" the avatar's surfel colours are
 albedo × the irradiance of a world-fixed order-2 SH light at the surfels' outward world normals, the
-light (``lr_light``) being optimised with the rest under the weak prior
-``w_light_prior·mean_c (mean irradiance − 1)²`` that fixes the albedo/light brightness scale and
-the smooth-albedo prior ``w_light_albedo`` (:mod:`sage_core.train.light_prior`; on real frames, its
+light (``lr.light``) being optimised with the rest under the weak prior
+``loss.light_prior·mean_c (mean irradiance − 1)²`` that fixes the albedo/light brightness scale and
+the smooth-albedo prior ``loss.light_albedo`` (:mod:`sage_core.train.light_prior`; on real frames, its
 gradient reaching the light alone) that picks the light the images cannot tell apart. The
 NeuS colour is shaded the same way, so that the appearance network learns one albedo from both
 renders: each ray's composited colour is multiplied on its foreground by E(n_w), n_w the ray's
@@ -33,12 +33,15 @@ Single-camera regimes (SV-HR, one-shot; paper §5) add, through the config (regi
 * a per-frame exposure gain on the foreground of the renders (:mod:`.exposure`) with a weak prior;
 * soft left–right symmetry of the canonical SDF and appearance colour (:mod:`.symmetry`);
 * optional refinement of per-timestep corrections of the global rotation, neck pose and translation
-  (:class:`PoseRefinement`), from ``pose_refine_from`` on;
+  (:class:`PoseRefinement`), from ``schedule.pose_refine_from`` on;
 * one-shot: synthesized pseudo views (``sage_core.train.pseudo_views``), drawn with probability
-  ``pseudo_view_prob``; a pseudo view poses the avatar with a training frame's parameters, optionally
+  ``pseudo.prob``; a pseudo view poses the avatar with a training frame's parameters, optionally
   mirrors the posed mesh, and adds a per-pixel weighted photometric loss (no SDF ray terms).
 
 Canonical rays come from a :class:`~sage_core.train.canonical_warp.CanonicalWarp` (``canonical_warp``).
+
+The objective is the table :data:`PHASE1_TERMS` (each term's weight in the config's ``loss`` section,
+its first step in ``schedule``), run by :func:`sage_core.train.losses.add_terms`.
 
 Every random draw uses the trainer's own CPU generator, so a run resumed from ``state_dict`` repeats
 the uninterrupted loss curve.
@@ -47,6 +50,7 @@ the uninterrupted loss curve.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -85,24 +89,24 @@ SSIM_TARGET_BUDGET = 256 * 2**20
 def build_avatar(data: IngestedData, init_dir: str | Path, cfg: Phase1Config, device: str | torch.device, generator: torch.Generator) -> Avatar:
     """The phase-1 avatar from the init-mesh outputs and the config."""
     return Avatar.build(
-        init_dir, data, cfg.n_surfels, cfg.attributes,
+        init_dir, data, cfg.surfels.count, cfg.attributes,
         app_args=appearance_args(cfg),
-        shape_args={"hidden": cfg.shape_hidden, "n_layers": cfg.shape_layers},
-        sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity,
-        init_args={"face_weight": cfg.face_weight, "mouth_weight": cfg.mouth_weight, "hair_weight": cfg.hair_weight,
-                   "neck_weight": cfg.neck_weight, "camera_weight": cfg.camera_weight, "scale_factor": cfg.init_scale_factor,
-                   "layout": cfg.init_layout},
-        neus_variance=cfg.neus_variance, shading=cfg.shading, device=device, generator=generator,
+        shape_args={"hidden": cfg.shape.hidden, "n_layers": cfg.shape.layers, **({"detail_grid": True} if cfg.shape.detail_grid else {})},
+        sh_degree=cfg.free.sh_degree, init_opacity=cfg.free.init_opacity,
+        init_args={"face_weight": cfg.surfels.face_weight, "mouth_weight": cfg.surfels.mouth_weight, "hair_weight": cfg.surfels.hair_weight,
+                   "neck_weight": cfg.surfels.neck_weight, "camera_weight": cfg.surfels.camera_weight,
+                   "scale_factor": cfg.surfels.scale_factor, "layout": cfg.surfels.layout},
+        neus_variance=cfg.neus.variance, shading=cfg.shading, device=device, generator=generator,
     )  # fmt: skip
 
 
 def appearance_args(cfg: Phase1Config) -> dict[str, Any]:
     """:class:`AppearanceNetwork` kwargs of a phase-1 config (plain data, saved with the avatar)."""
-    args: dict[str, Any] = {"hidden": cfg.app_hidden, "n_layers": cfg.app_layers, "sh_degree": cfg.app_sh_degree,
-                            "opacity_bias": math.log(cfg.app_init_opacity / (1.0 - cfg.app_init_opacity))}
-    if cfg.app_grid:
-        args["grid"] = {"n_levels": cfg.app_grid_levels, "n_features": 2, "log2_table": cfg.app_grid_log2_table,
-                        "base_res": 16, "max_res": cfg.app_grid_max_res}
+    a = cfg.appearance
+    args: dict[str, Any] = {"hidden": a.hidden, "n_layers": a.layers, "sh_degree": a.sh_degree,
+                            "opacity_bias": math.log(a.init_opacity / (1.0 - a.init_opacity))}
+    if a.grid:
+        args["grid"] = {"n_levels": a.grid_levels, "n_features": 2, "log2_table": a.grid_log2_table, "base_res": 16, "max_res": a.grid_max_res}
     return args
 
 
@@ -240,7 +244,7 @@ class Phase1Trainer:
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.step_count = 0
         # first step of the polish (photometric loss alone): the last polish_fraction of the iterations
-        self.polish_from = cfg.iterations - round(cfg.polish_fraction * cfg.iterations)
+        self.polish_from = cfg.iterations - round(cfg.schedule.polish_fraction * cfg.iterations)
         self.frames: list[IngestedFrame] = list(data.train)
         if not self.frames:
             raise ValueError("no training frames")
@@ -260,10 +264,10 @@ class Phase1Trainer:
         if cfg.pose_refine:
             self.pose = PoseRefinement(sorted({f.timestep for f in self.frames})).to(self.device)
         self.light_albedo: SmoothAlbedoLight | None = None
-        if avatar.light is not None and cfg.w_light_albedo > 0 and cfg.lr_light > 0:
-            self.light_albedo = SmoothAlbedoLight(cfg.light_albedo_neighbours, cfg.light_albedo_chroma)
+        if avatar.light is not None and cfg.loss.light_albedo > 0 and cfg.lr.light > 0:
+            self.light_albedo = SmoothAlbedoLight(cfg.light_albedo.neighbours, cfg.light_albedo.chroma)
         self.sym_plane: MirrorPlane | None = None
-        if cfg.w_sym_sdf > 0 or cfg.w_sym_color > 0:
+        if cfg.loss.sym_sdf > 0 or cfg.loss.sym_color > 0:
             self.sym_plane = symmetry_plane(avatar)
         self.pseudo_views: list[Any] = []
         self._pseudo: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, RenderCamera]] = []
@@ -272,36 +276,39 @@ class Phase1Trainer:
         self.optimizer = adam(self._param_groups())
         self._not_mouth = avatar.surfels.region_id != REGION_MOUTH
         self.density: DensityControl | None = None
-        if cfg.densify:
-            schedule = DensifySchedule(cfg.densify_from, cfg.densify_until, cfg.densify_every, cfg.densify_grad_threshold,
-                                       cfg.densify_percent_dense, cfg.prune_opacity, cfg.opacity_reset_every)  # fmt: skip
+        self.position_lr_scale = 1.0
+        if cfg.densify.enabled:
             centres = torch.stack([torch.as_tensor(f.camera.center, dtype=torch.float64) for f in self.frames])
-            self.density = DensityControl(avatar, schedule, scene_extent(centres), self.generator)
+            self.density = DensityControl(avatar, DensifySchedule.from_config(cfg.densify), scene_extent(centres), self.generator)
+            if cfg.densify.position_lr_extent:
+                self.position_lr_scale = self.density.extent
+        # per-surfel visibility of the step's view: the density statistics and GA's local terms use it
+        self._statistics = self.density is not None or cfg.loss.local_position > 0 or cfg.loss.local_scale > 0
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
-        av, c = self.avatar, self.cfg
+        av, lr = self.avatar, self.cfg.lr
         groups = [
-            {"name": "sdf_mlp", "params": av.sdf.mlp_parameters(), "lr": c.lr_sdf},
-            {"name": "grid", "params": av.sdf.grid_parameters(), "lr": c.lr_grid},
-            {"name": "variance", "params": list(av.variance.parameters()), "lr": c.lr_variance},
+            {"name": "sdf_mlp", "params": av.sdf.mlp_parameters(), "lr": lr.sdf},
+            {"name": "grid", "params": av.sdf.grid_parameters(), "lr": lr.grid},
+            {"name": "variance", "params": list(av.variance.parameters()), "lr": lr.variance},
         ] + surfel_param_groups(
             av,
-            lr_position=c.lr_position,
-            lr_networks=c.lr_networks,
-            lr_rotation=c.lr_rotation,
-            lr_scale=c.lr_scale,
-            lr_color=c.lr_color,
-            lr_opacity=c.lr_opacity,
-            lr_app_grid=c.lr_app_grid,
+            lr_position=lr.position,
+            lr_networks=lr.networks,
+            lr_rotation=lr.rotation,
+            lr_scale=lr.scale,
+            lr_color=lr.color,
+            lr_opacity=lr.opacity,
+            lr_app_grid=lr.app_grid,
         )
         if self.exposure is not None:
-            groups.append({"name": "exposure", "params": [self.exposure.log_gain], "lr": c.lr_exposure})
-        if av.light is not None and c.lr_light > 0:
-            groups.append({"name": "light", "params": list(av.light.parameters()), "lr": c.lr_light})
+            groups.append({"name": "exposure", "params": [self.exposure.log_gain], "lr": lr.exposure})
+        if av.light is not None and lr.light > 0:
+            groups.append({"name": "light", "params": list(av.light.parameters()), "lr": lr.light})
         if self.pose is not None:
-            groups.append({"name": "pose_rotation", "params": [self.pose.rotation, self.pose.neck_pose], "lr": c.lr_pose_rotation})
-            groups.append({"name": "pose_translation", "params": [self.pose.translation], "lr": c.lr_pose_translation})
+            groups.append({"name": "pose_rotation", "params": [self.pose.rotation, self.pose.neck_pose], "lr": lr.pose_rotation})
+            groups.append({"name": "pose_translation", "params": [self.pose.translation], "lr": lr.pose_translation})
         return groups
 
     def set_pseudo_views(self, views: list[Any], mirror_index: torch.Tensor | None = None) -> None:
@@ -324,7 +331,7 @@ class Phase1Trainer:
     def _set_lrs(self) -> None:
         c = self.cfg
         t = min(1.0, self.step_count / max(1, c.iterations))
-        lr = math.exp((1 - t) * math.log(c.lr_position) + t * math.log(c.lr_position_final))
+        lr = math.exp((1 - t) * math.log(c.lr.position) + t * math.log(c.lr.position_final)) * self.position_lr_scale
         for g in self.optimizer.param_groups:
             if g["name"] == "mu_loc":
                 g["lr"] = lr
@@ -335,7 +342,7 @@ class Phase1Trainer:
         (Chebyshev) of it; cached per frame."""
         if i not in self._pixels:
             fg = mask > 0.5
-            band = near_mask(fg, int(self.cfg.neus_background_band)) & ~fg
+            band = near_mask(fg, int(self.cfg.neus.background_band)) & ~fg
             fg_ids, band_ids = (torch.nonzero(m.reshape(-1)).reshape(-1) for m in (fg, band))
             self._pixels[i] = (fg_ids, band_ids)
         return self._pixels[i]
@@ -378,7 +385,7 @@ class Phase1Trainer:
         return self._rigid[timestep]
 
     def _refining(self) -> bool:
-        return self.pose is not None and self.step_count >= self.cfg.pose_refine_from
+        return self.pose is not None and self.step_count >= self.cfg.schedule.pose_refine_from
 
     def frame_inputs(self, timestep: int) -> tuple[dict[str, torch.Tensor], tuple[torch.Tensor, torch.Tensor] | None]:
         """FLAME kwargs of a timestep with the pose corrections once refinement has started
@@ -416,11 +423,11 @@ class Phase1Trainer:
 
     # ------------------------------------------------------------------ one step
     def step(self) -> dict[str, float]:
-        """One optimisation step; returns the loss terms as floats."""
+        """One optimisation step; returns the loss terms (:data:`PHASE1_TERMS`) as floats."""
         c, av = self.cfg, self.avatar
         pv_index: int | None = None
-        if self._pseudo and c.pseudo_view_prob > 0:
-            if float(torch.rand((), generator=self.generator)) < c.pseudo_view_prob:
+        if self._pseudo and c.pseudo.prob > 0:
+            if float(torch.rand((), generator=self.generator)) < c.pseudo.prob:
                 pv_index = int(self._randint(len(self._pseudo), 1)[0])
         transform = None
         light_transform: torch.Tensor | None = None
@@ -444,78 +451,37 @@ class Phase1Trainer:
         self._set_lrs()
         step = self.step_count
         polish = step >= self.polish_from
-        use_sdf = step >= c.sdf_from and not polish
+        use_sdf = step >= c.schedule.sdf_from and not polish
 
         canon = av.canonical_state(with_sdf=True, create_graph=use_sdf)
-        render, posed = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=False,
+        mesh = self.posed_mesh(timestep, inputs, transform)
+        render, posed = av.render(cam, inputs, c.background, canonical=canon, near=c.near, far=c.far, return_statistics=self._statistics,
                                   vertex_transform=transform, light_transform=light_transform, backend=self.render_backend,
-                                  mesh=self.posed_mesh(timestep, inputs, transform))  # fmt: skip
+                                  mesh=mesh)  # fmt: skip
         if self.density is not None:
             posed.means.retain_grad()
         color = render.color
         if self.exposure is not None and i is not None:
             color = self.exposure.apply(color, render.alpha, i, c.background)
+        ctx = Phase1Step(self, step, polish, i, img, mask, cam, weight, view_weight, timestep, inputs, rigid, transform, mesh,
+                         canon, render, posed, color)  # fmt: skip
         terms: dict[str, torch.Tensor] = {}
-        if weight is None:
-            target = self._ssim_target(i, img) if c.ssim_weight != 0 and i is not None else None
-            terms["rgb"] = L.rgb_loss(color, img, c.ssim_weight, target)
-            total = terms["rgb"]
-            if c.w_mask > 0 and not polish and i is not None and self.frames[i].mask is not None:
-                terms["mask"] = L.alpha_mask_loss(render.alpha, mask)
-                total = total + c.w_mask * terms["mask"]
-        else:
-            terms["pseudo_rgb"] = weighted_rgb_loss(color, img, weight, c.ssim_weight)
-            total = view_weight * terms["pseudo_rgb"]
-        if c.w_normal_consistency > 0 and step >= c.normal_consistency_from and not polish:
-            terms["normal_consistency"] = L.normal_consistency_loss(render.normal_world, render.surf_normal_world)
-            total = total + c.w_normal_consistency * terms["normal_consistency"]
-        if c.w_distortion > 0 and step >= c.distortion_from and not polish:
-            terms["distortion"] = L.distortion_loss(render.distortion)
-            total = total + c.w_distortion * terms["distortion"]
-
-        if use_sdf:
-            assert canon.sdf is not None and canon.sdf_grad is not None
-            keep = self._not_mouth
-            terms["pt"] = L.point_sdf_loss(canon.sdf[keep], self.length_unit)
-            terms["align"] = L.align_loss(canon.normals[keep], canon.sdf_grad[keep])
-            total = total + c.w_pt * terms["pt"] + c.w_align * terms["align"]
-            rays = (img, mask, cam, inputs, rigid, i) if i is not None else None
-            total = total + self._sdf_terms(terms, canon, render, rays)
-            if self.sym_plane is not None:
-                total = total + self._symmetry_terms(terms, canon)
-        if self.exposure is not None and c.w_exposure_prior > 0:
-            terms["exposure_prior"] = self.exposure.prior()
-            total = total + c.w_exposure_prior * terms["exposure_prior"]
-        if av.light is not None and c.w_light_prior > 0:
-            terms["light_prior"] = av.light.mean_prior()
-            total = total + c.w_light_prior * terms["light_prior"]
-        if self.light_albedo is not None and av.light is not None and weight is None:
-            mesh = self.posed_mesh(timestep, inputs, transform)
-            with torch.no_grad():
-                frames = mesh.R if mesh is not None else surfel_frames(posed.vertices.detach(), av.faces)[0]
-            normals = frames[av.surfels.binding][..., 2]
-            terms["light_albedo"] = self.light_albedo.loss(av.light, posed.colors, normals, canon.means, av.surfels.region_id,
-                                                           c.light_albedo_pairs, self.generator)  # fmt: skip
-            total = total + c.w_light_albedo * terms["light_albedo"]
-        if self.pose is not None and self._refining() and c.w_pose_prior > 0:
-            terms["pose_prior"] = self.pose.prior(self.length_unit)
-            total = total + c.w_pose_prior * terms["pose_prior"]
-        if c.w_local_position > 0:
-            terms["local_position"] = L.local_position_loss(av.surfels.mu_loc, c.local_position_threshold)
-            total = total + c.w_local_position * terms["local_position"]
-        if c.w_local_scale > 0:
-            terms["local_scale"] = L.local_scale_loss(av.surfels.s_loc, c.local_scale_threshold)
-            total = total + c.w_local_scale * terms["local_scale"]
+        total = L.add_terms(PHASE1_TERMS, ctx, c.loss, c.schedule, terms)
 
         self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
+        if total is not None:
+            total.backward()
+        else:  # every term off at this step: nothing to optimise
+            total = color.new_zeros(())
         if self.density is not None:
-            self.density.accumulate(posed.means, cam)
+            assert render.visible is not None
+            self.density.accumulate(posed.means, cam, render.visible)
         self.optimizer.step()
         self.step_count += 1
         if self.density is not None:
             terms.update(self._density_step())
-        if c.rebind_every > 0 and self.step_count % c.rebind_every == 0 and self.step_count < c.iterations:
+        rebind = c.schedule.rebind_every
+        if rebind > 0 and self.step_count % rebind == 0 and self.step_count < c.iterations:
             n = av.surfels.rebind(av.canonical_vertices, av.faces, frames=(av.R_c, av.T_c, av.k_c), optimizer=self.optimizer)
             terms["rebound"] = torch.tensor(float(n))
             self._not_mouth = av.surfels.region_id != REGION_MOUTH
@@ -534,110 +500,12 @@ class Phase1Trainer:
         out: dict[str, torch.Tensor] = {}
         sched = self.density.schedule
         if sched.densify_now(self.step_count):
-            counts = self.density.densify_and_prune(self.optimizer)
+            counts = self.density.densify_and_prune(self.optimizer, self.step_count)
             out = {f"densify_{k}": torch.tensor(float(v)) for k, v in counts.items()}
             self._not_mouth = self.avatar.surfels.region_id != REGION_MOUTH
         if sched.reset_now(self.step_count):
             self.density.reset_opacity(self.optimizer)
         return out
-
-    def _sdf_terms(self, terms, canon, render, rays) -> torch.Tensor:
-        """Ray terms (when ``rays`` = (img, mask, cam, inputs, rigid, frame index) of a real frame),
-        eikonal and normal smoothness."""
-        c, av = self.cfg, self.avatar
-        total = canon.means.new_zeros(())
-        eik = canon.means.new_zeros(())
-        if rays is not None:
-            img, mask, cam, inputs, rigid, fi = rays
-            fg, bg = self._ray_pixels(fi, mask)
-            if fg.numel() > 0 and c.rays_per_step > 0:
-                pix = fg[self._randint(fg.numel(), c.rays_per_step).to(fg.device)]
-                n_bg = int(round(c.neus_background_rays * c.rays_per_step))
-                if n_bg > 0 and self.frames[fi].mask is not None and bg.numel() > 0:
-                    pix = torch.cat([pix, bg[self._randint(bg.numel(), n_bg).to(bg.device)]])
-                cr = self.warp.map(av, {k: v.detach() for k, v in inputs.items()}, cam, pix, rigid)
-                o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
-                out = render_neus(
-                    av.sdf, av.appearance, o_c, d_c, av.variance, c.neus_samples, c.neus_importance, c.neus_up_steps,
-                    1.0, c.background, length_unit=self.length_unit, perturb=True, generator=self.generator, return_samples=True,
-                )  # fmt: skip
-                gt = img.reshape(-1, 3)[pix]
-                neus_color = out.color
-                if av.light is not None:
-                    with torch.no_grad():
-                        n_c = out.normal / out.normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-                        n_w = (rot.transpose(-1, -2) @ n_c[..., None]).squeeze(-1)
-                    neus_color = shade_foreground(neus_color, out.weights_sum, av.light.irradiance(n_w), c.background)
-                if self.exposure is not None:
-                    neus_color = self.exposure.apply(neus_color, out.weights_sum, fi, c.background)
-                terms["neus_rgb"] = L.neus_rgb_loss(neus_color[ok], gt[ok])
-                total = total + c.w_neus_rgb * terms["neus_rgb"]
-                if c.w_neus_mask > 0 and self.frames[fi].mask is not None:
-                    terms["neus_mask"] = L.mask_bce_loss(out.weights_sum[ok], mask.reshape(-1)[pix][ok])
-                    total = total + c.w_neus_mask * terms["neus_mask"]
-                # surfel depth (camera z) -> distance along the world ray -> canonical distance
-                with torch.no_grad():
-                    Rw = cam.w2c[:3, :3]
-                    _, d_w = pixel_rays(cam.K, cam.w2c, cam.width, cam.height, pix)
-                    dz = (d_w @ Rw.T)[:, 2]
-                    a = render.alpha.reshape(-1)[pix]
-                    t_s = render.depth.reshape(-1)[pix] / dz.clamp_min(1e-6) * ratio
-                    n_s = (rot @ render.normal_world.reshape(-1, 3)[pix][..., None]).squeeze(-1)
-                wsum = out.weights_sum
-                valid = ok & (a > 0.5) & (wsum.detach() > 0.5)
-                t_sdf = out.depth / wsum.clamp_min(1e-6)
-                terms["depth"] = L.depth_loss(t_sdf, t_s, valid, self.length_unit)
-                terms["normal"] = L.normal_loss(out.normal, n_s, valid)
-                total = total + c.w_depth * terms["depth"] + c.w_normal * terms["normal"]
-                eik = L.eikonal_loss(out.gradients, out.sample_mask)
-        eik = eik + L.eikonal_loss(canon.sdf_grad)
-        terms["eikonal"] = eik
-        total = total + c.w_eikonal * eik
-        if c.w_smooth > 0:
-            n = canon.means.shape[0]
-            m = min(n, c.smooth_points)
-            sub = self._randint(n, m).to(canon.means.device)
-            delta = (torch.rand((m, 3), generator=self.generator, dtype=canon.means.dtype) * 2 - 1).to(canon.means.device)
-            x2 = canon.means[sub].detach() + delta * c.smooth_delta * self.length_unit
-            _, g2, _ = av.sdf.gradient(x2, create_graph=True)
-            terms["smooth"] = L.normal_smoothness_loss(canon.sdf_grad[sub], g2)
-            total = total + c.w_smooth * terms["smooth"]
-        return total
-
-    def _symmetry_terms(self, terms, canon) -> torch.Tensor:
-        """Soft left–right symmetry of the SDF and the appearance colour (see :mod:`.symmetry`)."""
-        c, av = self.cfg, self.avatar
-        plane = self.sym_plane
-        assert plane is not None
-        dt, dev = canon.means.dtype, canon.means.device
-        m = max(1, c.sym_points)
-        n_box = int(round(m * min(max(c.sym_box_fraction, 0.0), 1.0)))
-        n_surf = m - n_box
-        parts = []
-        if n_surf > 0:
-            parts.append(canon.means[self._randint(canon.means.shape[0], n_surf).to(dev)].detach())
-        if n_box > 0:
-            u = torch.rand((n_box, 3), generator=self.generator, dtype=dt).to(dev)
-            lo, hi = av.sdf.bbox_min.to(dt), av.sdf.bbox_max.to(dt)
-            parts.append(lo + u * (hi - lo))
-        pts = torch.cat(parts, 0)
-        total = pts.new_zeros(())
-        if c.w_sym_sdf > 0:
-            terms["sym_sdf"] = sdf_symmetry_loss(lambda x: av.sdf(x)[0], pts, plane, self.length_unit)
-            total = total + c.w_sym_sdf * terms["sym_sdf"]
-        if c.w_sym_color > 0:
-            dirs = torch.randn((pts.shape[0], 3), generator=self.generator, dtype=dt).to(dev)
-            dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-            def color(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-                _, grad, feat = av.sdf.gradient(x)
-                nrm = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-                rgb, _ = av.appearance(x, v, nrm, feat)
-                return rgb
-
-            terms["sym_color"] = color_symmetry_loss(color, pts, dirs, plane)
-            total = total + c.w_sym_color * terms["sym_color"]
-        return total
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
@@ -735,6 +603,280 @@ class Phase1Trainer:
             self.density.clear_statistics()
 
 
+@dataclass
+class NeuSRays:
+    """The NeuS side of one step's SDF ray terms: the canonical volume rendering of rays drawn from a
+    training frame and what it is compared with.
+
+    out: :func:`render_neus`'s result (with samples); color: its colour after shading and exposure
+    (R, 3); gt: the image at the rays' pixels (R, 3); pix: the flat pixel ids (R,); ok: rays the warp
+    maps (R,); valid: rays where both the surfels and NeuS are opaque (R,); t_sdf, t_s: NeuS and
+    surfel distances along the canonical rays (R,); n_s: the surfel normals in canonical space (R, 3).
+    """
+
+    out: Any
+    color: torch.Tensor
+    gt: torch.Tensor
+    pix: torch.Tensor
+    ok: torch.Tensor
+    valid: torch.Tensor
+    t_sdf: torch.Tensor
+    t_s: torch.Tensor
+    n_s: torch.Tensor
+
+
+@dataclass
+class Phase1Step:
+    """What the loss terms of one phase-1 step read (:data:`PHASE1_TERMS`).
+
+    frame: index of the training frame in ``trainer.frames`` (None on a pseudo view); img (H, W, 3),
+    mask (H, W), cam: the view; pseudo_weight: a pseudo view's per-pixel weight (H, W) (None on a
+    real frame) and view_weight its loss weight; timestep, inputs (FLAME kwargs), rigid (the rigid
+    map or None), transform (the mirror of a mirrored pseudo view or None), mesh (the kept posed mesh
+    or None): the pose; canon, render, posed: the avatar's canonical state, render and posed
+    surfels; color: the render's colour after the exposure gain (H, W, 3). The NeuS rays and the
+    symmetry points are drawn when a term first asks for them (:meth:`neus`, :meth:`sym_points`),
+    so the generator's draws follow the table's order.
+    """
+
+    trainer: Phase1Trainer
+    step: int
+    polish: bool
+    frame: int | None
+    img: torch.Tensor
+    mask: torch.Tensor
+    cam: RenderCamera
+    pseudo_weight: torch.Tensor | None
+    view_weight: float
+    timestep: int
+    inputs: dict[str, torch.Tensor]
+    rigid: tuple[torch.Tensor, torch.Tensor] | None
+    transform: Callable[[torch.Tensor], torch.Tensor] | None
+    mesh: PosedMesh | None
+    canon: Any
+    render: Any
+    posed: Any
+    color: torch.Tensor
+    _neus: NeuSRays | None = None
+    _neus_done: bool = False
+    _sym_points: torch.Tensor | None = None
+
+    @property
+    def real(self) -> bool:
+        """Whether the step trains on a training frame (not a pseudo view)."""
+        return self.frame is not None
+
+    @property
+    def has_mask(self) -> bool:
+        """Whether the step trains on a training frame that has a foreground mask."""
+        return self.frame is not None and self.trainer.frames[self.frame].mask is not None
+
+    def visible_rows(self, x: torch.Tensor) -> torch.Tensor:
+        """The rows of a per-surfel tensor x (N, ...) that the rasterizer kept for this view (all rows
+        when the render has no visibility), as GaussianAvatars' local terms average over them."""
+        vis = self.render.visible
+        return x if vis is None else x[vis.to(x.device)]
+
+    def neus(self) -> NeuSRays | None:
+        """The NeuS rays of this step (drawn and rendered on the first call), or None on a pseudo
+        view or a frame without foreground pixels.
+
+        ``neus.rays_per_step`` foreground pixels and, on frames with masks, ``neus.background_rays``
+        times as many pixels of the background band are mapped to canonical rays and volume-rendered;
+        the surfel depth (camera z) becomes the distance along the world ray, then the canonical one.
+        """
+        if self._neus_done:
+            return self._neus
+        self._neus_done = True
+        tr, c, av = self.trainer, self.trainer.cfg, self.trainer.avatar
+        fi = self.frame
+        if fi is None:
+            return None
+        fg, bg = tr._ray_pixels(fi, self.mask)
+        n = c.neus.rays_per_step
+        if fg.numel() == 0 or n <= 0:
+            return None
+        pix = fg[tr._randint(fg.numel(), n).to(fg.device)]
+        n_bg = int(round(c.neus.background_rays * n))
+        if n_bg > 0 and tr.frames[fi].mask is not None and bg.numel() > 0:
+            pix = torch.cat([pix, bg[tr._randint(bg.numel(), n_bg).to(bg.device)]])
+        cr = tr.warp.map(av, {k: v.detach() for k, v in self.inputs.items()}, self.cam, pix, self.rigid)
+        o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
+        out = render_neus(
+            av.sdf, av.appearance, o_c, d_c, av.variance, c.neus.samples, c.neus.importance, c.neus.up_steps,
+            1.0, c.background, length_unit=tr.length_unit, perturb=True, generator=tr.generator, return_samples=True,
+        )  # fmt: skip
+        gt = self.img.reshape(-1, 3)[pix]
+        neus_color = out.color
+        if av.light is not None:
+            with torch.no_grad():
+                n_c = out.normal / out.normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                n_w = (rot.transpose(-1, -2) @ n_c[..., None]).squeeze(-1)
+            neus_color = shade_foreground(neus_color, out.weights_sum, av.light.irradiance(n_w), c.background)
+        if tr.exposure is not None:
+            neus_color = tr.exposure.apply(neus_color, out.weights_sum, fi, c.background)
+        cam, render = self.cam, self.render
+        with torch.no_grad():
+            Rw = cam.w2c[:3, :3]
+            _, d_w = pixel_rays(cam.K, cam.w2c, cam.width, cam.height, pix)
+            dz = (d_w @ Rw.T)[:, 2]
+            a = render.alpha.reshape(-1)[pix]
+            t_s = render.depth.reshape(-1)[pix] / dz.clamp_min(1e-6) * ratio
+            n_s = (rot @ render.normal_world.reshape(-1, 3)[pix][..., None]).squeeze(-1)
+        wsum = out.weights_sum
+        valid = ok & (a > 0.5) & (wsum.detach() > 0.5)
+        t_sdf = out.depth / wsum.clamp_min(1e-6)
+        self._neus = NeuSRays(out, neus_color, gt, pix, ok, valid, t_sdf, t_s, n_s)
+        return self._neus
+
+    def sym_points(self) -> torch.Tensor:
+        """The points of this step's symmetry terms (drawn on the first call): ``symmetry.points``
+        of them, a ``symmetry.box_fraction`` uniform in the SDF box, the rest surfel centres. (M, 3)."""
+        if self._sym_points is None:
+            tr, c, av, canon = self.trainer, self.trainer.cfg, self.trainer.avatar, self.canon
+            dt, dev = canon.means.dtype, canon.means.device
+            m = max(1, c.symmetry.points)
+            n_box = int(round(m * min(max(c.symmetry.box_fraction, 0.0), 1.0)))
+            n_surf = m - n_box
+            parts = []
+            if n_surf > 0:
+                parts.append(canon.means[tr._randint(canon.means.shape[0], n_surf).to(dev)].detach())
+            if n_box > 0:
+                u = torch.rand((n_box, 3), generator=tr.generator, dtype=dt).to(dev)
+                lo, hi = av.sdf.bbox_min.to(dt), av.sdf.bbox_max.to(dt)
+                parts.append(lo + u * (hi - lo))
+            self._sym_points = torch.cat(parts, 0)
+        return self._sym_points
+
+
+# ---------------------------------------------------------------------------- phase-1 loss terms
+
+
+def _rgb(s: Phase1Step) -> torch.Tensor:
+    c = s.trainer.cfg
+    target = s.trainer._ssim_target(s.frame, s.img) if c.loss.ssim != 0 and s.frame is not None else None
+    return L.rgb_loss(s.color, s.img, c.loss.ssim, target)
+
+
+def _pseudo_rgb(s: Phase1Step) -> torch.Tensor:
+    assert s.pseudo_weight is not None
+    return weighted_rgb_loss(s.color, s.img, s.pseudo_weight, s.trainer.cfg.loss.ssim)
+
+
+def _point_sdf(s: Phase1Step) -> torch.Tensor:
+    assert s.canon.sdf is not None
+    return L.point_sdf_loss(s.canon.sdf[s.trainer._not_mouth], s.trainer.length_unit)
+
+
+def _align(s: Phase1Step) -> torch.Tensor:
+    assert s.canon.sdf_grad is not None
+    keep = s.trainer._not_mouth
+    return L.align_loss(s.canon.normals[keep], s.canon.sdf_grad[keep])
+
+
+def _neus_rgb(s: Phase1Step) -> torch.Tensor | None:
+    r = s.neus()
+    return None if r is None else L.neus_rgb_loss(r.color[r.ok], r.gt[r.ok])
+
+
+def _neus_mask(s: Phase1Step) -> torch.Tensor | None:
+    r = s.neus()
+    return None if r is None else L.mask_bce_loss(r.out.weights_sum[r.ok], s.mask.reshape(-1)[r.pix][r.ok])
+
+
+def _depth(s: Phase1Step) -> torch.Tensor | None:
+    r = s.neus()
+    return None if r is None else L.depth_loss(r.t_sdf, r.t_s, r.valid, s.trainer.length_unit)
+
+
+def _normal(s: Phase1Step) -> torch.Tensor | None:
+    r = s.neus()
+    return None if r is None else L.normal_loss(r.out.normal, r.n_s, r.valid)
+
+
+def _eikonal(s: Phase1Step) -> torch.Tensor:
+    """On the NeuS samples of the step's rays (when it has rays) plus the surfel centres."""
+    r = s.neus()
+    eik = s.canon.means.new_zeros(()) if r is None else L.eikonal_loss(r.out.gradients, r.out.sample_mask)
+    return eik + L.eikonal_loss(s.canon.sdf_grad)
+
+
+def _smooth(s: Phase1Step) -> torch.Tensor:
+    tr, c, canon = s.trainer, s.trainer.cfg, s.canon
+    n = canon.means.shape[0]
+    m = min(n, c.smooth.points)
+    sub = tr._randint(n, m).to(canon.means.device)
+    delta = (torch.rand((m, 3), generator=tr.generator, dtype=canon.means.dtype) * 2 - 1).to(canon.means.device)
+    x2 = canon.means[sub].detach() + delta * c.smooth.delta * tr.length_unit
+    _, g2, _ = tr.avatar.sdf.gradient(x2, create_graph=True)
+    return L.normal_smoothness_loss(canon.sdf_grad[sub], g2)
+
+
+def _sym_sdf(s: Phase1Step) -> torch.Tensor:
+    tr = s.trainer
+    assert tr.sym_plane is not None
+    return sdf_symmetry_loss(lambda x: tr.avatar.sdf(x)[0], s.sym_points(), tr.sym_plane, tr.length_unit)
+
+
+def _sym_color(s: Phase1Step) -> torch.Tensor:
+    tr, av = s.trainer, s.trainer.avatar
+    assert tr.sym_plane is not None
+    pts = s.sym_points()
+    dirs = torch.randn((pts.shape[0], 3), generator=tr.generator, dtype=pts.dtype).to(pts.device)
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+    def color(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        _, grad, feat = av.sdf.gradient(x)
+        nrm = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        rgb, _ = av.appearance(x, v, nrm, feat)
+        return rgb
+
+    return color_symmetry_loss(color, pts, dirs, tr.sym_plane)
+
+
+def _light_albedo(s: Phase1Step) -> torch.Tensor:
+    tr, av = s.trainer, s.trainer.avatar
+    assert tr.light_albedo is not None and av.light is not None
+    with torch.no_grad():
+        frames = s.mesh.R if s.mesh is not None else surfel_frames(s.posed.vertices.detach(), av.faces)[0]
+    normals = frames[av.surfels.binding][..., 2]
+    return tr.light_albedo.loss(av.light, s.posed.colors, normals, s.canon.means, av.surfels.region_id,
+                                tr.cfg.light_albedo.pairs, tr.generator)  # fmt: skip
+
+
+PHASE1_TERMS: tuple[L.LossTerm[Phase1Step], ...] = (
+    L.LossTerm("rgb", None, _rgb, when=lambda s: s.real),
+    L.LossTerm("pseudo_rgb", lambda s: s.view_weight, _pseudo_rgb, when=lambda s: not s.real),
+    L.LossTerm("mask", "mask", lambda s: L.alpha_mask_loss(s.render.alpha, s.mask), polish=False, when=lambda s: s.has_mask),
+    L.LossTerm("normal_consistency", "normal_consistency", lambda s: L.normal_consistency_loss(s.render.normal_world, s.render.surf_normal_world),
+               start="normal_consistency_from", polish=False),
+    L.LossTerm("distortion", "distortion", lambda s: L.distortion_loss(s.render.distortion), start="distortion_from", polish=False),
+    L.LossTerm("pt", "pt", _point_sdf, start="sdf_from", polish=False),
+    L.LossTerm("align", "align", _align, start="sdf_from", polish=False),
+    L.LossTerm("neus_rgb", "neus_rgb", _neus_rgb, start="sdf_from", polish=False, group="sdf"),
+    L.LossTerm("neus_mask", "neus_mask", _neus_mask, start="sdf_from", polish=False, when=lambda s: s.has_mask, group="sdf"),
+    L.LossTerm("depth", "depth", _depth, start="sdf_from", polish=False, group="sdf"),
+    L.LossTerm("normal", "normal", _normal, start="sdf_from", polish=False, group="sdf"),
+    L.LossTerm("eikonal", "eikonal", _eikonal, start="sdf_from", polish=False, group="sdf"),
+    L.LossTerm("smooth", "smooth", _smooth, start="sdf_from", polish=False, group="sdf"),
+    L.LossTerm("sym_sdf", "sym_sdf", _sym_sdf, start="sdf_from", polish=False, when=lambda s: s.trainer.sym_plane is not None, group="symmetry"),
+    L.LossTerm("sym_color", "sym_color", _sym_color, start="sdf_from", polish=False, when=lambda s: s.trainer.sym_plane is not None,
+               group="symmetry"),
+    L.LossTerm("exposure_prior", "exposure_prior", lambda s: s.trainer.exposure.prior(), when=lambda s: s.trainer.exposure is not None),
+    L.LossTerm("light_prior", "light_prior", lambda s: s.trainer.avatar.light.mean_prior(), when=lambda s: s.trainer.avatar.light is not None),
+    L.LossTerm("light_albedo", "light_albedo", _light_albedo,
+               when=lambda s: s.real and s.trainer.light_albedo is not None and s.trainer.avatar.light is not None),
+    L.LossTerm("pose_prior", "pose_prior", lambda s: s.trainer.pose.prior(s.trainer.length_unit), start="pose_refine_from",
+               when=lambda s: s.trainer.pose is not None),
+    L.LossTerm("local_position", "local_position", lambda s: L.local_position_loss(s.visible_rows(s.trainer.avatar.surfels.mu_loc), s.trainer.cfg.free.position_threshold)),
+    L.LossTerm("local_scale", "local_scale", lambda s: L.local_scale_loss(s.visible_rows(s.trainer.avatar.surfels.s_loc), s.trainer.cfg.free.scale_threshold)),
+)  # fmt: skip
+"""Phase 1's objective, in the order its terms are summed (:func:`sage_core.train.losses.add_terms`):
+the photometric loss (weight 1 on a training frame, the view's weight on a pseudo view), the mask and
+2DGS terms, the SDF terms (the NeuS ray terms, eikonal and smoothness summed as one group), the
+symmetry group, and the priors. The polish keeps only the terms with ``polish`` set."""
+
+
 def _surfel_rows(saved: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k[len("surfels."):]: v for k, v in saved.items() if k.startswith("surfels.")}
 
@@ -801,14 +943,14 @@ def run_phase1(
 
     def evaluate_now(step: int, _out: Any) -> None:
         nonlocal val_psnr
-        if cfg.eval_every > 0 and step % cfg.eval_every == 0 and step < total:
+        if cfg.schedule.eval_every > 0 and step % cfg.schedule.eval_every == 0 and step < total:
             val_psnr = trainer.evaluate("val", max_frames=4)["psnr"]
 
     def step_stats(out: Any) -> dict[str, Any]:
         return {"val_psnr": val_psnr, **{k: v for k, v in out.items() if k in ("loss", "rgb", "pt", "depth", "normal", "neus_rgb", "psnr")}}
 
     loop = run_steps(trainer, total, label="phase 1", progress=progress, checkpoint_dir=checkpoint_dir,
-                     checkpoint_every=cfg.checkpoint_every, state_key="trainer", map_location=device,
+                     checkpoint_every=cfg.schedule.checkpoint_every, state_key="trainer", map_location=device,
                      stats=step_stats, on_step=evaluate_now)  # fmt: skip
     last = dict(loop.last)
     train_time = loop.train_time_s

@@ -13,8 +13,8 @@ them and its hash encoding) is computed once, not every step. Each step:
 2. picks that training frame's camera, poses the surfels (with the surfel correction when enabled,
    :class:`~sage_core.avatar.corrected.CorrectedPosing`) and rasterizes them;
 3. L_n (2DGS normal consistency) and L_d (depth distortion) of this deformed render;
-4. appearance consistency: ``rays_per_step`` pixels are drawn without replacement with probability
-   ∝ e_n/mean(e_n) + e_d/mean(e_d) + ``error_floor`` (e_n = 1 − N_r·N_s and e_d the per-pixel
+4. appearance consistency: ``pixels.per_step`` pixels are drawn without replacement with probability
+   ∝ e_n/mean(e_n) + e_d/mean(e_d) + ``pixels.error_floor`` (e_n = 1 − N_r·N_s and e_d the per-pixel
    distortion of the render, means over the candidates), among pixels whose ray hits the posed mesh
    on a non-hair triangle. Each pixel's teacher colour Ĉ is the canonical appearance of the surface
    point its ray hits, reached through the hit triangle's transform, from one of two teachers, both
@@ -29,33 +29,34 @@ them and its hash encoding) is computed once, not every step. Each step:
      s-variance.
 
    L_a = mean |Ĉ − I|² with I the rasterized surfel colour at those pixels;
-5. optionally (``w_photometric`` > 0) L_rgb of a captured training frame rendered at its own FLAME
+5. optionally (``loss.photometric`` > 0) L_rgb of a captured training frame rendered at its own FLAME
    parameters; off by default, so phase 2 uses no images.
 
-With ``rest_fraction`` > 0 a step poses the training frame exactly as captured with that
+With ``expressions.rest_fraction`` > 0 a step poses the training frame exactly as captured with that
 probability, so the appearance term also holds the avatar to its own phase-1 renders at rest.
 
-Mouth-interior prior (``mouth_prior``, SAGE's composited mouth prior): the surfels bound to
+Mouth-interior prior (``mouth.enabled``, SAGE's composited mouth prior): the surfels bound to
 mouth-interior and teeth triangles that no training view sees at rest (:meth:`Phase2Trainer.seen_faces`)
-get fixed colours, ``mouth_cavity_color`` / ``teeth_color`` times their ambient visibility with the
-jaw opened to ``mouth_occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), stored in the avatar
+get fixed colours, ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
+jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`), stored in the avatar
 (:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
 of the appearance term.
 
-Unseen fill (``unseen_fill``, off by default): the other surfels that no training view sees at rest
+Unseen fill (``unseen_fill.enabled``, off by default): the other surfels that no training view sees at rest
 (less than ``SEEN_MIN_WEIGHT`` pixels of blending weight, hair excluded) get the mean albedo of
 their nearest seen surfels of the same region label as their colour prior
 (:meth:`Phase2Trainer.unseen_fill_colors`).
 
-Wrinkle shading (``wrinkle_shading``, on by default; :mod:`sage_core.avatar.wrinkles`): after the
+Wrinkle shading (``wrinkles.enabled``, on by default; :mod:`sage_core.avatar.wrinkles`): after the
 last step every surfel gets a darkening amplitude, stored in the avatar and applied at render time in
-proportion to the surface compression of the frame, measured on the mesh ``wrinkle_basis`` names (by
+proportion to the surface compression of the frame, measured on the mesh ``wrinkles.basis`` names (by
 default FLAME's expression-shaped mesh, before skinning), which the avatar keeps. Which triangles may
-darken is ``wrinkle_region``: ``skin`` (the default) gives every triangle outside hair and the mouth
+darken is ``wrinkles.region``: ``skin`` (the default) gives every triangle outside hair and the mouth
 prior the full amplitude; ``distortion`` (SAGE's rule) ramps it by the mean per-pixel distortion of
 the deformed renders on the posed-mesh triangle each pixel sees, accumulated over the steps.
 
-Total: λ_n L_n + λ_d L_d + λ_a L_a (+ λ_rgb L_rgb). Every random draw uses the trainer's CPU
+Total: λ_n L_n + λ_d L_d + λ_a L_a (+ λ_rgb L_rgb), the table :data:`PHASE2_TERMS` (weights in the
+config's ``loss`` section). Every random draw uses the trainer's CPU
 generator; :meth:`Phase2Trainer.state_dict` holds the parameters, the teacher, the optimizer, the
 generator and the global RNG states, so a resumed run repeats the uninterrupted loss curve.
 """
@@ -65,6 +66,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -154,21 +156,21 @@ def mouth_prior_table(avatar: Avatar, init_dir: str | Path | None, cavity: list[
 def build_sampler(avatar: Avatar, data: IngestedData, cfg: Phase2Config, seed: int = 0) -> ExpressionSampler:
     """The expression sampler of phase 2: ranges from the model's expression blendshapes, the capture's
     training expressions (training timesteps only) as the observed mixture."""
-    flame = avatar.flame
+    flame, x = avatar.flame, cfg.expressions
     E = int(flame.n_expr)
     V = int(avatar.canonical_vertices.shape[0])
     dirs = flame.exprdirs.detach().reshape(V, 3, E) if E else torch.zeros(V, 3, 0)
-    std = component_ranges_from_dirs(dirs, cfg.expr_target)
+    std = component_ranges_from_dirs(dirs, cfg.expressions.target)
     rows = sorted({data.params.row_of(fr.timestep) for fr in data.train})
     obs_expr = np.asarray(data.params.expr)[rows] if rows else None
     obs_jaw = np.asarray(data.params.jaw_pose)[rows] if rows else None
     if obs_expr is not None and obs_expr.shape[1] == 0:
         obs_expr = obs_jaw = None
     return ExpressionSampler(
-        E, std, clip_sigma=cfg.expr_clip_sigma, n_active=cfg.expr_active, jaw_range=(0.0, cfg.jaw_max),
-        eye_range=cfg.eye_range, neck_std=cfg.neck_std, rotation_std=cfg.rotation_std,
-        translation_std=cfg.translation_std, observed_expr=obs_expr, observed_jaw=obs_jaw,
-        observed_weight=cfg.observed_weight if obs_expr is not None else 0.0, observed_noise=cfg.observed_noise,
+        E, std, clip_sigma=x.clip_sigma, n_active=x.active, jaw_range=(0.0, x.jaw_max),
+        eye_range=x.eye_range, neck_std=x.neck_std, rotation_std=x.rotation_std,
+        translation_std=x.translation_std, observed_expr=obs_expr, observed_jaw=obs_jaw,
+        observed_weight=x.observed_weight if obs_expr is not None else 0.0, observed_noise=x.observed_noise,
         seed=seed, device=avatar.device,
     )  # fmt: skip
 
@@ -243,9 +245,9 @@ class Phase2Trainer:
             self.teacher_app = copy.deepcopy(avatar.appearance).requires_grad_(False)
             self.teacher_variance = copy.deepcopy(avatar.variance).requires_grad_(False)
         self.posing = CorrectedPosing(
-            avatar, cfg.correction, radius_edges=cfg.correction_radius_edges, max_neighbours=cfg.correction_max_neighbours,
-            w_s=cfg.correction_w_s, umbilic_tol=cfg.correction_umbilic_tol, anisotropy_tol=cfg.correction_anisotropy_tol,
-            mode=cfg.correction_mode,
+            avatar, cfg.correction.enabled, radius_edges=cfg.correction.radius_edges, max_neighbours=cfg.correction.max_neighbours,
+            w_s=cfg.correction.w_s, umbilic_tol=cfg.correction.umbilic_tol, anisotropy_tol=cfg.correction.anisotropy_tol,
+            mode=cfg.correction.mode,
         )  # fmt: skip
         self.hair_faces = hair_face_mask(avatar, init_dir)
         self.sampler = build_sampler(avatar, data, cfg)
@@ -265,8 +267,8 @@ class Phase2Trainer:
         for g in self.optimizer.param_groups if self.optimizer is not None else []:
             g["base_lr"] = g["lr"]
         self.distortion_curve: list[float] = []
-        self.prior_colors, mouth_faces = mouth_prior_table(avatar, init_dir, cfg.mouth_cavity_color, cfg.teeth_color)
-        if not cfg.mouth_prior:
+        self.prior_colors, mouth_faces = mouth_prior_table(avatar, init_dir, cfg.mouth.cavity_color, cfg.mouth.teeth_color)
+        if not cfg.mouth.enabled:
             mouth_faces = torch.zeros_like(mouth_faces)
         self.prior_faces = mouth_faces.clone()
         b = avatar.surfels.binding
@@ -275,46 +277,46 @@ class Phase2Trainer:
         weights: torch.Tensor | None = None
         if bool(mouth_faces.any()):
             self.prior_faces &= ~self.seen_faces()
-            if cfg.mouth_prior_visibility == "faces":
+            if cfg.mouth.visibility == "faces":
                 on = self.prior_faces[b]
             else:
                 weights = self.surfel_view_weights()
                 on = mouth_faces[b] & ~(weights >= SEEN_MIN_WEIGHT)
-            if cfg.mouth_occlusion_jaw > 0 and bool(on.any()):
-                rgb[on] *= self.prior_visibility(on, cfg.mouth_occlusion_jaw)[:, None].to(rgb)
-        if cfg.unseen_fill:
+            if cfg.mouth.occlusion_jaw > 0 and bool(on.any()):
+                rgb[on] *= self.prior_visibility(on, cfg.mouth.occlusion_jaw)[:, None].to(rgb)
+        if cfg.unseen_fill.enabled:
             weights = self.surfel_view_weights() if weights is None else weights
-            fill, fill_rgb = self.unseen_fill_colors(weights, on, cfg.unseen_fill_neighbours)
+            fill, fill_rgb = self.unseen_fill_colors(weights, on, cfg.unseen_fill.neighbours)
             rgb[fill] = fill_rgb.to(rgb)
             on = on | fill
         if bool(mouth_faces.any()) or bool(on.any()):
             avatar.surfels.set_color_prior(torch.cat([rgb, on.to(rgb)[:, None]], -1))
         self.rest_teacher: RestTeacher | None = None
-        if cfg.teacher == "rest" and cfg.w_appearance > 0:
+        if cfg.teacher == "rest" and cfg.loss.appearance > 0:
             self.rest_teacher = self._build_rest_teacher()
         self.wrinkle_stats: FaceDistortionStats | None = None
-        if cfg.wrinkle_shading:
-            avatar.wrinkle_basis = cfg.wrinkle_basis
+        if cfg.wrinkles.enabled:
+            avatar.wrinkle_basis = cfg.wrinkles.basis
             self.wrinkle_stats = FaceDistortionStats(int(avatar.faces.shape[0]), self.device)
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
-        c = self.cfg
+        lr = self.cfg.lr
         return surfel_param_groups(
             self.avatar,
-            lr_position=c.lr_position,
-            lr_networks=c.lr_networks,
-            lr_rotation=c.lr_rotation,
-            lr_scale=c.lr_scale,
-            lr_color=c.lr_color,
-            lr_opacity=c.lr_opacity,
-            lr_shape=c.lr_shape,
+            lr_position=lr.position,
+            lr_networks=lr.networks,
+            lr_rotation=lr.rotation,
+            lr_scale=lr.scale,
+            lr_color=lr.color,
+            lr_opacity=lr.opacity,
+            lr_shape=lr.shape,
         )
 
     def lr_factor(self, step: int) -> float:
-        """Learning-rate multiplier of step ``step`` (0-based): 1 for ``lr_schedule`` constant; for
+        """Learning-rate multiplier of step ``step`` (0-based): 1 for ``lr.schedule`` constant; for
         cosine, 0.5·(1 + cos(π·step/iterations)), falling from 1 to 0 over the phase."""
-        if self.cfg.lr_schedule == "constant":
+        if self.cfg.lr.schedule == "constant":
             return 1.0
         return 0.5 * (1.0 + math.cos(math.pi * min(step, self.cfg.iterations) / self.cfg.iterations))
 
@@ -324,9 +326,9 @@ class Phase2Trainer:
             g["lr"] = g.setdefault("base_lr", g["lr"]) * f
 
     def _build_rest_teacher(self) -> RestTeacher:
-        """Render the (phase-1) avatar at rest from at most ``teacher_max_views`` training views."""
+        """Render the (phase-1) avatar at rest from at most ``rest_teacher.max_views`` training views."""
         c, av = self.cfg, self.avatar
-        frames = evenly_spaced_frames(self.frames, c.teacher_max_views)
+        frames = evenly_spaced_frames(self.frames, c.rest_teacher.max_views)
         cams = [RenderCamera.from_camera(fr.camera, self.device) for fr in frames]
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
 
@@ -337,7 +339,7 @@ class Phase2Trainer:
 
         return RestTeacher.build(
             render_fn, av.pose_mesh, av.faces, [(cm.K, cm.w2c, cm.width, cm.height) for cm in cams],
-            [self.inputs(fr.timestep) for fr in frames], depth_tol=c.teacher_depth_tol,
+            [self.inputs(fr.timestep) for fr in frames], depth_tol=c.rest_teacher.depth_tol,
         )  # fmt: skip
 
     @torch.no_grad()
@@ -399,12 +401,12 @@ class Phase2Trainer:
     def surfel_view_weights(self) -> torch.Tensor:
         """(N,) float64 blending weight of every surfel summed over the foreground pixels (the mesh
         raster's mask eroded by one pixel) of the training views at rest (at most
-        ``teacher_max_views``). The weight of surfel i is the gradient of Σ_p mask_p·C_p with respect
+        ``rest_teacher.max_views``). The weight of surfel i is the gradient of Σ_p mask_p·C_p with respect
         to its colour, one backward pass per view; over all surfels it sums to Σ_p mask_p·A_p."""
         av, c = self.avatar, self.cfg
         total = torch.zeros(len(av.surfels), dtype=torch.float64, device=av.device)
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
-        for fr in evenly_spaced_frames(self.frames, c.teacher_max_views):
+        for fr in evenly_spaced_frames(self.frames, c.rest_teacher.max_views):
             cam = RenderCamera.from_camera(fr.camera, self.device)
             with torch.no_grad():
                 p = av.posed(self.inputs(fr.timestep), None, canonical=canon, shade=False)
@@ -421,10 +423,10 @@ class Phase2Trainer:
     def seen_faces(self) -> torch.Tensor:
         """(F,) bool triangles that are the visible surface of at least one foreground pixel (the mesh
         raster's mask eroded by one pixel) of the training views at rest (at most
-        ``teacher_max_views`` of them)."""
+        ``rest_teacher.max_views`` of them)."""
         av = self.avatar
         seen = torch.zeros(int(av.faces.shape[0]), dtype=torch.bool, device=av.device)
-        for fr in evenly_spaced_frames(self.frames, self.cfg.teacher_max_views):
+        for fr in evenly_spaced_frames(self.frames, self.cfg.rest_teacher.max_views):
             cam = RenderCamera.from_camera(fr.camera, self.device)
             ras = rasterize_mesh(av.pose_mesh(self.inputs(fr.timestep)), av.faces, cam.K, cam.w2c, cam.width, cam.height)
             fid = ras.face_id[0]
@@ -468,8 +470,8 @@ class Phase2Trainer:
         rays = warp_pixels_to_canonical(posed_vertices, av.faces, (av.R_c, av.T_c, av.k_c), camera.K, camera.w2c,
                                         camera.width, camera.height, pix, raster=raster)  # fmt: skip
         out = render_neus(
-            av.sdf, self.teacher_app, rays.origins, rays.dirs, self.teacher_variance, c.neus_samples, c.neus_importance,
-            c.neus_up_steps, 1.0, c.background, length_unit=self.length_unit, perturb=True, generator=self.generator,
+            av.sdf, self.teacher_app, rays.origins, rays.dirs, self.teacher_variance, c.neus.samples, c.neus.importance,
+            c.neus.up_steps, 1.0, c.background, length_unit=self.length_unit, perturb=True, generator=self.generator,
         )  # fmt: skip
         return out.color.detach(), rays.valid
 
@@ -488,68 +490,41 @@ class Phase2Trainer:
 
     # ------------------------------------------------------------------ one step
     def step(self) -> dict[str, float]:
-        """One optimisation step; returns the loss terms as floats."""
+        """One optimisation step; returns the loss terms (:data:`PHASE2_TERMS`) as floats."""
         c, av = self.cfg, self.avatar
         fr = self.frames[self._randint(len(self.frames))]
         cam = RenderCamera.from_camera(fr.camera, self.device)
         sample = self.sampler.sample(1, generator=self.generator)
-        at_rest = c.rest_fraction > 0 and float(torch.rand((), generator=self.generator)) < c.rest_fraction
+        rest = c.expressions.rest_fraction
+        at_rest = rest > 0 and float(torch.rand((), generator=self.generator)) < rest
         inputs = self.inputs(fr.timestep) if at_rest else compose_inputs(self.inputs(fr.timestep), sample)
         render, posed = self.render(cam, inputs, shade=False)
-
-        terms: dict[str, torch.Tensor] = {}
-        total = render.color.new_zeros(())
         e_n = 1.0 - (render.normal_world * render.surf_normal_world).sum(-1)
-        terms["normal_consistency"] = e_n.mean()
-        terms["distortion"] = L.distortion_loss(render.distortion)
-        total = total + c.w_normal_consistency * terms["normal_consistency"] + c.w_distortion * terms["distortion"]
 
-        appearance = c.w_appearance > 0 and c.rays_per_step > 0
-        if appearance or self.wrinkle_stats is not None:
+        raster = None
+        verts = posed.vertices.detach()
+        if (c.loss.appearance > 0 and c.pixels.per_step > 0) or self.wrinkle_stats is not None:
             with torch.no_grad():
-                verts = posed.vertices.detach()
                 raster = rasterize_mesh(verts, av.faces, cam.K, cam.w2c, cam.width, cam.height)
                 if self.wrinkle_stats is not None:
                     shaped = av.flame(**inputs).v_shaped[0] if av.wrinkle_basis == "expression" else None
-                    comp = face_compression(*wrinkle_meshes(av, verts, shaped), av.faces, c.wrinkle_full_compression)
+                    comp = face_compression(*wrinkle_meshes(av, verts, shaped), av.faces, c.wrinkles.full_compression)
                     self.wrinkle_stats.update(raster.face_id, render.distortion.detach(), comp)
-        if appearance:
-            with torch.no_grad():
-                fid = raster.face_id.reshape(-1)
-                ok = fid >= 0
-                ok &= ~self.hair_faces[fid.clamp_min(0)]
-                cand = ok.nonzero().squeeze(-1)
-                score = torch.stack([e_n.detach().reshape(-1)[cand], render.distortion.detach().reshape(-1)[cand]], -1)
-            pix = sample_pixels(score, cand, c.rays_per_step, c.error_floor, self.generator)
-            if pix.numel() > 0:
-                if self.rest_teacher is not None:
-                    target, valid = self.rest_lookup(verts, cam, pix, raster)
-                else:
-                    target, valid = self.teacher(verts, cam, pix, raster)
-                valid = valid & ~self.prior_faces[fid[pix]]
-                if bool(valid.any()):
-                    pred = render.color.reshape(-1, 3)[pix]
-                    terms["appearance"] = ((pred - target) ** 2).sum(-1)[valid].mean()
-                    total = total + c.w_appearance * terms["appearance"]
+        ctx = Phase2Step(self, self.step_count, cam, inputs, render, verts, e_n, raster)
+        terms: dict[str, torch.Tensor] = {}
+        total = L.add_terms(PHASE2_TERMS, ctx, c.loss, c.schedule, terms)
 
-        if c.w_photometric > 0 and c.photometric_every > 0 and self.step_count % c.photometric_every == 0:
-            fr2 = self.frames[self._randint(len(self.frames))]
-            cam2 = RenderCamera.from_camera(fr2.camera, self.device)
-            img2, _ = self.render(cam2, self.inputs(fr2.timestep))
-            gt = self._image(fr2)
-            terms["rgb"] = L.rgb_loss(img2.color, gt)
-            total = total + c.w_photometric * terms["rgb"]
-
-        if self.optimizer is not None:
+        if self.optimizer is not None and total is not None:
             self.optimizer.zero_grad(set_to_none=True)
             total.backward()
             self._set_lrs()
             self.optimizer.step()
         self.step_count += 1
         out = {k: float(v.detach()) for k, v in terms.items()}
-        out["loss"] = float(total.detach())
-        if len(self.distortion_curve) < c.curve_steps and self.step_count == len(self.distortion_curve) + 1:
-            self.distortion_curve.append(out["distortion"])
+        out["loss"] = float(total.detach()) if total is not None else 0.0
+        if len(self.distortion_curve) < c.schedule.curve_steps and self.step_count == len(self.distortion_curve) + 1:
+            d = out["distortion"] if "distortion" in terms else float(L.distortion_loss(render.distortion.detach()))
+            self.distortion_curve.append(d)
         return out
 
     @torch.no_grad()
@@ -561,14 +536,15 @@ class Phase2Trainer:
         assert self.wrinkle_stats is not None
         c, av, st = self.cfg, self.avatar, self.wrinkle_stats
         excluded = self.hair_faces | self.prior_faces
-        lo, hi = (float(q) for q in c.wrinkle_quantiles)
-        if c.wrinkle_region == "distortion":
-            amp = wrinkle_amplitude(st.mean(), st.count, excluded, c.wrinkle_strength, (lo, hi))
+        w = c.wrinkles
+        lo, hi = (float(q) for q in w.quantiles)
+        if w.region == "distortion":
+            amp = wrinkle_amplitude(st.mean(), st.count, excluded, w.strength, (lo, hi))
         else:
-            amp = (~excluded).to(st.sum) * float(c.wrinkle_strength)
+            amp = (~excluded).to(st.sum) * float(w.strength)
         b = av.surfels.binding
         a = amp.to(av.canonical_vertices)[b]
-        av.surfels.set_wrinkle(torch.stack([a, torch.full_like(a, c.wrinkle_full_compression)], -1))
+        av.surfels.set_wrinkle(torch.stack([a, torch.full_like(a, w.full_compression)], -1))
         seen = (st.count > 0) & ~excluded.to(st.count.device)
         d, k = st.mean()[seen], st.mean_compression()[seen]
         corr = float("nan")
@@ -624,6 +600,73 @@ class Phase2Trainer:
         self.step_count = int(state["step"])
         self.distortion_curve = list(state.get("distortion_curve", []))
         self.posing.load_cache_state(state.get("curvature_cache"))
+
+
+@dataclass
+class Phase2Step:
+    """What the loss terms of one phase-2 step read (:data:`PHASE2_TERMS`): the trainer, the step,
+    the deformed view (camera, FLAME kwargs), its render, the posed mesh vertices (V, 3, detached),
+    the per-pixel normal-consistency error e_n (H, W) and the mesh raster (None when neither the
+    appearance term nor the wrinkle statistics need it)."""
+
+    trainer: Phase2Trainer
+    step: int
+    cam: RenderCamera
+    inputs: dict[str, torch.Tensor]
+    render: Any
+    verts: torch.Tensor
+    e_n: torch.Tensor
+    raster: Any
+    polish: bool = False
+
+
+def _appearance(s: Phase2Step) -> torch.Tensor | None:
+    """L_a on ``pixels.per_step`` pixels drawn by their error among the non-hair pixels of the posed
+    mesh; None when no drawn pixel has a teacher colour."""
+    tr, c, render = s.trainer, s.trainer.cfg, s.render
+    assert s.raster is not None
+    with torch.no_grad():
+        fid = s.raster.face_id.reshape(-1)
+        ok = fid >= 0
+        ok &= ~tr.hair_faces[fid.clamp_min(0)]
+        cand = ok.nonzero().squeeze(-1)
+        score = torch.stack([s.e_n.detach().reshape(-1)[cand], render.distortion.detach().reshape(-1)[cand]], -1)
+    pix = sample_pixels(score, cand, c.pixels.per_step, c.pixels.error_floor, tr.generator)
+    if pix.numel() == 0:
+        return None
+    if tr.rest_teacher is not None:
+        target, valid = tr.rest_lookup(s.verts, s.cam, pix, s.raster)
+    else:
+        target, valid = tr.teacher(s.verts, s.cam, pix, s.raster)
+    valid = valid & ~tr.prior_faces[fid[pix]]
+    if not bool(valid.any()):
+        return None
+    pred = render.color.reshape(-1, 3)[pix]
+    return ((pred - target) ** 2).sum(-1)[valid].mean()
+
+
+def _photometric(s: Phase2Step) -> torch.Tensor:
+    """L_rgb of a random training frame rendered at its own FLAME parameters."""
+    tr = s.trainer
+    fr2 = tr.frames[tr._randint(len(tr.frames))]
+    cam2 = RenderCamera.from_camera(fr2.camera, tr.device)
+    img2, _ = tr.render(cam2, tr.inputs(fr2.timestep))
+    return L.rgb_loss(img2.color, tr._image(fr2))
+
+
+def _photometric_step(s: Phase2Step) -> bool:
+    every = s.trainer.cfg.schedule.photometric_every
+    return every > 0 and s.step % every == 0
+
+
+PHASE2_TERMS: tuple[L.LossTerm[Phase2Step], ...] = (
+    L.LossTerm("normal_consistency", "normal_consistency", lambda s: s.e_n.mean()),
+    L.LossTerm("distortion", "distortion", lambda s: L.distortion_loss(s.render.distortion)),
+    L.LossTerm("appearance", "appearance", _appearance, when=lambda s: s.trainer.cfg.pixels.per_step > 0),
+    L.LossTerm("rgb", "photometric", _photometric, when=_photometric_step),
+)
+"""Phase 2's objective in summation order (:func:`sage_core.train.losses.add_terms`): λ_n L_n + λ_d L_d
+of the deformed render, λ_a L_a against the teacher, and the optional photometric term."""
 
 
 def _module_state(module: torch.nn.Module | None) -> dict[str, torch.Tensor] | None:

@@ -9,7 +9,7 @@ Two providers build :class:`PseudoView` s that phase 1 adds to the real input vi
   :mod:`sage_core.flame.mirror`). A surfel on the subject's left cheek is then rendered where the
   flipped image shows the right cheek: the symmetry prior. The per-pixel weight is the input
   confidence of the source pixel times how little the input already sees that surface (seen
-  surface keeps ``pseudo_mirror_seen_weight``); the view weight grows with the head's yaw.
+  surface keeps ``pseudo.mirror_seen_weight``); the view weight grows with the head's yaw.
 * :class:`TexturedRingProvider`: the input image back-projected onto the posed FLAME mesh and
   re-rendered from a ring of cameras around the head.
 
@@ -27,14 +27,14 @@ Building the texture (:func:`backproject_texture`, :meth:`TexturedRingProvider.c
    the face normal and the direction to the camera × distance from the silhouette (ramp over a
    fraction of the image diagonal) × mask;
 2. mirror fill: a sample whose confidence is below its mirror partner's (scaled by
-   ``pseudo_texture_mirror_confidence``) takes the partner's colour; the partner of a sample is the
+   ``pseudo.texture_mirror_confidence``) takes the partner's colour; the partner of a sample is the
    closest surface point of the template to the reflection of the sample through the vertex mirror
    map (works also when the triangulation itself is not mirror-symmetric);
 3. inpainting by mesh-graph diffusion (there is no 2D layout to run ``cv2.inpaint`` on): known
    samples are splatted to the vertices, the unknown vertices solve the graph Laplace equation
    (harmonic fill) over edges whose two vertices lie in the same region (mouth interior, teeth,
    eyeballs, hair, lips, the rest), and unknown samples interpolate their face's vertex colours
-   with confidence ``pseudo_texture_inpaint_confidence`` (default 0: no photometric constraint).
+   with confidence ``pseudo.texture_inpaint_confidence`` (default 0: no photometric constraint).
 
 The ring views render the completed texture with the mesh rasterizer (supersampled, box-filtered)
 on the dataset background, with the interpolated confidence as the per-pixel weight.
@@ -50,7 +50,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..config import Phase1Config
+from ..config import PseudoViewConfig
 from ..data.cameras import Camera
 from ..render.mesh_raster import rasterize_mesh
 
@@ -60,8 +60,8 @@ if TYPE_CHECKING:
 
 _S = (-1.0, 1.0, 1.0)
 
-_DEFAULTS = Phase1Config()
-"""Read for the ``pseudo_*`` fields when the providers are given no config."""
+_DEFAULTS = PseudoViewConfig()
+"""Read for the pseudo-view settings when the providers are given no config (or one without them)."""
 
 _COS_LO, _COS_HI = 0.1, 0.5
 _SILHOUETTE_RAMP = 0.02
@@ -72,7 +72,10 @@ _REGION_ORDER = ("mouth_interior", "teeth", "eyeballs", "hair", "lips")
 
 
 def _cfg(cfg: Any, name: str) -> Any:
-    return getattr(cfg, name, getattr(_DEFAULTS, name)) if cfg is not None else getattr(_DEFAULTS, name)
+    """Setting ``name`` of :class:`PseudoViewConfig` from ``cfg``: a phase-1 config (its ``pseudo``
+    section), the section itself or any object with some of its fields; the default otherwise."""
+    section = getattr(cfg, "pseudo", cfg) if cfg is not None else None
+    return getattr(section, name, getattr(_DEFAULTS, name)) if section is not None else getattr(_DEFAULTS, name)
 
 
 @dataclass
@@ -578,7 +581,7 @@ def head_yaw(avatar: Avatar, flame_inputs: dict[str, torch.Tensor], camera: Came
 class MirrorViewProvider:
     """The mirror view of the input (see the module doc); no view when the model is not symmetric.
 
-    cfg: a phase-1 config (fields ``pseudo_mirror*``; Phase1Config defaults without one); projection: a
+    cfg: a phase-1 config or its ``pseudo`` section (fields ``mirror*``; the defaults without one); projection: a
     precomputed :class:`InputProjection` of the input view (computed when None).
     """
 
@@ -589,9 +592,9 @@ class MirrorViewProvider:
 
     def views(self, data: IngestedData, avatar: Avatar, mirror_index: torch.Tensor | None) -> list[PseudoView]:
         c = self.cfg
-        if mirror_index is None or not bool(_cfg(c, "pseudo_mirror")):
+        if mirror_index is None or not bool(_cfg(c, "mirror")):
             return []
-        proj = self.projection or project_input(data, avatar, 0, int(_cfg(c, "pseudo_texture_resolution")))
+        proj = self.projection or project_input(data, avatar, 0, int(_cfg(c, "texture_resolution")))
         cam = mirror_camera(proj.camera)
         dev = avatar.device
         verts_m = mirror_vertices(proj.vertices, mirror_index)
@@ -607,19 +610,19 @@ class MirrorViewProvider:
         if bool(hit.any()):
             _, sc = proj.texture.lookup(fid[hit], ras.bary[0][hit])
             seen[hit] = sc.float().clamp(0.0, 1.0)
-        sw = float(_cfg(c, "pseudo_mirror_seen_weight"))
+        sw = float(_cfg(c, "mirror_seen_weight"))
         weight = torch.where(hit, src_conf * (sw + (1.0 - sw) * (1.0 - seen)), torch.zeros_like(mask))
-        bgw = float(_cfg(c, "pseudo_mirror_background_weight"))
+        bgw = float(_cfg(c, "mirror_background_weight"))
         weight = torch.where(~hit & (mask < 0.5), torch.full_like(mask, bgw), weight).clamp(0.0, 1.0)
         fr = data.train[proj.frame_index]
         yaw = head_yaw(avatar, avatar.frame_inputs(fr.timestep), proj.camera)
-        full = math.radians(float(_cfg(c, "pseudo_mirror_yaw_full_deg")))
-        floor = float(_cfg(c, "pseudo_mirror_yaw_floor"))
+        full = math.radians(float(_cfg(c, "mirror_yaw_full_deg")))
+        floor = float(_cfg(c, "mirror_yaw_floor"))
         yaw_factor = floor + (1.0 - floor) * min(1.0, abs(yaw) / max(full, 1e-6))
         unseen = float(((1.0 - seen) * hit).sum() / hit.sum().clamp_min(1)) if bool(hit.any()) else 0.0
         self.last_info = {"yaw_deg": math.degrees(yaw), "yaw_factor": yaw_factor, "unseen_fraction": unseen}
         return [PseudoView("mirror", cam, image, mask, weight, proj.frame_index, True,
-                           float(_cfg(c, "pseudo_mirror_weight")) * yaw_factor)]
+                           float(_cfg(c, "mirror_weight")) * yaw_factor)]
 
 
 def ring_cameras(camera: Camera, center: np.ndarray, n: int, yaw_deg: float, pitch_deg: float) -> list[Camera]:
@@ -651,7 +654,7 @@ def ring_cameras(camera: Camera, center: np.ndarray, n: int, yaw_deg: float, pit
 class TexturedRingProvider:
     """Textured-FLAME views on a yaw/pitch ring around the head (see the module doc).
 
-    cfg: a phase-1 config (fields ``pseudo_ring*`` and ``pseudo_texture*``; Phase1Config defaults without one);
+    cfg: a phase-1 config or its ``pseudo`` section (fields ``ring*`` and ``texture*``; the defaults without one);
     projection: a precomputed :class:`InputProjection` (computed when None). After :meth:`views`,
     ``texture`` holds the completed texture.
     """
@@ -669,16 +672,16 @@ class TexturedRingProvider:
         if mirror_index is not None:
             pf, pb = mirror_sample_partners(np.asarray(avatar.model_data.v_template), avatar.faces.cpu().numpy(),
                                             mirror_index.cpu().numpy(), tex.resolution)
-            tex = fill_from_mirror(tex, torch.as_tensor(pf), torch.as_tensor(pb), float(_cfg(c, "pseudo_texture_mirror_confidence")))
+            tex = fill_from_mirror(tex, torch.as_tensor(pf), torch.as_tensor(pb), float(_cfg(c, "texture_mirror_confidence")))
         labels = vertex_region_labels(avatar, data)
-        return inpaint_texture(tex, avatar.faces, int(proj.vertices.shape[0]), labels, float(_cfg(c, "pseudo_texture_inpaint_confidence")))
+        return inpaint_texture(tex, avatar.faces, int(proj.vertices.shape[0]), labels, float(_cfg(c, "texture_inpaint_confidence")))
 
     def views(self, data: IngestedData, avatar: Avatar, mirror_index: torch.Tensor | None) -> list[PseudoView]:
         c = self.cfg
-        n = int(_cfg(c, "pseudo_ring_views"))
+        n = int(_cfg(c, "ring_views"))
         if n <= 0:
             return []
-        proj = self.projection or project_input(data, avatar, 0, int(_cfg(c, "pseudo_texture_resolution")))
+        proj = self.projection or project_input(data, avatar, 0, int(_cfg(c, "texture_resolution")))
         tex = self.complete_texture(data, avatar, mirror_index, proj)
         self.texture = tex
         nb = int(avatar.model_data.n_base_vertices)
@@ -686,17 +689,17 @@ class TexturedRingProvider:
         center = (0.5 * (v.max(0).values + v.min(0).values)).double().cpu().numpy()
         bg = _background(data)
         out = []
-        for cam in ring_cameras(proj.camera, center, n, float(_cfg(c, "pseudo_ring_yaw_deg")), float(_cfg(c, "pseudo_ring_pitch_deg"))):
-            img, cover, w = render_texture(proj.vertices, avatar.faces, tex, cam, bg, float(_cfg(c, "pseudo_ring_background_weight")),
-                                           int(_cfg(c, "pseudo_ring_supersample")))
-            out.append(PseudoView(cam.name, cam, img, cover, w, proj.frame_index, False, float(_cfg(c, "pseudo_ring_weight"))))
+        for cam in ring_cameras(proj.camera, center, n, float(_cfg(c, "ring_yaw_deg")), float(_cfg(c, "ring_pitch_deg"))):
+            img, cover, w = render_texture(proj.vertices, avatar.faces, tex, cam, bg, float(_cfg(c, "ring_background_weight")),
+                                           int(_cfg(c, "ring_supersample")))
+            out.append(PseudoView(cam.name, cam, img, cover, w, proj.frame_index, False, float(_cfg(c, "ring_weight"))))
         return out
 
 
 def build_pseudo_views(data: IngestedData, avatar: Avatar, cfg: Any) -> tuple[list[PseudoView], torch.Tensor | None]:
     """Pseudo-views for a one-shot capture, and the (V,) vertex mirror index (None when the model is not symmetric)."""
-    mirror_index, _ = mirror_index_of(avatar, float(_cfg(cfg, "pseudo_mirror_tolerance")))
-    proj = project_input(data, avatar, 0, int(_cfg(cfg, "pseudo_texture_resolution")))
+    mirror_index, _ = mirror_index_of(avatar, float(_cfg(cfg, "mirror_tolerance")))
+    proj = project_input(data, avatar, 0, int(_cfg(cfg, "texture_resolution")))
     views: list[PseudoView] = []
     views += MirrorViewProvider(cfg, proj).views(data, avatar, mirror_index)
     views += TexturedRingProvider(cfg, proj).views(data, avatar, mirror_index)

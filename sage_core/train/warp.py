@@ -1,7 +1,7 @@
-"""Warping camera rays of a deformed frame back into canonical space (SAGE §4, design.md "Canonical space").
+"""Warping camera rays of a deformed frame back into canonical space (SAGE §4, docs/method.md §2).
 
 A pixel's world ray o + t·d hits the frame's posed FLAME mesh at x_h on triangle j. Triangle j's
-canonical → posed transform is the similarity of formats.md §6,
+canonical → posed transform is the similarity of docs/formats.md §6,
 
     x_p = k_p·R_p·R_cᵀ·(x_c − T_c)/k_c + T_p,
 

@@ -2,9 +2,11 @@
 
 A procedural head is written in FLAME's own file layout (pickle, npz, region masks), posed with the
 project's FLAME LBS, shaded with a procedural albedo and rendered by an independent z-buffer
-rasterizer into a VHAP/GaussianAvatars-layout capture (formats.md §1–2). ``tracking="exact"``
+rasterizer into a VHAP/GaussianAvatars-layout capture (docs/formats.md §1–2). ``tracking="exact"``
 writes the truth's own parameters; ``"fitted"`` a truth beyond the written model with tracker-like
-parameters (:mod:`.truth`, :mod:`.tracking`).
+parameters (:mod:`.truth`, :mod:`.tracking`). ``appearance="detailed"`` adds prefiltered skin and
+hair detail at the pixel scale (:mod:`.detail`, :mod:`.detail_render`) and a hair volume off the
+scalp (:mod:`.hair`); ``"smooth"`` is the head of earlier versions.
 """
 
 from __future__ import annotations

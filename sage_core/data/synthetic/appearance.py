@@ -11,16 +11,19 @@ Expression creases darken the skin where the surface is compressed relative to t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..cameras import Camera
 from ._fields import fbm, gauss, smoothstep, value_noise
+from .detail import DetailStyle
 from .head import PART_LEFT_EYE, PART_MOUTH, PART_RIGHT_EYE, HeadModel, hair_weight
 from .mesh_render import downsample, rasterize, vertex_normals
+from .shading import AMBIENT, DIFFUSE, LIGHT_DIR, Render, Specular, _eye_albedo, _mix, _pixel_dirs
 
-LIGHT_DIR = np.array([0.35, 0.55, 0.75]) / np.linalg.norm([0.35, 0.55, 0.75])
-AMBIENT, DIFFUSE = 0.42, 0.62
+if TYPE_CHECKING:
+    from .hair import PosedHair
 
 _SKIN_TONES = np.array(
     [[0.93, 0.76, 0.66], [0.85, 0.64, 0.52], [0.72, 0.52, 0.40], [0.55, 0.38, 0.28], [0.95, 0.80, 0.72], [0.80, 0.60, 0.47]]
@@ -31,16 +34,21 @@ _IRIS = np.array([[0.25, 0.40, 0.60], [0.35, 0.22, 0.10], [0.30, 0.45, 0.25], [0
 
 @dataclass(frozen=True)
 class Appearance:
-    """Colours (linear RGB in [0, 1]) and noise seed of one synthetic subject."""
+    """Colours (linear RGB in [0, 1]) and noise seed of one synthetic subject; ``detail`` is the
+    pixel-scale detail of a detailed subject (:mod:`.detail`), None for the smooth head."""
 
     skin: tuple[float, float, float]
     hair: tuple[float, float, float]
     iris: tuple[float, float, float]
     lips: tuple[float, float, float]
     noise_seed: int
+    detail: DetailStyle | None = None
 
     def to_dict(self) -> dict:
-        return {"skin": list(self.skin), "hair": list(self.hair), "iris": list(self.iris), "lips": list(self.lips), "noise_seed": self.noise_seed}
+        d = {"skin": list(self.skin), "hair": list(self.hair), "iris": list(self.iris), "lips": list(self.lips), "noise_seed": self.noise_seed}
+        if self.detail is not None:
+            d["detail"] = self.detail.to_dict()
+        return d
 
 
 def sample_appearance(rng: np.random.Generator) -> Appearance:
@@ -70,10 +78,6 @@ def crease_weights(deformed: np.ndarray, neutral: np.ndarray, faces: np.ndarray)
     """
     ratio = vertex_areas(deformed, faces) / np.maximum(vertex_areas(neutral, faces), 1e-20)
     return np.clip((1.0 - ratio) / 0.25, 0.0, 1.0)
-
-
-def _mix(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
-    return a * (1.0 - t[:, None]) + b * t[:, None]
 
 
 def albedo(template_pos: np.ndarray, eye_dir: np.ndarray, part_w: np.ndarray, mouth_depth: np.ndarray,
@@ -138,37 +142,6 @@ def _skin_albedo(p: np.ndarray, crease: np.ndarray, app: Appearance, mouth_y: fl
     return col * (1.0 - 0.5 * np.clip(crease_shade, 0.0, 1.0))[:, None]
 
 
-def _eye_albedo(eye_dir: np.ndarray, app: Appearance) -> np.ndarray:
-    """Sclera, iris and pupil from directions out of the eyeball centre: (M, 3) -> (M, 3)."""
-    ed = eye_dir / np.maximum(np.linalg.norm(eye_dir, axis=1, keepdims=True), 1e-12)
-    ang = np.arccos(np.clip(ed[:, 2], -1.0, 1.0))
-    rad = np.arctan2(ed[:, 1], ed[:, 0])
-    sclera = np.array([0.93, 0.9, 0.86])[None] * (1.0 - 0.08 * smoothstep(ang, 0.9, 1.4))[:, None]
-    iris_c = np.asarray(app.iris)[None] * (0.75 + 0.25 * np.sin(rad * 23.0 + 4.0 * value_noise(ed, 8.0, app.noise_seed + 5)))[:, None]
-    iris_c *= (1.0 - 0.5 * smoothstep(ang, 0.40, 0.5))[:, None]
-    eye = _mix(sclera, iris_c, smoothstep(ang, 0.52, 0.47))
-    return _mix(eye, np.full_like(eye, 0.03), smoothstep(ang, 0.21, 0.18))
-
-
-@dataclass(frozen=True)
-class Specular:
-    """Blinn-Phong highlights under the world light (added on top of the shaded albedo).
-
-    Attributes:
-        skin, skin_shininess: strength and exponent on skin (none on scalp hair or in the mouth).
-        eye, eye_shininess: strength and exponent on the eyeballs.
-    """
-
-    skin: float = 0.08
-    skin_shininess: float = 18.0
-    eye: float = 0.45
-    eye_shininess: float = 90.0
-
-    def scaled(self, k: float) -> "Specular":
-        """The same highlights with both strengths multiplied by ``k``."""
-        return Specular(self.skin * k, self.skin_shininess, self.eye * k, self.eye_shininess)
-
-
 def highlights(spec: Specular, template_pos: np.ndarray, part_w: np.ndarray, normal: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
     """Specular intensity (M,) at M surface points.
 
@@ -184,33 +157,23 @@ def highlights(spec: Specular, template_pos: np.ndarray, part_w: np.ndarray, nor
     return (skin + eye) * lit
 
 
-@dataclass
-class Render:
-    """A shaded view.
-
-    Attributes:
-        rgb: (H, W, 3) float32 composited on the background.
-        alpha: (H, W) float32 coverage in [0, 1] (fractional at edges when supersampled).
-        depth: (H, W) float32 camera-space z at pixel centres (+inf background), or None.
-        normal: (H, W, 3) float32 world-space unit normals facing the camera (0 background), or None.
-    """
-
-    rgb: np.ndarray
-    alpha: np.ndarray
-    depth: np.ndarray | None = None
-    normal: np.ndarray | None = None
-
-
 def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appearance,
                 crease: np.ndarray | None = None, background: tuple[float, float, float] = (1.0, 1.0, 1.0),
-                supersample: int = 1, geometry: bool = False, specular: Specular | None = None) -> Render:
+                supersample: int = 1, geometry: bool = False, specular: Specular | None = None,
+                hair: PosedHair | None = None) -> Render:
     """Render the posed head.
 
     vertices: (V, 3) posed world vertices of ``head``'s topology; crease: (V,) from
     :func:`crease_weights` (None = none); supersample: per-axis factor for anti-aliasing;
     geometry: also return depth and normals (rasterized once more at the native resolution);
-    specular: view-dependent highlights (None = Lambert + ambient only).
+    specular: view-dependent highlights (None = Lambert + ambient only). A detailed appearance
+    (``app.detail``) renders through :func:`.detail_render.render_detailed`, with the posed hair
+    volume ``hair`` when given.
     """
+    if app.detail is not None:
+        from .detail_render import render_detailed
+
+        return render_detailed(head, vertices, camera, app, crease, background, supersample, geometry, specular, hair)
     faces = head.faces
     V = head.n_vertices
     crease = np.zeros(V) if crease is None else crease
@@ -258,14 +221,3 @@ def render_head(head: HeadModel, vertices: np.ndarray, camera: Camera, app: Appe
             normal[g.mask] = n
         out.normal = normal.astype(np.float32)
     return out
-
-
-def _pixel_dirs(camera: Camera, scale: int, ys: np.ndarray, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World ray origin and unit directions (M, 3) through the given pixel centres."""
-    K = camera.K.astype(np.float64).copy()
-    K[:2] *= scale
-    yc = (ys + 0.5 - K[1, 2]) / K[1, 1]
-    xc = (xs + 0.5 - K[0, 2] - K[0, 1] * yc) / K[0, 0]
-    d = np.stack([xc, yc, np.ones_like(xc)], -1) @ camera.w2c[:3, :3]
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return camera.center, d

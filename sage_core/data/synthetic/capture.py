@@ -1,15 +1,21 @@
-"""Write a synthetic capture in the VHAP / GaussianAvatars layout (formats.md §1–2) plus ground truth.
+"""Write a synthetic capture in the VHAP / GaussianAvatars layout (docs/formats.md §1–2) plus ground truth.
 
 Layout of ``OUT``::
 
     images/{ti:05d}_{ci:02d}.png      RGB on white, below the neck line blanked
     fg_masks/{ti:05d}_{ci:02d}.png    L uint8 = coverage × neck-line mask
-    flame_param/{ti:05d}.npz          per-timestep FLAME parameters (formats.md §1.3)
+    flame_param/{ti:05d}.npz          per-timestep FLAME parameters (docs/formats.md §1.3)
     canonical_flame_param.npz
     transforms.json, transforms_{train,val,test}.json
     model/   synth_flame.pkl (official pickle layout), synth_flame.npz, FLAME_masks.pkl
-    gt/      canonical.ply, meshes/{ti:05d}.ply, info.json, [novel/ held-out views and expressions]
+    gt/      canonical.ply, meshes/{ti:05d}.ply, info.json, [novel/ held-out views and expressions],
+             [hair/ canonical.ply, {ti:05d}.ply: the hair volume of a detailed subject]
     [preview.png]
+
+``appearance="detailed"``: the albedo carries pixel-scale detail (:mod:`.detail`) and the truth
+has a hair volume off the scalp (:mod:`.hair`, rigid with the skull; in the images, masks and
+``gt/hair/``, not in ``model/``). Monocular and one-shot captures may add held-out views all
+around the head (``novel_around``; neutral face only), grouped in ``gt/info.json``.
 
 ``tracking="exact"``: the written model and parameters are the ground truth. ``"fitted"``: the
 ground truth (images and ``gt/`` meshes) is the full head with non-linear correctives, geometric
@@ -26,7 +32,7 @@ from __future__ import annotations
 import math
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,13 +41,16 @@ from ...errors import ConfigError
 from ..cameras import Camera, camera_to_nerf_frame
 from ..imageio import write_image
 from ._files import write_json, write_npz, write_ply
-from .appearance import Appearance, Specular, crease_weights, render_head, sample_appearance
+from .appearance import Appearance, Render, Specular, crease_weights, render_head, sample_appearance
 from .config import SynthConfig
-from .head import EXPRESSION_NAMES, IDENTITY_NAMES, HeadModel, build_head
+from .detail import sample_detail
+from .hair import HairVolume, PosedHair, build_hair, pose_hair
+from .head import EXPRESSION_NAMES, IDENTITY_NAMES, PART_SKIN, HeadModel, build_head, hair_weight
 from .model_files import MASKS_NAME, NPZ_NAME, PICKLE_NAME, flame_model, write_model_files
 from .motion import (
     Frame,
     arc_cameras,
+    around_cameras,
     monocular_camera,
     monocular_frames,
     multiview_frames,
@@ -63,11 +72,26 @@ class _Subject:
     app: Appearance
     tracked: TrackedHead | None = None
     specular: Specular | None = None
+    hair: HairVolume | None = None
+    canonical: np.ndarray | None = None  # (V, 3) canonical head (detailed subjects)
+    hair_canonical: np.ndarray | None = None  # (H, 3) hair volume on it
 
     @property
     def written_head(self) -> HeadModel:
         """The FLAME-format model written with the capture (truncated when tracked)."""
         return self.head if self.tracked is None else self.tracked.written_head
+
+    def posed_hair(self, vertices: np.ndarray) -> PosedHair | None:
+        """The hair volume on the posed head ``vertices`` (V, 3) (rigid with the skull), or None."""
+        if self.hair is None:
+            return None
+        assert self.canonical is not None and self.hair_canonical is not None
+        return pose_hair(self.hair, self.canonical, self.hair_canonical, vertices)
+
+    def render(self, vertices: np.ndarray, camera: Camera, crease: np.ndarray | None, supersample: int) -> Render:
+        """The subject (head and hair volume) posed at ``vertices`` (V, 3), seen by ``camera``."""
+        return render_head(self.head, vertices, camera, self.app, crease, supersample=supersample, specular=self.specular,
+                           hair=self.posed_hair(vertices))
 
 
 @dataclass
@@ -113,7 +137,7 @@ def canonical_vertices(subject: _Subject) -> np.ndarray:
 
 
 def neck_line_mask(head: HeadModel, vertices: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W) float mask in [0, 1] keeping what is above the neck line (formats.md §1.1), blurred."""
+    """(H, W) float mask in [0, 1] keeping what is above the neck line (docs/formats.md §1.1), blurred."""
     import cv2
 
     ids = list(head.neck_line)
@@ -201,9 +225,11 @@ def _tracked_params(subject: _Subject, frames: list[Frame], truth: np.ndarray, c
 
 def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras: list[Camera],
                     splits: dict[str, list[tuple[int, int]]], cfg: SynthConfig, tick: Callable[[str], None],
-                    noise_rng: np.random.Generator | None = None) -> _Sequence:
+                    noise_rng: np.random.Generator | None = None, uncut: frozenset[int] = frozenset()) -> _Sequence:
     """Render and write images, masks, FLAME params and transforms; returns the ground truth
-    (and, for tracked subjects, the tracking error of the written parameters)."""
+    (and, for tracked subjects, the tracking error of the written parameters). Cameras in ``uncut``
+    (views around the head) are not cut at the neck line: seen from the side or the back that image
+    line would cut through the head, and the mesh itself ends at the neck base."""
     posed = _pose(subject, frames)
     seq = _Sequence(posed.vertices)
     written = frames
@@ -217,8 +243,8 @@ def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras:
     for ti, ci in pairs:
         cam = by_index[ci]
         v = posed.vertices[ti]
-        r = render_head(subject.head, v, cam, subject.app, posed.crease[ti], supersample=cfg.supersample, specular=subject.specular)
-        neck = neck_line_mask(subject.head, v, cam)
+        r = subject.render(v, cam, posed.crease[ti], cfg.supersample)
+        neck = np.ones((cam.height, cam.width), np.float32) if ci in uncut else neck_line_mask(subject.head, v, cam)
         img = r.rgb * neck[..., None] + (1.0 - neck[..., None])
         write_image(root / "images" / f"{ti:05d}_{ci:02d}.png", img)
         write_image(root / "fg_masks" / f"{ti:05d}_{ci:02d}.png", r.alpha * neck)
@@ -242,6 +268,17 @@ def _write_meshes(folder: Path, head: HeadModel, verts: np.ndarray) -> list[str]
     return names
 
 
+def _write_hair(folder: Path, subject: _Subject, verts: np.ndarray, canonical: bool = True) -> None:
+    """The hair volume of every timestep of ``verts`` (T, V, 3) (and its canonical mesh) as PLY."""
+    assert subject.hair is not None and subject.hair_canonical is not None
+    if canonical:
+        write_ply(folder / "canonical.ply", subject.hair_canonical, subject.hair.faces)
+    for ti in range(verts.shape[0]):
+        ph = subject.posed_hair(verts[ti])
+        assert ph is not None
+        write_ply(folder / f"{ti:05d}.ply", ph.vertices, subject.hair.faces)
+
+
 def _preview(path: Path, subject: _Subject, frames: list[Frame], cameras: list[Camera], cfg: SynthConfig) -> None:
     """Contact sheet: rows = up to 4 timesteps (first training, then held-out), cols = up to 3 views."""
     yaws = []
@@ -254,8 +291,7 @@ def _preview(path: Path, subject: _Subject, frames: list[Frame], cameras: list[C
     posed = _pose(subject, [frames[i] for i in rows])
     tiles = []
     for r in range(len(rows)):
-        tiles.append(np.concatenate([render_head(subject.head, posed.vertices[r], cameras[c], subject.app, posed.crease[r],
-                                                 supersample=cfg.supersample, specular=subject.specular).rgb for c in cols], 1))
+        tiles.append(np.concatenate([subject.render(posed.vertices[r], cameras[c], posed.crease[r], cfg.supersample).rgb for c in cols], 1))
     write_image(path, np.concatenate(tiles, 0))
 
 
@@ -266,11 +302,27 @@ def make_subject(cfg: SynthConfig) -> _Subject:
     rng = np.random.default_rng([cfg.seed, 1])
     shape, static_offset = sample_identity(head, rng)
     app = sample_appearance(rng)
+    subject = _Subject(head, shape, static_offset, app)
+    if cfg.appearance == "detailed":
+        _add_detail(subject, np.random.default_rng([cfg.seed, 6]))
     if cfg.tracking == "exact":
-        return _Subject(head, shape, static_offset, app)
-    tracked = make_tracked_head(head, cfg.expr_keep, cfg.corrective_scale, cfg.crease_depth_mm)
-    specular = Specular().scaled(cfg.specular) if cfg.specular > 0 else None
-    return _Subject(head, shape, static_offset, app, tracked, specular)
+        return subject
+    subject.tracked = make_tracked_head(head, cfg.expr_keep, cfg.corrective_scale, cfg.crease_depth_mm)
+    subject.specular = Specular().scaled(cfg.specular) if cfg.specular > 0 else None
+    return subject
+
+
+def _add_detail(subject: _Subject, rng: np.random.Generator) -> None:
+    """Give ``subject`` its pixel-scale detail and hair volume (drawn from ``rng``, a stream of its
+    own so the identity, colours and motion stay those of the smooth subject of the same seed)."""
+    head = subject.head
+    v = head.v_template
+    face = (head.part == PART_SKIN) & (v[:, 2] > 0.02) & (v[:, 1] > -0.12) & (v[:, 1] < 0.07) & (hair_weight(v) < 0.2)
+    style = sample_detail(rng, v[face])
+    subject.app = replace(subject.app, detail=style)
+    subject.hair = build_hair(head, style)
+    subject.canonical = canonical_vertices(subject)
+    subject.hair_canonical = subject.hair.place(subject.canonical, head.faces)
 
 
 def write_capture(out_dir: str | Path, cfg: SynthConfig, progress: Progress | None = None,
@@ -320,7 +372,7 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
     else:
         frames = [Frame(label="train: neutral, frontal")]
         cameras = [monocular_camera(cfg.width, cfg.height, cfg.mono_focal)]
-    # world re-centring (formats.md §1.5): mean translation 0, cameras moved along
+    # world re-centring (docs/formats.md §1.5): mean translation 0, cameras moved along
     t_mean = np.mean([f.translation for f in frames], axis=0)
     for f in frames:
         f.translation = f.translation - t_mean
@@ -337,12 +389,16 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
         "test": [(t, c) for t in test_ts for c in cam_ids],
     }
     novel_cams: list[Camera] = []
+    around: list[Camera] = []
     novel: list[Frame] = []
     if cfg.regime != "multiview":
         novel_cams = arc_cameras(np.random.default_rng([cfg.seed, 3]), cfg.novel_views, cfg.width, cfg.height,
                                  cfg.camera_distance, cfg.view_height_m, yaw_span_deg=120.0, frontal=cfg.novel_views // 2)
+        if cfg.novel_around > 0:
+            around = around_cameras(np.random.default_rng([cfg.seed, 7]), cfg.novel_around, cfg.width, cfg.height,
+                                    cfg.camera_distance, cfg.view_height_m, first_index=cfg.novel_views)
         novel = novel_frames(rng, cfg.novel_expressions)
-    n_images = sum(len(v) for v in splits.values()) + len(novel) * len(novel_cams)
+    n_images = sum(len(v) for v in splits.values()) + len(novel) * len(novel_cams) + len(around)
     done = [0]
 
     def tick(what: str) -> None:
@@ -356,6 +412,8 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
     canon = canonical_vertices(subject)
     write_ply(root / "gt" / "canonical.ply", canon, head.faces)
     mesh_names = _write_meshes(root / "gt" / "meshes", head, verts)
+    if subject.hair is not None:
+        _write_hair(root / "gt" / "hair", subject, verts)
     info: dict = {
         "generator": "sage synth",
         "regime": cfg.regime,
@@ -377,18 +435,37 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
     if novel:
         nroot = root / "gt" / "novel"
         nsplits = {
-            "val": [(0, c.index) for c in novel_cams],
+            "val": [(0, c.index) for c in novel_cams + around],
             "test": [(t, c.index) for t in range(1, len(novel)) for c in novel_cams],
         }
-        nseq = _write_sequence(nroot, subject, novel, novel_cams, nsplits, cfg, tick, np.random.default_rng([cfg.seed, 5]))
+        nseq = _write_sequence(nroot, subject, novel, novel_cams + around, nsplits, cfg, tick, np.random.default_rng([cfg.seed, 5]),
+                               uncut=frozenset(c.index for c in around))
         _write_meshes(nroot / "meshes", head, nseq.vertices)
+        if subject.hair is not None:
+            _write_hair(nroot / "hair", subject, nseq.vertices, canonical=False)
         info["novel"] = {
             "folder": "gt/novel",
             "description": "held-out ground truth in the same VHAP layout and world frame: transforms_val.json = "
                            "neutral face from novel views, transforms_test.json = novel expressions from all novel views",
-            "cameras": len(novel_cams),
+            "cameras": len(novel_cams) + len(around),
             "timesteps": [{"timestep_index": i, "description": f.label} for i, f in enumerate(novel)],
         }
+        if around:
+            info["novel"]["description"] = (
+                "held-out ground truth in the same VHAP layout and world frame: transforms_val.json = neutral face "
+                "from the novel views (the arc in front and the views around the head), transforms_test.json = "
+                "novel expressions from the arc in front")
+            info["novel"]["view_groups"] = view_groups(novel_cams + around)
+            info["novel"]["view_group_definition"] = (
+                "azimuth of the camera about the head's vertical axis, 0 = facing the face: front up to 75 deg, "
+                "side 75-135 deg, back beyond 135 deg; the views around the head (cameras "
+                f"{around[0].index}-{around[-1].index}) are not cut at the neck line")
+    if subject.hair is not None:
+        assert subject.app.detail is not None
+        info["hair"] = {"folder": "gt/hair", "style": subject.app.detail.hair_style,
+                        "description": "hair volume off the scalp (not in model/): canonical.ply beside gt/canonical.ply, "
+                                       "{ti:05d}.ply posed per timestep like gt/meshes (gt/novel/hair for gt/novel), "
+                                       "rigid with the skull"}
     if subject.tracked is not None:
         info["model"]["expression_components"] = list(EXPRESSION_NAMES[: subject.tracked.n_keep])
         info["tracking"] = _tracking_info(subject.tracked, seq, n_train, nseq)
@@ -397,6 +474,26 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
                  cameras if len(cameras) > 1 else novel_cams, cfg)
     info["files"] = {k: str(Path(v).relative_to(root)) for k, v in model_paths.items()}
     write_json(root / "gt" / "info.json", info)
+
+
+VIEW_GROUPS = ("front", "side", "back")
+"""Held-out view groups by the camera's azimuth about the head (0 = facing the face)."""
+
+
+def view_group(camera: Camera) -> str:
+    """"front" (azimuth up to 75°), "side" (75–135°) or "back" (beyond 135°) of a camera looking at
+    the head (template frame: face +z, up +y)."""
+    c = camera.center
+    yaw = abs(math.degrees(math.atan2(c[0], c[2])))
+    return "front" if yaw <= 75.0 else ("side" if yaw <= 135.0 else "back")
+
+
+def view_groups(cameras: list[Camera]) -> dict[str, list[int]]:
+    """Camera indices per non-empty view group (:data:`VIEW_GROUPS` order)."""
+    out: dict[str, list[int]] = {g: [] for g in VIEW_GROUPS}
+    for c in cameras:
+        out[view_group(c)].append(int(c.index))
+    return {g: sorted(v) for g, v in out.items() if v}
 
 
 def _error_rows(seq: _Sequence, split_of: Callable[[int], str]) -> list[dict]:

@@ -7,7 +7,8 @@ avatar: the capture's own procedural albedo, Lambert shading, highlights and com
 (the darkening of :func:`~.appearance.crease_weights`, from the written mesh's own compression) on
 the written model posed with given parameters, through the same mesh renderer that wrote the
 images. Compared with the ground truth it measures what the tracking alone costs; on an exact
-capture it reproduces the ground-truth images.
+capture it reproduces the ground-truth images. A detailed subject's hair volume follows the
+written model's skull rigidly, as it follows the truth's in the images.
 
 It is a reference for benchmarks, not a bound in the strict sense: an avatar that blurs where the
 tracked silhouette is uncertain can score a higher PSNR on some images.
@@ -24,7 +25,7 @@ import numpy as np
 
 from ...errors import InputError
 from ..cameras import Camera
-from .appearance import crease_weights, render_head
+from .appearance import crease_weights
 from .capture import _Subject, make_subject, neck_line_mask
 from .config import SynthConfig
 from .model_files import flame_model
@@ -119,6 +120,6 @@ class TrackedTruth:
         the neck line like the capture's images."""
         verts, crease = self.pose(params)
         subj = self.subject
-        r = render_head(subj.head, verts, camera, subj.app, crease, supersample=self.config.supersample, specular=subj.specular)
+        r = subj.render(verts, camera, crease, self.config.supersample)
         neck = neck_line_mask(subj.head, verts, camera)[..., None]
         return (r.rgb * neck + (1.0 - neck)).astype(np.float32)

@@ -9,6 +9,9 @@ from ...errors import ConfigError
 
 REGIMES = ("multiview", "monocular", "oneshot")
 TRACKING_MODES = ("exact", "fitted")
+APPEARANCES = ("detailed", "smooth")
+NOVEL_AROUND_DEFAULT = 8
+"""Held-out views all around the head that :func:`preset` gives detailed monocular and one-shot captures."""
 TRACKED_FIELDS = ("expr_keep", "corrective_scale", "crease_depth_mm", "specular", "pose_noise_deg", "trans_noise_mm",
                   "fit_iterations")
 """Fields that only matter for ``tracking="fitted"`` (left out of :meth:`SynthConfig.to_dict` for exact captures)."""
@@ -36,7 +39,7 @@ class SynthConfig:
             fractional matte); 1 disables it.
         camera_distance: metres from the head centre to every multiview camera.
         view_height_m: vertical extent (metres) seen at the head centre by the multiview cameras.
-        mono_focal: normalised monocular focal length (fl = mono_focal·max(w, h), formats.md §1.8).
+        mono_focal: normalised monocular focal length (fl = mono_focal·max(w, h), docs/formats.md §1.6).
         novel_views: cameras of the held-out ground truth written to gt/ (monocular, oneshot).
         novel_expressions: held-out expressions of that ground truth (monocular, oneshot).
         tracking: "exact" — the written FLAME-format model and parameters are the ground truth;
@@ -54,6 +57,12 @@ class SynthConfig:
         trans_noise_mm: (fitted) typical length of the tracker's translation error in millimetres
             (per-axis standard deviation ``trans_noise_mm / √3``).
         fit_iterations: (fitted) Gauss–Newton iterations of the fit of the written model.
+        appearance: "detailed" — pixel-scale skin detail (pores, freckles, moles, fine lines,
+            optional stubble), brows, lashes and scalp hair as oriented strands, and hair volume
+            off the scalp (fringe, bob or bun), all varying with the seed (docs/synthetic.md);
+            "smooth" — the smooth head of earlier versions (same seed ⇒ the same bytes as they wrote).
+        novel_around: (monocular, oneshot) held-out views added all around the head (sides, back,
+            above) to the ``novel_views`` arc in front; 0 = the arc only (earlier versions).
     """
 
     regime: str = "multiview"
@@ -81,6 +90,8 @@ class SynthConfig:
     pose_noise_deg: float = 0.4
     trans_noise_mm: float = 1.2
     fit_iterations: int = 3
+    appearance: str = "smooth"
+    novel_around: int = 0
 
     def validate(self) -> "SynthConfig":
         """Raise ConfigError for impossible values; returns self."""
@@ -116,15 +127,24 @@ class SynthConfig:
             raise ConfigError("corrective_scale, crease_depth_mm, specular, pose_noise_deg and trans_noise_mm must be >= 0")
         if not 1 <= self.fit_iterations <= 50:
             raise ConfigError(f"fit_iterations must be 1..50, got {self.fit_iterations}")
+        if self.appearance not in APPEARANCES:
+            raise ConfigError(f"appearance must be one of {', '.join(APPEARANCES)}, got '{self.appearance}'")
+        if not 0 <= self.novel_around <= 64:
+            raise ConfigError(f"novel_around must be 0..64, got {self.novel_around}")
         return self
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form (JSON-safe). Exact captures leave out the fitted-only fields (and the
-        mode), so their files stay those of captures written before the tracked mode existed."""
+        mode), smooth ones the appearance and captures without views around the head
+        ``novel_around``, so their files stay those of captures written before these existed."""
         d = asdict(self)
         if self.tracking == "exact":
             for k in ("tracking", *TRACKED_FIELDS):
                 d.pop(k)
+        if self.appearance == "smooth":
+            d.pop("appearance")
+        if self.novel_around == 0:
+            d.pop("novel_around")
         return d
 
     @staticmethod
@@ -205,10 +225,15 @@ _REGIME_DEFAULTS: dict[tuple[str, str], dict[str, int]] = {
 
 
 def preset(name: str, regime: str = "multiview", **overrides: Any) -> SynthConfig:
-    """A named preset ("tiny", "small" or "default") for a regime, with optional field overrides (None ignored)."""
+    """A named preset ("tiny", "small" or "default") for a regime, with optional field overrides
+    (None ignored). Detailed monocular and one-shot captures get :data:`NOVEL_AROUND_DEFAULT`
+    held-out views around the head unless ``novel_around`` is given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown synth preset '{name}' (choose from {', '.join(PRESETS)})")
     if regime not in REGIMES:
         raise ConfigError(f"regime must be one of {', '.join(REGIMES)}, got '{regime}'")
     base = replace(PRESETS[name], regime=regime, **_REGIME_DEFAULTS.get((name, regime), {}))
-    return base.with_overrides(**overrides)
+    cfg = base.with_overrides(**overrides)
+    if cfg.appearance == "detailed" and regime != "multiview" and overrides.get("novel_around") is None:
+        cfg = replace(cfg, novel_around=NOVEL_AROUND_DEFAULT).validate()
+    return cfg

@@ -82,9 +82,11 @@ class HeadModel:
         eye_dir: (V, 3) unit direction from the eyeball centre (eyeball vertices; zeros elsewhere).
         mouth_depth: (V,) 0 at the lips .. 1 at the back of the mouth pocket.
         masks: region name -> sorted int64 vertex ids (FLAME_masks.pkl keys).
-        neck_line: vertex ids (left, right, front-bottom) for the neck-line rule (formats.md §1.1).
+        neck_line: vertex ids (left, right, front-bottom) for the neck-line rule (docs/formats.md §1.1).
         mouth_y: height of the mouth slit in the template.
         slit_pairs: (n, 2) int64 (upper, lower) vertex ids that coincide on the closed mouth slit.
+        grid_shape: (rows, cols) of the skin grid: vertex 0 is the top pole, grid vertex (r, c) is
+            ``1 + r·cols + c`` (rows from the top to the neck base, columns around the head).
     """
 
     v_template: np.ndarray
@@ -101,6 +103,7 @@ class HeadModel:
     neck_line: tuple[int, int, int] = (0, 0, 0)
     mouth_y: float = 0.0
     slit_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    grid_shape: tuple[int, int] = (0, 0)
 
     @property
     def n_vertices(self) -> int:
@@ -437,6 +440,7 @@ def build_head(head_rows: int = 110, head_cols: int = 144, eye_rows: int = 12, e
         neck_line=neck_line,
         mouth_y=mouth_y,
         slit_pairs=np.array([[idx[r_m, j], lower_copy[int(j)]] for j in slit_cols], dtype=np.int64),
+        grid_shape=(int(R), int(C)),
     )
 
 

@@ -158,6 +158,30 @@ def arc_cameras(rng: np.random.Generator, n: int, width: int, height: int, dista
     return cams
 
 
+def around_cameras(rng: np.random.Generator, n: int, width: int, height: int, distance: float, view_height: float,
+                   first_index: int = 0) -> list[Camera]:
+    """``n`` cameras around the sides and back of the head: azimuths evenly from 90° (the subject's
+    left) over the back to 270° (the right), elevations alternating 5° and 30° (above, seeing the
+    crown); same distance and framing as :func:`arc_cameras`, indices from ``first_index``."""
+    fl = height * distance / view_height
+    cams = []
+    for k in range(n):
+        yaw = np.deg2rad(90.0 + 180.0 * k / max(n - 1, 1))
+        elev = np.deg2rad(30.0 if k % 2 else 5.0)
+        eye = distance * np.array([np.sin(yaw) * np.cos(elev), np.sin(elev), np.cos(yaw) * np.cos(elev)])
+        target = np.array([0.0, -0.005, 0.0]) + rng.normal(0.0, 0.004, 3)
+        K = np.array(
+            [
+                [fl * rng.uniform(0.99, 1.01), 0.0, width / 2 + rng.uniform(-0.02, 0.02) * width],
+                [0.0, fl, height / 2 + rng.uniform(-0.02, 0.02) * height],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        i = first_index + k
+        cams.append(Camera(K, look_at(eye, target), width, height, i, f"{222200000 + 37 * i}"))
+    return cams
+
+
 def monocular_camera(width: int, height: int, focal: float) -> Camera:
     """VHAP's monocular convention: c2w rotation I at (0, 0, 1) in OpenGL, centred principal point."""
     fl = focal * max(width, height)

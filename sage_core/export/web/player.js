@@ -1,7 +1,8 @@
 // sage web player: plays a surfel avatar posed on the GPU from per-frame FLAME mesh vertices.
 // Data: window.SAGE_AVATAR (avatar.js, written by `sage export --web`; layout in sage_core/export/web.py).
 // URL query: frame=i (show frame i, paused), camera=ref (the capture's reference camera at its pixel
-// size; default: an orbit camera starting there), ui=0 (hide the controls).
+// size; default: an orbit camera starting there), ui=0 (hide the controls), speed=x (playback speed).
+// Keys: space play / pause, R reset the view.
 "use strict";
 (function () {
   const doc = window.SAGE_AVATAR;
@@ -12,7 +13,11 @@
   const playBtn = document.getElementById("play");
   const slider = document.getElementById("slider");
   const label = document.getElementById("label");
+  const speedSel = document.getElementById("speed");
+  const resetBtn = document.getElementById("reset");
+  const fpsLabel = document.getElementById("fps");
   window.sageReady = false;
+  window.sageFps = 0;
 
   function fail(text) {
     msg.textContent = text;
@@ -34,6 +39,12 @@
   const scl = new Float32Array(buf, 40 * N, N * 2);
   const rgba = new Uint8Array(buf, 48 * N, N * 4);
   const qverts = new Int16Array(buf, 52 * N, T * V * 3);
+  let off = 52 * N + 6 * T * V;
+  const frameCols = doc.frame_colors ? new Uint8Array(buf, off, T * N * 3) : null;
+  if (doc.frame_colors) off += T * N * 3;
+  const frameDq = doc.frame_correction ? new Int8Array(buf, off, T * N * 4) : null;
+  if (doc.frame_correction) off += T * N * 4;
+  const frameLf = doc.frame_correction ? new Int8Array(buf, off, T * N * 2) : null;
   const vs = doc.vert_scale, vo = doc.vert_offset;
 
   const TW = 1024;
@@ -67,14 +78,23 @@
   const texCol = makeTexture(gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, colData, N);
   const vertData = new Float32Array(TW * texHeight(V) * 4);
   const texVert = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, vertData, V);
+  // phase 2's surfel correction of the frame: local rotation dq (wxyz) and log scale factors
+  const dqData = new Float32Array(padN * 4), lfData = new Float32Array(padN * 4);
+  for (let i = 0; i < N; i++) dqData[4 * i] = 1;
+  const texDq = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, dqData, N);
+  const texLf = makeTexture(gl.RGBA32F, gl.RGBA, gl.FLOAT, lfData, N);
 
   // ------------------------------------------------------------------ shaders
+  // The surfel rasterizer's maths per pixel (sage_core/render/_project.py): the splat->pixel matrix M
+  // (rows Tu, Tv, Tw) in OpenCV pixel coordinates, the ray-splat intersection (u, v) of each pixel,
+  // rho = min(u^2 + v^2, 2 |c - x|^2) with the low-pass centre c the exact 3-sigma box centre, and the
+  // pixels drawn those of the surfel's 16x16 tiles where alpha can reach 1/255.
   const VS = `#version 300 es
   precision highp float; precision highp int; precision highp usampler2D;
-  uniform highp sampler2D uVert, uMu, uRot, uCol; uniform usampler2D uTri;
-  uniform mat4 uView, uProj; uniform vec2 uSize;
+  uniform highp sampler2D uVert, uMu, uRot, uCol, uDq, uLf; uniform usampler2D uTri;
+  uniform mat4 uView; uniform vec2 uSize; uniform vec4 uK; uniform float uNear;
   in uint aId;
-  out vec2 vUV; out vec4 vColor; flat out vec2 vCentre;
+  flat out vec3 vTu, vTv, vTw; flat out vec2 vCentre; out vec4 vColor;
   ivec2 px(uint i) { return ivec2(int(i % ${TW}u), int(i / ${TW}u)); }
   vec3 vert(uint i) { return texelFetch(uVert, px(i), 0).xyz; }
   mat3 quatMat(vec4 q) {
@@ -84,7 +104,8 @@
                 2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
                 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
   }
-  const vec2 corners[4] = vec2[4](vec2(-1.0, -1.0), vec2(1.0, -1.0), vec2(-1.0, 1.0), vec2(1.0, 1.0));
+  const vec2 corners[4] = vec2[4](vec2(0.0, 0.0), vec2(1.0, 0.0), vec2(0.0, 1.0), vec2(1.0, 1.0));
+  void cull() { gl_Position = vec4(0.0, 0.0, 2.0, 1.0); }
   void main() {
     uvec4 t = texelFetch(uTri, px(aId), 0);
     vec3 v0 = vert(t.x), v1 = vert(t.y), v2 = vert(t.z);
@@ -96,28 +117,64 @@
     float k = 0.5 * (length(e1) + abs(dot(a2, e2)));
     mat3 R = mat3(a0, a1, a2);
     vec4 m = texelFetch(uMu, px(aId), 0);
-    mat3 Rs = R * quatMat(texelFetch(uRot, px(aId), 0));
+    mat3 Rs = R * quatMat(texelFetch(uRot, px(aId), 0)) * quatMat(texelFetch(uDq, px(aId), 0));
     vec3 centre = k * (R * m.xyz) + (v0 + v1 + v2) / 3.0;
-    vec2 s = k * vec2(m.w, uintBitsToFloat(t.w));
-    vec2 c = corners[gl_VertexID] * 3.0;
-    vec3 world = centre + c.x * s.x * Rs[0] + c.y * s.y * Rs[1];
-    gl_Position = uProj * uView * vec4(world, 1.0);
-    vec4 cc = uProj * uView * vec4(centre, 1.0);
-    vCentre = vec2((cc.x / cc.w + 1.0) * 0.5 * uSize.x, (1.0 - cc.y / cc.w) * 0.5 * uSize.y);
-    vUV = c;
+    vec2 s = k * vec2(m.w, uintBitsToFloat(t.w)) * exp(texelFetch(uLf, px(aId), 0).xy);
     vColor = texelFetch(uCol, px(aId), 0);
-    if (cc.w <= 0.0) gl_Position = vec4(0.0, 0.0, 2.0, 1.0);
+    // OpenCV camera frame: the GL view matrix is diag(1, -1, -1) * w2c
+    mat3 V = mat3(uView);
+    vec3 flip = vec3(1.0, -1.0, -1.0);
+    vec3 pc = flip * (uView * vec4(centre, 1.0)).xyz;
+    vec3 ta = flip * (V * (Rs[0] * s.x)), tb = flip * (V * (Rs[1] * s.y)), nc = flip * (V * Rs[2]);
+    mat3 K = mat3(uK.x, 0.0, 0.0, 0.0, uK.y, 0.0, uK.z, uK.w, 1.0);
+    vec3 ca = K * ta, cb = K * tb, cc = K * pc;  // columns of M
+    vec3 Tu = vec3(ca.x, cb.x, cc.x), Tv = vec3(ca.y, cb.y, cc.y), Tw = vec3(ca.z, cb.z, cc.z);
+    float c2 = 9.0;
+    float d = c2 * (Tw.x * Tw.x + Tw.y * Tw.y) - Tw.z * Tw.z;
+    if (pc.z <= uNear || d >= 0.0 || dot(pc, nc) == 0.0) { cull(); return; }
+    float cx = (c2 * (Tu.x * Tw.x + Tu.y * Tw.y) - Tu.z * Tw.z) / d;
+    float cy = (c2 * (Tv.x * Tw.x + Tv.y * Tw.y) - Tv.z * Tw.z) / d;
+    float uu = (c2 * (Tu.x * Tu.x + Tu.y * Tu.y) - Tu.z * Tu.z) / d;
+    float vv = (c2 * (Tv.x * Tv.x + Tv.y * Tv.y) - Tv.z * Tv.z) / d;
+    float r = ceil(max(max(sqrt(max(cx * cx - uu, 1e-4)), sqrt(max(cy * cy - vv, 1e-4))), 3.0 * 0.70710678));
+    vec2 gridN = ceil(uSize / 16.0);
+    vec2 c0 = vec2(cx, cy) - 0.5;  // pixel-index coordinates
+    vec2 tile0 = clamp(floor((c0 - r) / 16.0), vec2(0.0), gridN);
+    vec2 tile1 = clamp(floor((c0 + r + 15.0) / 16.0), vec2(0.0), gridN);
+    if (tile1.x <= tile0.x || tile1.y <= tile0.y) { cull(); return; }
+    // where alpha can reach 1/255: rho <= B, the projected disc of radius sqrt(B) and a square around c
+    float B = max(0.0, 2.0 * log(max(255.0 * vColor.a, 1e-30)));
+    vec2 lo = tile0 * 16.0, hi = tile1 * 16.0;
+    vec2 blo = lo, bhi = hi;
+    float dB = B * (Tw.x * Tw.x + Tw.y * Tw.y) - Tw.z * Tw.z;
+    if (dB < 0.0) {
+      float bx = (B * (Tu.x * Tw.x + Tu.y * Tw.y) - Tu.z * Tw.z) / dB;
+      float by = (B * (Tv.x * Tw.x + Tv.y * Tw.y) - Tv.z * Tw.z) / dB;
+      float hx = sqrt(max(bx * bx - (B * (Tu.x * Tu.x + Tu.y * Tu.y) - Tu.z * Tu.z) / dB, 0.0));
+      float hy = sqrt(max(by * by - (B * (Tv.x * Tv.x + Tv.y * Tv.y) - Tv.z * Tv.z) / dB, 0.0));
+      float q = sqrt(B / 2.0);
+      blo = min(vec2(bx - hx, by - hy), vec2(cx, cy) - q) - 1.0;
+      bhi = max(vec2(bx + hx, by + hy), vec2(cx, cy) + q) + 1.0;
+    }
+    lo = max(lo, blo); hi = min(hi, bhi);
+    if (hi.x <= lo.x || hi.y <= lo.y) { cull(); return; }
+    vec2 p = mix(lo, hi, corners[gl_VertexID]);
+    gl_Position = vec4(2.0 * p.x / uSize.x - 1.0, 1.0 - 2.0 * p.y / uSize.y, 0.0, 1.0);
+    vTu = Tu; vTv = Tv; vTw = Tw; vCentre = vec2(cx, cy);
   }`;
   const FS = `#version 300 es
   precision highp float;
-  uniform vec2 uSize;
-  in vec2 vUV; in vec4 vColor; flat in vec2 vCentre;
+  uniform vec2 uSize; uniform float uNear;
+  flat in vec3 vTu, vTv, vTw; flat in vec2 vCentre; in vec4 vColor;
   out vec4 outColor;
   void main() {
-    vec2 p = vec2(gl_FragCoord.x, uSize.y - gl_FragCoord.y);
-    vec2 d = p - vCentre;
-    float rho = min(dot(vUV, vUV), 2.0 * dot(d, d));
-    if (rho > 9.0) discard;
+    vec2 p = vec2(gl_FragCoord.x, uSize.y - gl_FragCoord.y);  // OpenCV pixel coordinates, centres at +0.5
+    vec3 h = cross(p.x * vTw - vTu, p.y * vTw - vTv);
+    if (h.z == 0.0) discard;
+    vec2 uv = h.xy / h.z;
+    if (dot(vTw, vec3(uv, 1.0)) < uNear) discard;  // the intersection lies before the near plane
+    vec2 d = vCentre - p;
+    float rho = min(dot(uv, uv), 2.0 * dot(d, d));
     float a = min(0.99, vColor.a * exp(-0.5 * rho));
     if (a < 1.0 / 255.0) discard;
     outColor = vec4(vColor.rgb * a, a);
@@ -138,8 +195,9 @@
   } catch (e) { fail("shader error: " + e.message); return; }
   gl.useProgram(prog);
   const U = {};
-  for (const name of ["uVert", "uMu", "uRot", "uCol", "uTri", "uView", "uProj", "uSize"]) U[name] = gl.getUniformLocation(prog, name);
-  [[texVert, "uVert"], [texMu, "uMu"], [texRot, "uRot"], [texCol, "uCol"], [texTri, "uTri"]].forEach(([tex, name], unit) => {
+  for (const name of ["uVert", "uMu", "uRot", "uCol", "uTri", "uDq", "uLf", "uView", "uSize", "uK", "uNear"]) U[name] = gl.getUniformLocation(prog, name);
+  const UNITS = [[texVert, "uVert"], [texMu, "uMu"], [texRot, "uRot"], [texCol, "uCol"], [texTri, "uTri"], [texDq, "uDq"], [texLf, "uLf"]];
+  UNITS.forEach(([tex, name], unit) => {
     gl.activeTexture(gl.TEXTURE0 + unit);
     gl.bindTexture(gl.TEXTURE_2D, tex);
     gl.uniform1i(U[name], unit);
@@ -170,6 +228,26 @@
     gl.activeTexture(gl.TEXTURE0);  // texVert's unit
     gl.bindTexture(gl.TEXTURE_2D, texVert);
     gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(V), gl.RGBA, gl.FLOAT, vertData);
+    if (frameCols) {  // this frame's colours (wrinkles, shading at the pose)
+      const b = f * N * 3;
+      for (let i = 0; i < N; i++) for (let c = 0; c < 3; c++) colData[4 * i + c] = frameCols[b + 3 * i + c];
+      gl.activeTexture(gl.TEXTURE3);  // texCol's unit
+      gl.bindTexture(gl.TEXTURE_2D, texCol);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(N), gl.RGBA, gl.UNSIGNED_BYTE, colData);
+    }
+    if (frameDq) {  // this frame's surfel correction
+      const b4 = f * N * 4, b2 = f * N * 2, lfs = doc.log_factor_scale;
+      for (let i = 0; i < N; i++) {
+        for (let c = 0; c < 4; c++) dqData[4 * i + c] = frameDq[b4 + 4 * i + c] / 127;
+        lfData[4 * i] = frameLf[b2 + 2 * i] / lfs; lfData[4 * i + 1] = frameLf[b2 + 2 * i + 1] / lfs;
+      }
+      gl.activeTexture(gl.TEXTURE5);
+      gl.bindTexture(gl.TEXTURE_2D, texDq);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(N), gl.RGBA, gl.FLOAT, dqData);
+      gl.activeTexture(gl.TEXTURE6);
+      gl.bindTexture(gl.TEXTURE_2D, texLf);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TW, texHeight(N), gl.RGBA, gl.FLOAT, lfData);
+    }
     // surfel centres on the CPU, only to sort them (the GPU poses everything it draws)
     for (let i = 0; i < N; i++) {
       const i0 = 3 * tri[3 * i], i1 = 3 * tri[3 * i + 1], i2 = 3 * tri[3 * i + 2];
@@ -221,6 +299,8 @@
   const up = [-R0[1][0], -R0[1][1], -R0[1][2]];  // the reference camera's up (OpenCV y points down)
   let axes = [R0[0].slice(), R0[1].slice(), R0[2].slice()];  // camera x, y, z in world (rows)
   let dist = Math.hypot(camCentre[0] - target[0], camCentre[1] - target[1], camCentre[2] - target[2]);
+  const home = { axes: axes.map(a => a.slice()), dist };
+  function resetView() { axes = home.axes.map(a => a.slice()); dist = home.dist; dirty = true; }
   function rotateAbout(v, axis, ang) {  // Rodrigues
     const c = Math.cos(ang), s = Math.sin(ang);
     const d = axis[0] * v[0] + axis[1] * v[1] + axis[2] * v[2];
@@ -248,17 +328,7 @@
     view[15] = 1;
     return { view, fx, fy, cx, cy, width, height };
   }
-  function projection(s, near, far) {  // OpenCV intrinsics -> GL clip (pixel centres at i + 0.5)
-    const P = new Float32Array(16);
-    P[0] = 2 * s.fx / s.width;
-    P[5] = 2 * s.fy / s.height;
-    P[8] = 1 - 2 * s.cx / s.width;
-    P[9] = 2 * s.cy / s.height - 1;
-    P[10] = -(far + near) / (far - near);
-    P[11] = -1;
-    P[14] = -2 * far * near / (far - near);
-    return P;
-  }
+
 
   // ------------------------------------------------------------------ drawing and controls
   let frame = Math.max(0, Math.min(T - 1, parseInt(query.get("frame") || "0", 10) || 0));
@@ -283,7 +353,17 @@
   function setPlaying(p) { playing = p && T > 1; playBtn.textContent = playing ? "pause" : "play"; }
   setPlaying(playing);
   playBtn.onclick = () => setPlaying(!playing);
-  window.addEventListener("keydown", e => { if (e.code === "Space") { setPlaying(!playing); e.preventDefault(); } });
+  window.addEventListener("keydown", e => {
+    if (e.code === "Space") { setPlaying(!playing); e.preventDefault(); }
+    if (e.code === "KeyR") resetView();
+  });
+  resetBtn.onclick = resetView;
+  let speed = parseFloat(query.get("speed") || "1");
+  if (!(speed > 0)) speed = 1;
+  if (![...speedSel.options].some(o => parseFloat(o.value) === speed)) speedSel.add(new Option(speed + "x", String(speed)));
+  speedSel.value = String(speed);
+  speedSel.onchange = () => { speed = parseFloat(speedSel.value); start = performance.now(); startFrame = frame; };
+  window.sageSpeed = () => speed;
   slider.oninput = () => { frame = parseInt(slider.value, 10); setPlaying(false); dirty = true; };
   let drag = null;
   canvas.addEventListener("pointerdown", e => { drag = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); });
@@ -301,6 +381,7 @@
 
   const bg = doc.background;
   let start = performance.now(), startFrame = frame;
+  let drawn = 0, fpsSince = performance.now();
   function draw() {
     if (frame !== loadedFrame) loadFrame(frame);
     const s = cameraState();
@@ -314,8 +395,9 @@
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
     gl.useProgram(prog);
     gl.uniformMatrix4fv(U.uView, false, s.view);
-    gl.uniformMatrix4fv(U.uProj, false, projection(s, 0.01, 100.0));
     gl.uniform2f(U.uSize, s.width, s.height);
+    gl.uniform4f(U.uK, s.fx, s.fy, s.cx, s.cy);
+    gl.uniform1f(U.uNear, doc.near || 0.2);
     gl.bindVertexArray(vao);
     gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, N);
     slider.value = String(frame);
@@ -324,17 +406,23 @@
   }
   function tick(now) {
     if (playing) {
-      const f = (startFrame + Math.floor((now - start) / 1000 * doc.fps)) % T;
+      const f = (startFrame + Math.floor((now - start) / 1000 * doc.fps * speed)) % T;
       if (f !== frame) { frame = f; dirty = true; }
     } else {
       start = now; startFrame = frame;
     }
     if (dirty) {
       draw();
+      drawn++;
       dirty = false;
       if (!window.sageReady && (requested < 0 || frame === requested)) {
         requestAnimationFrame(() => { window.sageReady = true; });
       }
+    }
+    if (now - fpsSince >= 500) {  // frames drawn per second over the last half second
+      window.sageFps = drawn * 1000 / (now - fpsSince);
+      fpsLabel.textContent = drawn ? `${window.sageFps.toFixed(1)} fps` : "idle";
+      drawn = 0; fpsSince = now;
     }
     requestAnimationFrame(tick);
   }

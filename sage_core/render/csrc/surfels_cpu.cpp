@@ -703,7 +703,7 @@ inline S dot3(const S* a, const S* b) {
   return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2];
 }
 
-// The projection of one surfel (rendering.md 1.2, 1.7), in the input dtype as in _project.py.
+// The projection of one surfel (docs/rendering.md §1.2, 1.7), in the input dtype as in _project.py.
 template <typename S>
 struct SurfelProj {
   S q[4];      // unit quaternion (w, x, y, z)
