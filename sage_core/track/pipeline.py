@@ -445,7 +445,7 @@ def _read_png(path: Path) -> np.ndarray:
 
 def _write_report(root: Path, r: TrackResult, source: Any, cfg: TrackConfig, model_path: Path, masks_file: Path | None,
                   cameras: Any, embedding: Any, device: str, seed: int, t_start: float) -> None:
-    from .. import __version__
+    from .._version import __version__
     from .capture_writer import write_json
 
     write_json(root / "track" / "config.json", to_dict(cfg))
