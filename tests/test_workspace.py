@@ -314,3 +314,27 @@ def test_an_up_to_date_stage_is_skipped_while_another_process_holds_the_lock(tmp
     # the files a manifest lists must exist for the stage to count as up to date
     (ws.stage_dir("ingest") / "out.txt").unlink()
     assert not stage_up_to_date(ws, "ingest", config_hash(_ToyConfig(1)), seed=3)
+
+
+def test_ingest_manifest_records_no_absolute_path(tiny_ws):
+    """The ingest manifest names the capture relative to the workspace, so a workspace copied beside
+    its capture stays whole and carries no path of the machine it was made on."""
+    import json
+    import os
+
+    m = json.loads((tiny_ws / "data" / "manifest.json").read_text())
+
+    def strings(x):
+        if isinstance(x, dict):
+            for v in x.values():
+                yield from strings(v)
+        elif isinstance(x, list):
+            for v in x:
+                yield from strings(v)
+        elif isinstance(x, str):
+            yield x
+
+    assert not [s for s in strings(m) if s.startswith("/") or str(tiny_ws.parent) in s]
+    rel = m["inputs"]["files"]["dataset"]
+    capture = (tiny_ws / rel).resolve()
+    assert (capture / "transforms.json").is_file() and os.path.isabs(rel) is False

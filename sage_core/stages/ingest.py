@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,7 +66,8 @@ def ingest_stage(
         external["flame_masks"] = file_fingerprint(masks)
     for name in sorted(p.name for p in dataset.glob("transforms*.json")):
         external[name] = file_fingerprint(dataset / name)
-    external["dataset"] = str(dataset.resolve())
+    # the capture folder relative to the workspace, so a workspace copied beside its capture stays whole
+    external["dataset"] = Path(os.path.relpath(dataset.resolve(), w.root.resolve())).as_posix()
     external["capture_content"] = capture_fingerprint(capture, w.root / HASH_CACHE if w.root.is_dir() else None)
 
     result = IngestResult("ingest", w.root)
