@@ -51,9 +51,13 @@ def _refused(tmp_path: Path, model: Path, inp: Path, code: int, text: str, *extr
 def test_bad_photos_are_refused(tmp_path, model):
     import cv2
 
+    from skimage import data
+
     img = astronaut()
-    _refused(tmp_path, model, write_png(tmp_path / "wall.png", np.ones((200, 200, 3), np.float32) * 0.7), 2, "no face found")
+    # a real photograph without a face (the detector alone sees one in it turned sideways)
+    _refused(tmp_path, model, write_png(tmp_path / "coffee.png", (data.coffee() / 255.0).astype(np.float32)), 2, "no face found")
     _refused(tmp_path, model, write_png(tmp_path / "side.png", np.ascontiguousarray(np.rot90(img))), 2, "rotate it upright")
+    _refused(tmp_path, model, write_png(tmp_path / "upside.png", np.ascontiguousarray(img[::-1, ::-1])), 2, "turned 180°")
     face = img[40:220, 130:320]
     _refused(tmp_path, model, write_png(tmp_path / "two.png", np.concatenate([face, face], 1)), 2, "2 faces found")
     canvas = np.ones((96, 96, 3), np.float32)

@@ -4,8 +4,9 @@
 :class:`FaceObservation`, or raises :class:`FaceProblem` saying why the image cannot be tracked:
 
 - ``no-face``: nothing detected (also when the landmark model finds no face in the detected box);
-- ``rotated``: no upright face, but one appears when the image is turned by 90°, 180° or 270°, or
-  the face's eye line is tilted beyond ``max_roll_deg``;
+- ``rotated``: no upright face, but one appears when the image is turned by 90°, 180° or 270°; or
+  the face's eye line is tilted beyond ``max_roll_deg``; or an unsure upright face (an upside-down
+  face can pass for one) is found much more surely in a turned view;
 - ``two-faces``: a second face at least ``second_face_ratio`` of the main face's width;
 - ``tiny-face``: the face is narrower than ``min_face_px``.
 """
@@ -21,6 +22,10 @@ from .face_mesh import FaceLandmarks, FaceMesh
 from .weights import ModelPaths
 
 PROBLEM_KINDS = ("no-face", "rotated", "two-faces", "tiny-face")
+UNSURE_SCORE = 0.75
+"""An upright detection scoring below this is compared with the image turned by 90°, 180° and 270°."""
+TURNED_MARGIN = 0.2
+"""... and the image is refused as turned when a turned view scores higher by this much."""
 
 
 class FaceProblem(Exception):
@@ -77,11 +82,14 @@ class FaceObserver:
         self.second_face_ratio = float(second_face_ratio)
         self.max_roll = np.deg2rad(max_roll_deg)
 
-    def _turned(self, image: np.ndarray) -> int | None:
-        """The clockwise turn (90, 180, 270) that shows a face, or None."""
+    def _turned(self, image: np.ndarray, above: float = 0.0) -> int | None:
+        """The clockwise turn (90, 180, 270) that shows a face with a detector score above ``above``, or
+        None. A turned detection counts only when the landmark model confirms it (presence at least
+        ``min_presence``): the detector alone finds faces in patterns such as a cup seen sideways."""
         for k, deg in ((1, 270), (2, 180), (3, 90)):
-            dets = self.detector(np.rot90(image, k))
-            if dets and abs(dets[0].roll) < self.max_roll:
+            turned = np.ascontiguousarray(np.rot90(image, k))
+            dets = [d for d in self.detector(turned) if d.score > above]
+            if dets and abs(dets[0].roll) < self.max_roll and self.mesh(turned, dets[0]).presence >= self.min_presence:
                 return deg
         return None
 
@@ -106,6 +114,11 @@ class FaceObserver:
             deg = float(np.rad2deg(main.roll))
             raise FaceProblem("rotated", f"the face is tilted by {deg:+.0f}° in the image plane (more than "
                                          f"{np.rad2deg(self.max_roll):.0f}°): the image is sideways or upside down; rotate it upright")
+        if main.score < UNSURE_SCORE:  # an upside-down face can pass for an upright one at a low score
+            turn = self._turned(image, main.score + TURNED_MARGIN)
+            if turn is not None:
+                raise FaceProblem("rotated", f"the face is clearer when the image is turned {turn}° clockwise: the image is "
+                                             "sideways or upside down; rotate it upright")
         if main.width < self.min_face_px:
             raise FaceProblem("tiny-face", f"the face is {main.width:.0f} px wide, less than the {self.min_face_px:.0f} px needed; "
                                            "use a larger image or crop closer to the face")
