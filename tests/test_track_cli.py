@@ -71,7 +71,7 @@ def test_bad_files_and_options_are_refused(tmp_path, model):
     _refused(tmp_path, model, bad, 2, "clip.mp4")
     photo = write_png(tmp_path / "me.png", astronaut())
     _refused(tmp_path, model, photo, 3, "regime sv-hr needs several frames", "--regime", "sv-hr")
-    _refused(tmp_path, model, photo, 3, "needs calibrated cameras", "--regime", "mv-sf")
+    _refused(tmp_path, model, photo, 3, "needs calibrated cameras", "--regime", "mv")
     _refused(tmp_path, model, photo, 3, "regime = 'x'", "--regime", "x")
     res = invoke(["track", photo, tmp_path / "o", "--flame-model", tmp_path / "nope.pkl", *TINY])
     assert res.exit_code == 2 and "FLAME model file not found" in res.output
@@ -160,7 +160,7 @@ def test_calibrated_rig(tmp_path, tiny_capture, model, embedding):
     shutil.copytree(tiny_capture / "model", sub / "model")
     inp, cams = input_from_capture(sub, tmp_path / "in")
     out = tmp_path / "cap"
-    res = invoke(["track", inp, out, "--flame-model", model, "--cameras", cams, *TINY, "--landmark-embedding", embedding,
+    res = invoke(["track", inp, out, "--flame-model", model, "--cameras", cams, "--regime", "mv", *TINY, "--landmark-embedding", embedding,
                   "--set", "steps=120", "--set", "refine_steps=10"])
     assert res.exit_code == 0, res.output
     report = json.loads((out / "track" / "report.json").read_text())

@@ -15,7 +15,7 @@ def track(
     input_path: Annotated[Path, typer.Argument(metavar="INPUT", help="One image, a folder of images, a video (mp4, mov, ...), or a folder of camera folders (with --cameras).")],
     out: Annotated[Path, typer.Argument(help="Capture folder to write (VHAP / GaussianAvatars layout, read by `sage ingest`).")],
     flame_model: Annotated[Path, typer.Option("--flame-model", help="FLAME-format model: official pickle (generic_model.pkl, flame2023.pkl) or a converted .npz.")],
-    regime: Annotated[Optional[str], typer.Option("--regime", help="one-shot | sv-hr | mv-sf | mv-mf (default: from the input: one image one-shot, a sequence sv-hr, cameras mv-sf / mv-mf).")] = None,
+    regime: Annotated[Optional[str], typer.Option("--regime", help="one-shot | sv-hr | mv (mv-sf for one timestep of a rig, mv-mf for several) | mv-sf | mv-mf (default: from the input: one image one-shot, a sequence sv-hr, cameras mv).")] = None,
     cameras: Annotated[Optional[Path], typer.Option("--cameras", help="Calibrated cameras of a multiview input: COLMAP text model (folder, cameras.txt or images.txt) or a VHAP / NeRF transforms.json.")] = None,
     flame_masks: Annotated[Optional[Path], typer.Option("--flame-masks", help="FLAME_masks.pkl region masks (default: beside the model); its scalp region lets the fit add hair volume.")] = None,
     landmark_embedding: Annotated[Optional[Path], typer.Option("--landmark-embedding", help="MediaPipe landmark embedding of the model (FLAME's mediapipe_landmark_embedding.npz, or one an earlier run wrote to OUT/track/); default: calibrated on the model.")] = None,

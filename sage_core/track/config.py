@@ -12,6 +12,9 @@ from ..errors import ConfigError
 
 REGIMES: tuple[str, ...] = ("mv-sf", "mv-mf", "sv-hr", "one-shot")
 """The regimes ``sage ingest`` and ``sage run`` accept; ``sage track`` writes a capture for one of them."""
+REGIME_ALIASES: dict[str, str] = {"mv": "mv", "multiview": "mv", "monocular": "sv-hr", "oneshot": "one-shot"}
+"""Other spellings ``--regime`` takes: ``mv`` (or ``multiview``) is mv-sf for one timestep of a rig and
+mv-mf for several; ``monocular`` and ``oneshot`` are the ``sage synth`` names."""
 TRACK_PRESETS: tuple[str, ...] = ("tiny", "default")
 
 
@@ -26,8 +29,9 @@ class TrackConfig:
     """``sage track``: FLAME parameters, cameras and masks from images or a video."""
 
     regime: str | None = _opt(None, "Regime of the capture written: one-shot (one image), sv-hr (one camera, several frames), "
-                                    "mv-sf / mv-mf (calibrated cameras; needs a cameras file). None: from the input.",
-                              choices=REGIMES)
+                                    "mv-sf / mv-mf (calibrated cameras; needs a cameras file), mv (mv-sf or mv-mf by the "
+                                    "number of timesteps). None: from the input.",
+                              choices=REGIMES + tuple(REGIME_ALIASES))
     # -- input ---------------------------------------------------------------------------------
     fps: float | None = _opt(None, "Video: track this many frames per second (None: every frame).", gt=0)
     max_frames: int | None = _opt(None, "Track at most this many frames, evenly spaced (None: all).", ge=1)

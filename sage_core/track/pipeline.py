@@ -106,6 +106,19 @@ def infer_regime(kind: str, n_timesteps: int) -> str:
     return "one-shot" if kind == "image" or n_timesteps == 1 else "sv-hr"
 
 
+def resolve_regime(regime: str | None, kind: str, n_timesteps: int) -> str:
+    """The regime to write: the one asked for (an alias of :data:`REGIME_ALIASES` resolved; ``mv`` by
+    the input's timesteps), or the input's own (:func:`infer_regime`)."""
+    from .config import REGIME_ALIASES
+
+    regime = REGIME_ALIASES.get(regime, regime) if regime else None
+    if regime is None:
+        return infer_regime(kind, n_timesteps)
+    if regime == "mv":
+        return "mv-sf" if n_timesteps == 1 else "mv-mf"
+    return regime
+
+
 def check_regime(regime: str, kind: str, n_timesteps: int, source: Path) -> None:
     """ConfigError when the regime does not fit the input."""
     if regime in ("mv-sf", "mv-mf") and kind != "multiview":
@@ -199,7 +212,7 @@ def track_capture(
 
         emb_given = load_embedding(landmark_embedding, model.n_faces)
     source = read_source(input_path, cameras, cfg.fps, cfg.max_frames)
-    regime = cfg.regime or infer_regime(source.kind, len(source.timesteps))
+    regime = resolve_regime(cfg.regime, source.kind, len(source.timesteps))
     check_regime(regime, source.kind, len(source.timesteps), source.path)
     if out.resolve() == source.path.resolve() or source.path.resolve() in out.resolve().parents:
         raise ConfigError(f"the output folder {out} lies inside the input {source.path}")
