@@ -82,20 +82,31 @@ def test_bad_files_and_options_are_refused(tmp_path, model):
     assert res.exit_code == 3 and "--force" in res.output and (occupied / "keep.txt").read_text() == "mine"
 
 
-@pytest.fixture(scope="module")
-def oneshot(tmp_path_factory):
-    from sage_core.data.synthetic import make_capture, preset
+def _sub_capture(capture: Path, dst: Path, cameras: tuple[int, ...], timesteps: tuple[int, ...]) -> Path:
+    """The frames of ``cameras`` x ``timesteps`` of a synthetic capture, with its truth, as a capture of their own."""
+    import shutil
 
-    models_or_skip()
-    return make_capture(tmp_path_factory.mktemp("one") / "cap", preset("tiny", regime="oneshot", tracking="fitted",
-                                                                       novel_views=1, novel_expressions=1))
+    doc = json.loads((capture / "transforms.json").read_text())
+    doc["frames"] = [f for f in doc["frames"] if f["camera_index"] in cameras and f["timestep_index"] in timesteps]
+    dst.mkdir()
+    (dst / "transforms.json").write_text(json.dumps(doc))
+    for f in doc["frames"]:
+        for key in ("file_path", "fg_mask_path"):
+            if f.get(key):
+                (dst / Path(f[key]).parent).mkdir(exist_ok=True)
+                shutil.copy(capture / f[key], dst / f[key])
+    for folder in ("gt", "flame_param", "model"):
+        shutil.copytree(capture / folder, dst / folder)
+    return dst
 
 
 @pytest.mark.slow
-def test_one_photo_to_an_ingestible_capture(tmp_path, oneshot):
+def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
+    """The frontal image of the tiny capture's first timestep as one photo; the landmark embedding is calibrated."""
+    oneshot = _sub_capture(tiny_capture, tmp_path / "sub", (8,), (0,))
     inp, _ = input_from_capture(oneshot, tmp_path / "in")
     out = tmp_path / "cap"
-    res = invoke(["track", inp, out, "--flame-model", oneshot.model_path, *TINY])
+    res = invoke(["track", inp, out, "--flame-model", model, *TINY])
     assert res.exit_code == 0, res.output
     assert "one-shot" in res.output and "sage run" in res.output
     for name in ("images/00000_00.png", "fg_masks/00000_00.png", "flame_param/00000.npz", "canonical_flame_param.npz",
@@ -106,14 +117,14 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, oneshot):
     err = compare_to_truth(out, oneshot)
     assert err["aligned"]["mean_mm"] < 4.0, err["aligned"]
     ws = tmp_path / "ws"
-    res = invoke(["ingest", out, ws, "--flame-model", oneshot.model_path, "--regime", "one-shot", "--preset", "tiny", "--quiet"])
+    res = invoke(["ingest", out, ws, "--flame-model", model, "--regime", "one-shot", "--preset", "tiny", "--quiet"])
     assert res.exit_code == 0, res.output
     assert json.loads((ws / "data" / "summary.json").read_text())["counts"]["train"] == 1
     # the mask covers the head and not the background
     from sage_core.data.imageio import read_image
 
     m = read_image(out / "fg_masks" / "00000_00.png")[..., 0]
-    truth = read_image(oneshot / "fg_masks" / "00000_00.png")[..., 0]
+    truth = read_image(oneshot / "fg_masks" / "00000_08.png")[..., 0]
     if m.shape == truth.shape:
         inter, union = ((m > 0.5) & (truth > 0.5)).sum(), ((m > 0.5) | (truth > 0.5)).sum()
         assert inter / union > 0.9
@@ -145,19 +156,7 @@ def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
 @pytest.mark.slow
 def test_calibrated_rig(tmp_path, tiny_capture, model, embedding):
     """Three cameras of the tiny multiview capture at two timesteps, with its transforms.json."""
-    import shutil
-
-    sub = tmp_path / "sub"
-    doc = json.loads((tiny_capture / "transforms.json").read_text())
-    doc["frames"] = [f for f in doc["frames"] if f["camera_index"] in (6, 8, 10) and f["timestep_index"] in (0, 1)]
-    sub.mkdir()
-    (sub / "transforms.json").write_text(json.dumps(doc))
-    for f in doc["frames"]:
-        (sub / Path(f["file_path"]).parent).mkdir(exist_ok=True)
-        shutil.copy(tiny_capture / f["file_path"], sub / f["file_path"])
-    shutil.copytree(tiny_capture / "gt", sub / "gt")
-    shutil.copytree(tiny_capture / "flame_param", sub / "flame_param")
-    shutil.copytree(tiny_capture / "model", sub / "model")
+    sub = _sub_capture(tiny_capture, tmp_path / "sub", (6, 8, 10), (0, 1))
     inp, cams = input_from_capture(sub, tmp_path / "in")
     out = tmp_path / "cap"
     res = invoke(["track", inp, out, "--flame-model", model, "--cameras", cams, "--regime", "mv", *TINY, "--landmark-embedding", embedding,
