@@ -16,6 +16,9 @@ Vertex errors, in mm, per timestep (mean and max over vertices), summarised over
   fitted to all vertices of all timesteps in the camera frames: the shape and motion error without
   the depth/size ambiguity of a single uncalibrated camera (whose size and distance trade off); the
   scale is reported with it.
+- ``rigid_per_timestep``: after a rotation and translation of each timestep's mesh on its own (no
+  scale): the error of the head's shape and expression alone, as face-reconstruction benchmarks
+  measure it, with the pose and the camera left out.
 """
 
 from __future__ import annotations
@@ -87,6 +90,16 @@ def _umeyama(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, floa
     return R, mb - s * R @ ma, s
 
 
+def _rigid(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation (R, t) with R·a + t ≈ b, no scale (least squares over rows of (N, 3) arrays)."""
+    ma, mb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((b - mb).T @ (a - ma))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    return R, mb - R @ ma
+
+
 def _summary(per_t: list[tuple[float, float]]) -> dict[str, float]:
     arr = np.array(per_t)
     return {"mean_mm": round(float(arr[:, 0].mean()), 3), "max_mm": round(float(arr[:, 1].max()), 3),
@@ -140,10 +153,13 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         per.append({"timestep": int(t), "truth_timestep": true_t, "world_mean_mm": round(float(e.mean()), 3),
                     "camera_mean_mm": round(float(ec.mean()), 3)})
     R, tvec, s = _umeyama(np.concatenate([a for a, _ in cam_pairs]), np.concatenate([b for _, b in cam_pairs]))
-    aligned = []
+    aligned, rigid = [], []
     for a, b in cam_pairs:
         ea = np.linalg.norm((s * a @ R.T + tvec) - b, axis=1) * 1000
         aligned.append((ea.mean(), ea.max()))
+        Rr, tr_ = _rigid(a, b)
+        er = np.linalg.norm(a @ Rr.T + tr_ - b, axis=1) * 1000
+        rigid.append((er.mean(), er.max()))
     # camera: focal length of the first camera in input pixels (the report undoes the crop) against the truth's
     report = json.loads((Path(tracked) / "track" / "report.json").read_text())
     cam0 = report["camera"]["cameras"][0]
@@ -155,6 +171,7 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         "world": _summary(world),
         "camera": _summary(camera),
         "aligned": {**_summary(aligned), "scale": round(s, 4)},
+        "rigid_per_timestep": _summary(rigid),
         "focal_rel_error": round(focal_rel, 4),
         "per_timestep": per,
         "truth_tracking_error": json.loads((Path(truth) / "gt" / "info.json").read_text()).get("tracking", {}).get("error"),
