@@ -120,6 +120,9 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
     res = invoke(["ingest", out, ws, "--flame-model", model, "--regime", "one-shot", "--preset", "tiny", "--quiet"])
     assert res.exit_code == 0, res.output
     assert json.loads((ws / "data" / "summary.json").read_text())["counts"]["train"] == 1
+    from sage_core.stages.run import eval_splits
+
+    assert eval_splits(ws) == []  # one photo, no held-out frames: `sage run` leaves eval out
     # the mask covers the head and not the background
     from sage_core.data.imageio import read_image
 
