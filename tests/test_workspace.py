@@ -338,3 +338,21 @@ def test_ingest_manifest_records_no_absolute_path(tiny_ws):
     rel = m["inputs"]["files"]["dataset"]
     capture = (tiny_ws / rel).resolve()
     assert (capture / "transforms.json").is_file() and os.path.isabs(rel) is False
+
+
+def test_dataset_key_keeps_an_earlier_absolute_record_of_the_same_folder(tmp_path):
+    """Workspaces ingested when the manifest recorded the absolute capture path stay up to date while
+    that path names the same folder; otherwise the path is relative to the workspace."""
+    import json
+
+    from sage_core.stages.ingest import _dataset_key
+    from sage_core.workspace import Workspace
+
+    cap, other, ws = tmp_path / "cap", tmp_path / "other", tmp_path / "ws"
+    cap.mkdir(), other.mkdir()
+    w = Workspace(ws)
+    assert _dataset_key(w, cap) == "../cap"
+    (ws / "data").mkdir(parents=True)
+    (ws / "data" / "manifest.json").write_text(json.dumps({"status": "complete", "inputs": {"files": {"dataset": str(cap.resolve())}}}))
+    assert _dataset_key(w, cap) == str(cap.resolve())
+    assert _dataset_key(w, other) == "../other"

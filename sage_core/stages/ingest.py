@@ -66,8 +66,7 @@ def ingest_stage(
         external["flame_masks"] = file_fingerprint(masks)
     for name in sorted(p.name for p in dataset.glob("transforms*.json")):
         external[name] = file_fingerprint(dataset / name)
-    # the capture folder relative to the workspace, so a workspace copied beside its capture stays whole
-    external["dataset"] = Path(os.path.relpath(dataset.resolve(), w.root.resolve())).as_posix()
+    external["dataset"] = _dataset_key(w, dataset)
     external["capture_content"] = capture_fingerprint(capture, w.root / HASH_CACHE if w.root.is_dir() else None)
 
     result = IngestResult("ingest", w.root)
@@ -83,3 +82,15 @@ def ingest_stage(
     outcome = execute_stage("ingest", w, cfg, body, settings, emitter, external_inputs=external,
                             remove_new_workspace_on_failure=True, discard_work_on_failure=True)  # fmt: skip
     return finish_result(result, outcome, w, emitter, t0)
+
+
+def _dataset_key(w: Workspace, dataset: Path) -> str:
+    """The capture folder as the ingest manifest records it: relative to the workspace, so a workspace
+    copied beside its capture stays whole and no path of the machine is written. A workspace ingested
+    by an earlier version recorded the absolute path; while that still names the same folder it is
+    kept, so upgrading does not make the workspace stale."""
+    m = w.manifest("ingest") if w.root.is_dir() else None
+    old = ((m or {}).get("inputs") or {}).get("files", {}).get("dataset")
+    if isinstance(old, str) and os.path.isabs(old) and Path(old).resolve() == dataset.resolve():
+        return old
+    return Path(os.path.relpath(dataset.resolve(), w.root.resolve())).as_posix()
