@@ -34,9 +34,11 @@ def _root(
 
 
 def _register() -> None:
-    from .commands import batch_cmd, config_cmd, convert_cmd, demo_cmd, eval_cmd, export_cmd, info, ingest, init_mesh, phase1, phase2, reenact_cmd, run_cmd, synth
+    from .commands import batch_cmd, config_cmd, convert_cmd, demo_cmd, eval_cmd, export_cmd, info, ingest, init_mesh, phase1, phase2, reenact_cmd, run_cmd, synth, track_cmd
 
     app.command("synth")(synth.synth)
+    app.command("track")(track_cmd.track)
+    app.command("track-models")(track_cmd.track_models)
     app.command("ingest")(ingest.ingest)
     app.command("init-mesh")(init_mesh.init_mesh)
     app.command("phase1")(phase1.phase1)

@@ -24,7 +24,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("data",),
     ("render", "fields"),
     ("avatar", "runtime"),
-    ("train", "export", "evaluate"),
+    ("train", "export", "evaluate", "track"),
     ("stages",),
     ("batch", "api"),
     ("__init__",),  # the flat API names of ``import sage_core as sage``

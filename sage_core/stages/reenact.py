@@ -123,7 +123,9 @@ def _pick_capture_camera(cams: dict[int, Any], index: int | None, source: Path) 
 
 def orbit_around(ref_cam: Any, centre: Any, n: int, arc_deg: float, elevation_deg: float) -> tuple[list[Any], float]:
     """``n`` cameras on an orbit about ``centre`` (3,) at the reference camera's distance, with its
-    intrinsics and its up direction (−y of the camera); returns (cameras, radius in metres)."""
+    focal lengths, its principal point moved to the image centre (so the head is framed in the middle
+    even when the reference image was cropped off-centre, e.g. a photo's head near its top edge) and
+    its up direction (−y of the camera); returns (cameras, radius in metres)."""
     import numpy as np
 
     from ..export.motion import orbit_cameras
@@ -131,7 +133,9 @@ def orbit_around(ref_cam: Any, centre: Any, n: int, arc_deg: float, elevation_de
     c2w = np.linalg.inv(ref_cam.w2c)
     up = -c2w[:3, 1]
     radius = float(np.linalg.norm(ref_cam.center - centre))
-    cams = orbit_cameras(centre, radius, n, ref_cam.K, ref_cam.width, ref_cam.height, elevation_deg=elevation_deg, arc_deg=arc_deg, up=up)
+    K = np.array(ref_cam.K, dtype=np.float64)
+    K[0, 2], K[1, 2] = ref_cam.width / 2.0, ref_cam.height / 2.0
+    cams = orbit_cameras(centre, radius, n, K, ref_cam.width, ref_cam.height, elevation_deg=elevation_deg, arc_deg=arc_deg, up=up)
     return cams, radius
 
 

@@ -3,7 +3,8 @@
 ingest → init-mesh → phase1 → phase2 (unless ``skip_phase2``) → eval → export (PLY at the canonical
 pose + the avatar bundle). Eval scores what the regime has (:func:`eval_splits`): the val and test
 frames of the workspace (novel views, self-reenactment) when it has any, and the capture's held-out
-ground truth (``gt/novel``) when it has one; a one-shot capture has only the latter. Each stage is
+ground truth (``gt/novel``) when it has one; a one-shot capture has only the latter, and one
+tracked from a photo has neither (eval is then left out). Each stage is
 its stage function, so a finished stage with the same config and inputs is skipped, an interrupted
 one resumes from its checkpoint, and a failing one stops the chain with its own error. Every
 stage's config is resolved before the first stage runs (phase 1 with the regime being ingested),
@@ -56,8 +57,8 @@ def split_sets(values: list[str] | None) -> dict[str, list[str]]:
 
 def eval_splits(ws: str | Path) -> list[str]:
     """The eval splits of a chain on an ingested workspace: ``all`` when it has val or test frames,
-    ``novel`` when its capture has held-out ground truth; at least one of them (a workspace with
-    neither has nothing to evaluate: ``all`` then reports that)."""
+    ``novel`` when its capture has held-out ground truth; none when it has neither (e.g. a capture
+    tracked from one photo: the chain then leaves eval out and still exports)."""
     from ..data.dataset import IngestedData
     from ..evaluate.novel import has_novel_ground_truth
 
@@ -65,7 +66,7 @@ def eval_splits(ws: str | Path) -> list[str]:
     splits = ["all"] if (data.role("val") or data.role("test")) else []
     if has_novel_ground_truth(data):
         splits.append("novel")
-    return splits or ["all"]
+    return splits
 
 
 def pipeline_stages(skip_phase2: bool) -> list[str]:
@@ -176,6 +177,8 @@ def run_pipeline(
         record(phase2_stage(ws, cfgs["phase2"], lpips_weights, settings, on_event))
     res.avatar_stage = av_stage
     res.eval_splits = eval_splits(ws)
+    if not res.eval_splits:
+        res.stages.append(("eval", "left out (no val, test or held-out ground-truth frames)"))
     for split in res.eval_splits:
         cfg = cfgs["eval"] if split == "all" else replace(cfgs["eval"], split=split)
         record(eval_stage(ws, cfg, lpips_weights, settings, on_event), "eval" if split == "all" else f"eval {split}")

@@ -1,0 +1,128 @@
+"""One face per image: detection, the checks that refuse an unusable image, and dense landmarks.
+
+:class:`FaceObserver` runs the detector and the landmark model on one image and returns a
+:class:`FaceObservation`, or raises :class:`FaceProblem` saying why the image cannot be tracked:
+
+- ``no-face``: nothing detected (also when the landmark model finds no face in the detected box);
+- ``rotated``: no upright face, but one appears when the image is turned by 90°, 180° or 270°; or
+  the face's eye line is tilted beyond ``max_roll_deg``; or an unsure upright face (an upside-down
+  face can pass for one) is found much more surely in a turned view;
+- ``two-faces``: a second face at least ``second_face_ratio`` of the main face's width;
+- ``tiny-face``: the face is narrower than ``min_face_px``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .detector import Detection, FaceDetector
+from .face_mesh import FaceLandmarks, FaceMesh
+from .weights import ModelPaths
+
+PROBLEM_KINDS = ("no-face", "rotated", "two-faces", "tiny-face")
+UNSURE_SCORE = 0.75
+"""An upright detection scoring below this is compared with the image turned by 90°, 180° and 270°."""
+TURNED_MARGIN = 0.2
+"""... and the image is refused as turned when a turned view scores higher by this much."""
+
+
+class FaceProblem(Exception):
+    """An image without one usable face. ``kind`` is one of :data:`PROBLEM_KINDS`; the message says what
+    was found and what to do."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.message = message
+
+
+@dataclass
+class FaceObservation:
+    """The face of one image.
+
+    Attributes:
+        landmarks: (468, 2) face-mesh points in image pixels.
+        presence: landmark face-presence probability.
+        detection: the detector's box and keypoints.
+        face_height: forehead-to-chin extent of the landmarks (pixels): the unit of the fitting's
+            landmark residuals.
+    """
+
+    landmarks: np.ndarray
+    presence: float
+    detection: Detection
+
+    @property
+    def face_height(self) -> float:
+        lo, hi = self.landmarks.min(0), self.landmarks.max(0)
+        return float(max(hi - lo))
+
+    def box(self) -> np.ndarray:
+        """(4,) x0, y0, x1, y1 of the landmarks."""
+        lo, hi = self.landmarks.min(0), self.landmarks.max(0)
+        return np.concatenate([lo, hi])
+
+
+class FaceObserver:
+    """Detector + landmark model with the checks of the module docstring.
+
+    models: verified model files; min_score: detector threshold; min_presence: landmark presence
+    threshold; min_face_px, second_face_ratio, max_roll_deg: the refusal thresholds; threads:
+    interpreter threads.
+    """
+
+    def __init__(self, models: ModelPaths, min_score: float = 0.5, min_presence: float = 0.5, min_face_px: float = 40.0,
+                 second_face_ratio: float = 0.5, max_roll_deg: float = 45.0, threads: int = 1) -> None:
+        self.detector = FaceDetector(str(models.detector), threads, min_score)
+        self.mesh = FaceMesh(str(models.landmarks), threads)
+        self.min_presence = float(min_presence)
+        self.min_face_px = float(min_face_px)
+        self.second_face_ratio = float(second_face_ratio)
+        self.max_roll = np.deg2rad(max_roll_deg)
+
+    def _turned(self, image: np.ndarray, above: float = 0.0) -> int | None:
+        """The clockwise turn (90, 180, 270) that shows a face with a detector score above ``above``, or
+        None. A turned detection counts only when the landmark model confirms it (presence at least
+        ``min_presence``): the detector alone finds faces in patterns such as a cup seen sideways."""
+        for k, deg in ((1, 270), (2, 180), (3, 90)):
+            turned = np.ascontiguousarray(np.rot90(image, k))
+            dets = [d for d in self.detector(turned) if d.score > above]
+            if dets and abs(dets[0].roll) < self.max_roll and self.mesh(turned, dets[0]).presence >= self.min_presence:
+                return deg
+        return None
+
+    def __call__(self, image: np.ndarray) -> FaceObservation:
+        """image: (H, W, 3) float RGB in [0, 1]. Raises FaceProblem."""
+        H, W = image.shape[:2]
+        dets = self.detector(image)
+        if not dets:
+            turn = self._turned(image)
+            if turn is not None:
+                raise FaceProblem("rotated", f"no upright face, but a face appears when the image is turned {turn}° clockwise: "
+                                             "the image is sideways or upside down; rotate it upright")
+            raise FaceProblem("no-face", f"no face found in the {W}x{H} image (the detector needs a face that fills at least "
+                                         "about a tenth of the image's width, seen from the front or the side)")
+        dets.sort(key=lambda d: -d.width)
+        main = dets[0]
+        others = [d for d in dets[1:] if d.width >= self.second_face_ratio * main.width]
+        if others:
+            where = ", ".join(f"({d.center[0]:.0f}, {d.center[1]:.0f})" for d in [main, *others])
+            raise FaceProblem("two-faces", f"{1 + len(others)} faces found (centres at {where} px); crop the image to one person")
+        if abs(main.roll) > self.max_roll:
+            deg = float(np.rad2deg(main.roll))
+            raise FaceProblem("rotated", f"the face is tilted by {deg:+.0f}° in the image plane (more than "
+                                         f"{np.rad2deg(self.max_roll):.0f}°): the image is sideways or upside down; rotate it upright")
+        if main.score < UNSURE_SCORE:  # an upside-down face can pass for an upright one at a low score
+            turn = self._turned(image, main.score + TURNED_MARGIN)
+            if turn is not None:
+                raise FaceProblem("rotated", f"the face is clearer when the image is turned {turn}° clockwise: the image is "
+                                             "sideways or upside down; rotate it upright")
+        if main.width < self.min_face_px:
+            raise FaceProblem("tiny-face", f"the face is {main.width:.0f} px wide, less than the {self.min_face_px:.0f} px needed; "
+                                           "use a larger image or crop closer to the face")
+        lm: FaceLandmarks = self.mesh(image, main)
+        if lm.presence < self.min_presence:
+            raise FaceProblem("no-face", f"the landmark model finds no face in the detected box (presence {lm.presence:.2f})")
+        return FaceObservation(lm.xy.copy(), lm.presence, main)

@@ -1,0 +1,98 @@
+"""Foreground masks of the head: segmentation, background keying, the mesh's silhouette, the neck line.
+
+- :func:`person_probability`: MediaPipe's person segmentation; when the image has a uniform
+  background (its border is one colour, as in studio captures and matted exports) the matte keyed
+  on that colour replaces it inside a dilation of the segmentation (which alone tends to invent
+  shoulders below a blanked neck).
+- :func:`refine_mask`: the final mask of a tracked image: every pixel the fitted mesh covers, plus the
+  person pixels near the mesh (hair around the head), times the neck-line mask from the fitted mesh
+  (VHAP's rule: keep what lies above the line through the neck's sides, blurred).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..data.cameras import Camera
+
+BORDER = 3
+"""Pixels of the image border that define its background colour."""
+UNIFORM_FRACTION = 0.92
+"""Share of the border pixels within :data:`KEY_TOLERANCE` of the border's median colour that makes a
+background uniform."""
+KEY_TOLERANCE = 0.06
+
+
+def background_key(image: np.ndarray) -> np.ndarray | None:
+    """(H, W) float32 matte keyed on a uniform background colour, or None when the border is not uniform."""
+    b = BORDER
+    border = np.concatenate([image[:b].reshape(-1, 3), image[-b:].reshape(-1, 3), image[:, :b].reshape(-1, 3),
+                             image[:, -b:].reshape(-1, 3)])
+    ref = np.median(border, axis=0)
+    if np.mean(np.linalg.norm(border - ref, axis=1) < KEY_TOLERANCE) < UNIFORM_FRACTION:
+        return None
+    import cv2
+
+    dist = np.linalg.norm(image[..., :3] - ref, axis=-1).astype(np.float32)
+    # coverage of an edge pixel: its distance from the background over that of the foreground nearby
+    full = cv2.dilate(dist, np.ones((5, 5), np.uint8))
+    alpha = np.where(full > 2 * KEY_TOLERANCE, dist / np.maximum(full, 1e-6), 0.0)
+    return np.clip(alpha * (dist > KEY_TOLERANCE * 0.5), 0.0, 1.0).astype(np.float32)
+
+
+def person_probability(image: np.ndarray, segmentation: np.ndarray) -> tuple[np.ndarray, str]:
+    """(H, W) float32 person probability and how it was made ("keyed" or "segmented").
+
+    image: (H, W, 3) in [0, 1]; segmentation: (H, W) from :class:`.segmenter.Segmenter`.
+    """
+    import cv2
+
+    key = background_key(image)
+    if key is None:
+        return segmentation.astype(np.float32), "segmented"
+    H, W = segmentation.shape
+    r = max(3, int(0.04 * max(H, W))) | 1
+    near = cv2.dilate((segmentation > 0.5).astype(np.uint8), np.ones((r, r), np.uint8)) > 0
+    return (key * near).astype(np.float32), "keyed"
+
+
+def neck_line_mask(vertices: np.ndarray, ids: tuple[int, int, int], camera: Camera) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: 1 above the line through the neck's two side vertices, anchored at the
+    front-bottom vertex, blurred with a Gaussian of about 3 % of the width (VHAP's export rule)."""
+    import cv2
+
+    uv, _ = camera.project(vertices[list(ids)])
+    (xl, yl), (xr, yr), (xa, ya) = uv
+    k = (yr - yl) / (xr - xl) if abs(xr - xl) > 1e-6 else 0.0
+    b = ya - k * xa
+    W, H = camera.width, camera.height
+    xs = np.arange(W) + 0.5
+    ys = np.arange(H) + 0.5
+    mask = ((k * xs[None, :] + b - ys[:, None]) > 0).astype(np.float32)
+    ks = int(0.03 * W) // 2 * 2 + 1
+    return cv2.GaussianBlur(mask, (ks, ks), ks)
+
+
+def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray | None, face_height: float,
+                hair_reach: float = 0.35) -> np.ndarray:
+    """The written foreground mask (H, W) float32 in [0, 1].
+
+    person: person probability; mesh_coverage: (H, W) in [0, 1], the fitted mesh's coverage; neck: the
+    neck-line mask or None; face_height: pixels; hair_reach: person pixels further than this many
+    face heights from the mesh are dropped (other people, furniture, long hair far off the head).
+    """
+    import cv2
+    from scipy.ndimage import distance_transform_edt
+
+    covered = mesh_coverage > 0.5
+    if covered.any():
+        dist = distance_transform_edt(~covered)
+        near = dist <= hair_reach * face_height
+    else:
+        near = np.ones_like(covered)
+    m = np.maximum(person * near, mesh_coverage)
+    # close pinholes the segmentation leaves inside the head
+    m = np.maximum(m, cv2.morphologyEx((m > 0.5).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(np.float32) * (m > 0.2))
+    if neck is not None:
+        m = m * neck
+    return np.clip(m, 0.0, 1.0).astype(np.float32)

@@ -1,0 +1,178 @@
+"""Measuring ``sage track`` on synthetic captures (``sage synth``), whose true meshes are known.
+
+:func:`input_from_capture` turns a synthetic capture into what a user would give ``sage track``: the
+one-shot image, the monocular clip as a folder of frames, or the multiview rig as camera folders with
+the capture's ``transforms.json``. :func:`compare_to_truth` poses the model with the tracked
+parameters and measures the distance of every vertex to the true mesh (``gt/meshes``), and the
+camera error.
+
+Vertex errors, in mm, per timestep (mean and max over vertices), summarised over timesteps:
+
+- ``world``: in the capture's world. A multiview rig is given with its calibration, so this is the
+  error that counts there.
+- ``camera``: in each image's camera frame (the tracked mesh in the tracked camera against the true
+  mesh in the true camera): what one camera sees, including the depth of the head.
+- ``aligned``: after one similarity transform (rotation, translation, scale) for the whole sequence,
+  fitted to all vertices of all timesteps in the camera frames: the shape and motion error without
+  the depth/size ambiguity of a single uncalibrated camera (whose size and distance trade off); the
+  scale is reported with it.
+- ``rigid_per_timestep``: after a rotation and translation of each timestep's mesh on its own (no
+  scale): the error of the head's shape and expression alone, as face-reconstruction benchmarks
+  measure it, with the pose and the camera left out.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+
+def input_from_capture(capture: str | Path, out: str | Path, camera: int | None = None) -> tuple[Path, Path | None]:
+    """Write a synthetic capture's images as ``sage track`` input. Returns (INPUT, cameras file or None).
+
+    - one camera (monocular, one-shot): ``out/frames/{timestep:05d}.png`` (a single image file
+      ``out/{timestep:05d}.png`` when there is one frame);
+    - several cameras: ``out/rig/{camera:02d}/{timestep:05d}.png`` plus the capture's
+      ``transforms.json`` (``camera`` picks one camera of a rig instead).
+    """
+    cap = Path(capture)
+    out = Path(out)
+    doc = json.loads((cap / "transforms.json").read_text())
+    frames = doc["frames"]
+    cams = sorted({f["camera_index"] for f in frames})
+    if camera is not None:
+        frames = [f for f in frames if f["camera_index"] == camera]
+        cams = [camera]
+    if not frames:
+        raise InputError(cap / "transforms.json", f"no frames of camera {camera}")
+    if len(cams) == 1:
+        if len(frames) == 1:
+            f = frames[0]
+            dst = out / f"{f['timestep_index']:05d}.png"
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(cap / f["file_path"], dst)
+            return dst, None
+        for f in frames:
+            dst = out / "frames" / f"{f['timestep_index']:05d}.png"
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(cap / f["file_path"], dst)
+        return out / "frames", None
+    for f in frames:
+        dst = out / "rig" / f"{f['camera_index']:02d}" / f"{f['timestep_index']:05d}.png"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(cap / f["file_path"], dst)
+    shutil.copyfile(cap / "transforms.json", out / "transforms.json")
+    return out / "rig", out / "transforms.json"
+
+
+def _read_ply_vertices(path: Path) -> np.ndarray:
+    import trimesh
+
+    return np.asarray(trimesh.load(path, process=False).vertices, dtype=np.float64)
+
+
+def _umeyama(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Similarity (R, t, s) with s·R·a + t ≈ b (least squares over rows of (N, 3) arrays)."""
+    ma, mb = a.mean(0), b.mean(0)
+    A, B = a - ma, b - mb
+    U, S, Vt = np.linalg.svd(B.T @ A / len(a))
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (A ** 2).sum(1).mean())
+    return R, mb - s * R @ ma, s
+
+
+def _rigid(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation (R, t) with R·a + t ≈ b, no scale (least squares over rows of (N, 3) arrays)."""
+    ma, mb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((b - mb).T @ (a - ma))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    return R, mb - R @ ma
+
+
+def _summary(per_t: list[tuple[float, float]]) -> dict[str, float]:
+    arr = np.array(per_t)
+    return {"mean_mm": round(float(arr[:, 0].mean()), 3), "max_mm": round(float(arr[:, 1].max()), 3),
+            "worst_timestep_mean_mm": round(float(arr[:, 0].max()), 3)}
+
+
+def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
+    """Vertex and camera errors of a ``sage track`` capture of a synthetic capture (module docstring).
+
+    tracked: the capture ``sage track`` wrote; truth: the synthetic capture its input came from (its
+    timestep ids are the truth's timestep indices, as :func:`input_from_capture` names the files).
+    """
+    import torch
+
+    from ..data.capture import read_capture
+    from ..flame import FlameModel, load_flame_model
+
+    tr = read_capture(tracked, check_images=False)
+    gt = read_capture(truth, check_images=False)
+    model = FlameModel(load_flame_model(Path(truth) / "model" / "synth_flame.npz"), dtype=torch.float64)
+    ids = {}
+    for split in ("train", "val", "test"):
+        p = Path(tracked) / f"transforms_{split}.json"
+        if p.is_file():
+            for f in json.loads(p.read_text())["frames"]:
+                ids[f["timestep_index"]] = int(f["timestep_id"])
+    p = tr.params
+    with torch.no_grad():
+        kw = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in p.to_torch(dtype=torch.float64).items()}
+        verts = model(**kw).vertices.numpy()
+    world, camera, cam_pairs, per = [], [], [], []
+    cam_frames = {}
+    for f in tr.frames:
+        cam_frames.setdefault(f.timestep, f)
+    gt_cam = {}
+    for f in gt.frames:
+        gt_cam.setdefault(f.timestep, {})[f.camera_index] = f.camera
+    for row, t in enumerate(p.timesteps):
+        true_t = ids[int(t)]
+        true_v = _read_ply_vertices(Path(truth) / "gt" / "meshes" / f"{true_t:05d}.ply")
+        mine = verts[row]
+        e = np.linalg.norm(mine - true_v, axis=1) * 1000
+        world.append((e.mean(), e.max()))
+        f = cam_frames[int(t)]
+        tc = gt_cam[true_t].get(f.camera_index) or next(iter(gt_cam[true_t].values()))
+        a = mine @ f.camera.w2c[:3, :3].T + f.camera.w2c[:3, 3]
+        b = true_v @ tc.w2c[:3, :3].T + tc.w2c[:3, 3]
+        ec = np.linalg.norm(a - b, axis=1) * 1000
+        camera.append((ec.mean(), ec.max()))
+        cam_pairs.append((a, b))
+        per.append({"timestep": int(t), "truth_timestep": true_t, "world_mean_mm": round(float(e.mean()), 3),
+                    "camera_mean_mm": round(float(ec.mean()), 3)})
+    R, tvec, s = _umeyama(np.concatenate([a for a, _ in cam_pairs]), np.concatenate([b for _, b in cam_pairs]))
+    aligned, rigid = [], []
+    for a, b in cam_pairs:
+        ea = np.linalg.norm((s * a @ R.T + tvec) - b, axis=1) * 1000
+        aligned.append((ea.mean(), ea.max()))
+        Rr, tr_ = _rigid(a, b)
+        er = np.linalg.norm(a @ Rr.T + tr_ - b, axis=1) * 1000
+        rigid.append((er.mean(), er.max()))
+    # camera: focal length of the first camera in input pixels (the report undoes the crop) against the truth's
+    report = json.loads((Path(tracked) / "track" / "report.json").read_text())
+    cam0 = report["camera"]["cameras"][0]
+    f0 = tr.frames[0]
+    tc = gt_cam[ids[f0.timestep]].get(f0.camera_index) or next(iter(gt_cam[ids[f0.timestep]].values()))
+    focal_rel = float(cam0["focal_input_px"] / tc.K[0, 0] - 1.0)
+    return {
+        "timesteps": len(per),
+        "world": _summary(world),
+        "camera": _summary(camera),
+        "aligned": {**_summary(aligned), "scale": round(s, 4)},
+        "rigid_per_timestep": _summary(rigid),
+        "focal_rel_error": round(focal_rel, 4),
+        "per_timestep": per,
+        "truth_tracking_error": json.loads((Path(truth) / "gt" / "info.json").read_text()).get("tracking", {}).get("error"),
+    }

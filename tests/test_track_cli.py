@@ -1,0 +1,173 @@
+"""``sage track`` end to end: bad input refused before anything is written, and synthetic captures
+(one photo, a video with a missed detection, a calibrated rig) tracked into captures that ``sage ingest``
+reads, with their vertex error against the known truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from track_helpers import astronaut, invoke, models_or_skip, write_png
+
+from sage_core.track.truth import compare_to_truth, input_from_capture
+
+TINY = ["--preset", "tiny", "--device", "cpu", "--threads", "1", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def model(tiny_capture):
+    models_or_skip()
+    return tiny_capture.model_path
+
+
+@pytest.fixture(scope="module")
+def embedding(tiny_capture, tmp_path_factory):
+    """The tiny head's landmark embedding, calibrated once (the tests below pass it with --landmark-embedding)."""
+    import torch
+
+    from sage_core.flame import FlameModel, load_flame_model
+    from sage_core.track.embedding import calibrate_embedding, save_embedding
+    from sage_core.track.faces import FaceObserver
+    from sage_core.track.weights import find_models
+
+    fm = FlameModel(load_flame_model(tiny_capture.model_path))
+    with torch.no_grad():
+        v = fm().vertices[0]
+    emb, _ = calibrate_embedding(v, fm.faces, FaceObserver(find_models(models_or_skip())), size=256, n_yaw=3)
+    return save_embedding(tmp_path_factory.mktemp("emb") / "embedding.npz", emb)
+
+
+def _refused(tmp_path: Path, model: Path, inp: Path, code: int, text: str, *extra: str) -> None:
+    out = tmp_path / "out"
+    res = invoke(["track", inp, out, "--flame-model", model, *TINY, *extra])
+    assert res.exit_code == code, res.output
+    assert text in " ".join(res.output.split()), res.output
+    assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+def test_bad_photos_are_refused(tmp_path, model):
+    import cv2
+
+    from skimage import data
+
+    img = astronaut()
+    # a real photograph without a face (the detector alone sees one in it turned sideways)
+    _refused(tmp_path, model, write_png(tmp_path / "coffee.png", (data.coffee() / 255.0).astype(np.float32)), 2, "no face found")
+    _refused(tmp_path, model, write_png(tmp_path / "side.png", np.ascontiguousarray(np.rot90(img))), 2, "rotate it upright")
+    _refused(tmp_path, model, write_png(tmp_path / "upside.png", np.ascontiguousarray(img[::-1, ::-1])), 2, "turned 180°")
+    face = img[40:220, 130:320]
+    _refused(tmp_path, model, write_png(tmp_path / "two.png", np.concatenate([face, face], 1)), 2, "2 faces found")
+    canvas = np.ones((96, 96, 3), np.float32)
+    canvas[25:70, 24:72] = cv2.resize(face, (48, 45), interpolation=cv2.INTER_AREA)
+    _refused(tmp_path, model, write_png(tmp_path / "tiny.png", canvas), 2, "px wide, less than the 40 px needed")
+
+
+def test_bad_files_and_options_are_refused(tmp_path, model):
+    bad = tmp_path / "clip.mp4"
+    bad.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 8)
+    _refused(tmp_path, model, bad, 2, "clip.mp4")
+    photo = write_png(tmp_path / "me.png", astronaut())
+    _refused(tmp_path, model, photo, 3, "regime sv-hr needs several frames", "--regime", "sv-hr")
+    _refused(tmp_path, model, photo, 3, "needs calibrated cameras", "--regime", "mv")
+    _refused(tmp_path, model, photo, 3, "regime = 'x'", "--regime", "x")
+    res = invoke(["track", photo, tmp_path / "o", "--flame-model", tmp_path / "nope.pkl", *TINY])
+    assert res.exit_code == 2 and "FLAME model file not found" in res.output
+    occupied = tmp_path / "busy"
+    occupied.mkdir()
+    (occupied / "keep.txt").write_text("mine")
+    res = invoke(["track", photo, occupied, "--flame-model", model, *TINY])
+    assert res.exit_code == 3 and "--force" in res.output and (occupied / "keep.txt").read_text() == "mine"
+
+
+def _sub_capture(capture: Path, dst: Path, cameras: tuple[int, ...], timesteps: tuple[int, ...]) -> Path:
+    """The frames of ``cameras`` x ``timesteps`` of a synthetic capture, with its truth, as a capture of their own."""
+    import shutil
+
+    doc = json.loads((capture / "transforms.json").read_text())
+    doc["frames"] = [f for f in doc["frames"] if f["camera_index"] in cameras and f["timestep_index"] in timesteps]
+    dst.mkdir()
+    (dst / "transforms.json").write_text(json.dumps(doc))
+    for f in doc["frames"]:
+        for key in ("file_path", "fg_mask_path"):
+            if f.get(key):
+                (dst / Path(f[key]).parent).mkdir(exist_ok=True)
+                shutil.copy(capture / f[key], dst / f[key])
+    for folder in ("gt", "flame_param", "model"):
+        shutil.copytree(capture / folder, dst / folder)
+    return dst
+
+
+@pytest.mark.slow
+def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
+    """The frontal image of the tiny capture's first timestep as one photo; the landmark embedding is calibrated."""
+    oneshot = _sub_capture(tiny_capture, tmp_path / "sub", (8,), (0,))
+    inp, _ = input_from_capture(oneshot, tmp_path / "in")
+    out = tmp_path / "cap"
+    res = invoke(["track", inp, out, "--flame-model", model, *TINY])
+    assert res.exit_code == 0, res.output
+    assert "one-shot" in res.output and "sage run" in res.output
+    for name in ("images/00000_00.png", "fg_masks/00000_00.png", "flame_param/00000.npz", "canonical_flame_param.npz",
+                 "transforms_train.json", "track/report.json", "track/contact_sheet.png", "track/landmark_embedding.npz"):
+        assert (out / name).is_file(), name
+    report = json.loads((out / "track" / "report.json").read_text())
+    assert report["regime"] == "one-shot" and report["calibration"]["kept"] > 200 and report["reprojection_px"]["mean"] < 3
+    err = compare_to_truth(out, oneshot)
+    assert err["aligned"]["mean_mm"] < 4.0, err["aligned"]
+    ws = tmp_path / "ws"
+    res = invoke(["ingest", out, ws, "--flame-model", model, "--regime", "one-shot", "--preset", "tiny", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((ws / "data" / "summary.json").read_text())["counts"]["train"] == 1
+    from sage_core.stages.run import eval_splits
+
+    assert eval_splits(ws) == []  # one photo, no held-out frames: `sage run` leaves eval out
+    # the mask covers the head and not the background
+    from sage_core.data.imageio import read_image
+
+    m = read_image(out / "fg_masks" / "00000_00.png")[..., 0]
+    truth = read_image(oneshot / "fg_masks" / "00000_08.png")[..., 0]
+    if m.shape == truth.shape:
+        inter, union = ((m > 0.5) & (truth > 0.5)).sum(), ((m > 0.5) | (truth > 0.5)).sum()
+        assert inter / union > 0.9
+
+
+@pytest.mark.slow
+def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
+    """A clip of the frontal camera with one blank frame: that frame is dropped and reported."""
+    from sage_core.data.imageio import read_image
+    from sage_core.export.video import VideoWriter
+
+    frames = [read_image(tiny_capture / "images" / f"{t:05d}_08.png")[..., :3] for t in range(6)]
+    frames.insert(3, np.ones_like(frames[0]))
+    clip = tmp_path / "clip.mp4"
+    with VideoWriter(clip, fps=5, width=frames[0].shape[1], height=frames[0].shape[0]) as vw:
+        for f in frames:
+            vw.write(f)
+    out = tmp_path / "cap"
+    res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--landmark-embedding", embedding, "--set", "steps=100"])
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "track" / "report.json").read_text())
+    assert report["regime"] == "sv-hr" and report["timesteps"] == 6
+    assert [d["timestep_id"] for d in report["dropped"]] == ["frame_00003"] and report["dropped"][0]["kind"] == "no-face"
+    ids = [f["timestep_id"] for f in json.loads((out / "transforms.json").read_text())["frames"]]
+    assert "frame_00003" not in ids and len(ids) == 6
+    assert report["calibration"] is None and "from" in report["landmark_embedding"]
+
+
+@pytest.mark.slow
+def test_calibrated_rig(tmp_path, tiny_capture, model, embedding):
+    """Three cameras of the tiny multiview capture at two timesteps, with its transforms.json."""
+    sub = _sub_capture(tiny_capture, tmp_path / "sub", (6, 8, 10), (0, 1))
+    inp, cams = input_from_capture(sub, tmp_path / "in")
+    out = tmp_path / "cap"
+    res = invoke(["track", inp, out, "--flame-model", model, "--cameras", cams, "--regime", "mv", *TINY, "--landmark-embedding", embedding,
+                  "--set", "steps=120", "--set", "refine_steps=10"])
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "track" / "report.json").read_text())
+    assert report["regime"] == "mv-mf" and report["images"] == 6 and report["camera"]["rig_scale"] == 1.0
+    val = json.loads((out / "transforms_val.json").read_text())["frames"]
+    assert {f["camera_index"] for f in val} == {8}
+    err = compare_to_truth(out, sub)
+    assert err["world"]["mean_mm"] < 5.0, err["world"]

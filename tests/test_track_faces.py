@@ -1,0 +1,90 @@
+"""Face detection, dense landmarks and segmentation on a real photograph (scikit-image's astronaut),
+and the checks that refuse images without exactly one usable face."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from track_helpers import astronaut, models_or_skip
+
+from sage_core.track.detector import INPUT_SIZE, anchor_centres, decode, letterbox
+from sage_core.track.faces import FaceObserver, FaceProblem
+from sage_core.track.weights import find_models
+
+# the astronaut's face in skimage.data.astronaut() (512x512): eyes near (205, 108) and (245, 105),
+# mouth near (225, 160); measured by hand on the image
+FACE_BOX = (175, 70, 280, 185)
+
+
+@pytest.fixture(scope="module")
+def observer():
+    return FaceObserver(find_models(models_or_skip()))
+
+
+def test_anchors_and_decoding():
+    a = anchor_centres()
+    assert a.shape == (896, 2)
+    assert np.allclose(a[0], [0.5 / 16, 0.5 / 16]) and np.allclose(a[1], a[0]) and np.allclose(a[512], [1 / 16, 1 / 16])
+    reg = np.zeros((896, 16), np.float32)
+    logits = np.full(896, -20.0, np.float32)
+    # two overlapping anchors vote for one face, a third far away for another
+    for k, dx in ((300, 0.0), (301, 2.0), (700, 0.0)):
+        logits[k] = 3.0
+        reg[k, :4] = [dx, 0.0, 40.0, 40.0]
+        reg[k, 4:] = np.tile([-10.0, -8.0], 6)
+    dets = decode(reg, logits, 0.5)
+    assert len(dets) == 2
+    assert dets[0].box[2] - dets[0].box[0] == pytest.approx(40 / INPUT_SIZE, abs=1e-6)
+    assert dets[0].keypoints.shape == (6, 2)
+    sq, scale, off = letterbox(np.ones((50, 100, 3), np.float32), 128)
+    assert sq.shape == (128, 128, 3) and scale == pytest.approx(1.28) and off[1] == 32 and sq[0, 0, 0] == 0
+
+
+def test_astronaut_face_and_landmarks(observer):
+    img = astronaut()
+    obs = observer(img)
+    x0, y0, x1, y1 = FACE_BOX
+    cx, cy = obs.detection.center
+    assert x0 < cx < x1 and y0 < cy < y1
+    assert obs.presence > 0.9 and abs(np.degrees(obs.detection.roll)) < 15
+    lm = obs.landmarks
+    assert lm.shape == (468, 2)
+    assert lm[33, 0] < lm[263, 0]  # the subject's right eye on the image's left
+    assert lm[10, 1] < lm[1, 1] < lm[13, 1] < lm[152, 1]  # forehead, nose tip, lips, chin from top to bottom
+    assert x0 - 20 < lm[:, 0].min() and lm[:, 0].max() < x1 + 20 and y0 - 20 < lm[:, 1].min() and lm[:, 1].max() < y1 + 20
+
+
+def test_segmentation_of_the_astronaut():
+    from sage_core.track.segmenter import Segmenter
+
+    seg = Segmenter(str(find_models(models_or_skip()).segmenter))
+    p = seg(astronaut())
+    assert p.shape == (512, 512)
+    assert p[130, 225] > 0.8  # the face
+    assert p[240, 230] > 0.5  # the suit
+    assert p[20, 480] < 0.3 and p[200, 40] < 0.5  # the wall, the flag
+
+
+def _problem(observer, img) -> FaceProblem:
+    with pytest.raises(FaceProblem) as e:
+        observer(img)
+    return e.value
+
+
+def test_refusals(observer):
+    img = astronaut()
+    assert _problem(observer, np.ones((300, 300, 3), np.float32)).kind == "no-face"
+    turned = _problem(observer, np.ascontiguousarray(np.rot90(img)))
+    assert turned.kind == "rotated" and "rotate" in turned.message
+    face = img[40:220, 130:320]
+    two = np.concatenate([face, face], 1)
+    p = _problem(observer, two)
+    assert p.kind == "two-faces" and "2 faces" in p.message
+    import cv2
+
+    small = cv2.resize(face, (48, 45), interpolation=cv2.INTER_AREA)  # the detector still finds a 24 px face
+    canvas = np.ones((96, 96, 3), np.float32)
+    canvas[25:70, 24:72] = small
+    p = _problem(observer, canvas)
+    assert p.kind == "tiny-face" and "px wide, less than the 40 px needed" in p.message

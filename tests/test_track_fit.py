@@ -1,0 +1,163 @@
+"""The fit's pieces: FLAME on a vertex subset, barycentrics of fixed pixels against the mesh
+rasterizer, signed distances, outline vertices, the landmark embedding (file and calibration), and a
+fit that recovers pose, expression and identity from ideal landmarks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from track_helpers import models_or_skip
+
+from sage_core.data.capture import read_capture
+from sage_core.errors import InputError
+from sage_core.flame import FlameModel, load_flame_model
+from sage_core.render.mesh_raster import rasterize_mesh
+from sage_core.track.config import resolve_track_config
+from sage_core.track.embedding import LandmarkEmbedding, calibrate_embedding, load_embedding, save_embedding
+from sage_core.track.fitting import FitCamera, FitImage, FitProblem, Fitter
+from sage_core.track.flame_subset import FlameSubset
+from sage_core.track.losses import pixel_barycentrics, project, signed_distance
+
+
+@pytest.fixture(scope="module")
+def head(tiny_capture):
+    model = load_flame_model(tiny_capture.model_path)
+    return model, read_capture(tiny_capture, check_images=False)
+
+
+def test_subset_equals_the_model(head):
+    model, _ = head
+    fm = FlameModel(model, dtype=torch.float64)
+    g = torch.Generator().manual_seed(3)
+    ids = torch.randint(0, model.n_vertices, (40,), generator=g)
+    kw = dict(shape=torch.randn(300, generator=g, dtype=torch.float64), expr=torch.randn(3, 100, generator=g, dtype=torch.float64),
+              rotation=0.3 * torch.randn(3, 3, generator=g, dtype=torch.float64), neck_pose=0.2 * torch.randn(3, 3, generator=g, dtype=torch.float64),
+              jaw_pose=0.2 * torch.randn(3, 3, generator=g, dtype=torch.float64), eyes_pose=0.1 * torch.randn(3, 6, generator=g, dtype=torch.float64),
+              translation=torch.randn(3, 3, generator=g, dtype=torch.float64),
+              static_offset=0.01 * torch.randn(model.n_vertices, 3, generator=g, dtype=torch.float64))
+    assert torch.allclose(FlameSubset(fm, ids)(**kw), fm(**kw).vertices[:, ids], atol=1e-12)
+
+
+def _mesh_view(head):
+    model, cap = head
+    fm = FlameModel(model)
+    cam = cap.cameras[8]
+    v = fm(**cap.params.select([0]).to_torch()).vertices[0]
+    K = torch.as_tensor(cam.K, dtype=torch.float32)
+    w2c = torch.as_tensor(cam.w2c, dtype=torch.float32)
+    return fm, v, K, w2c, cam
+
+
+def test_pixel_barycentrics_match_the_rasterizer(head):
+    fm, v, K, w2c, cam = _mesh_view(head)
+    r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
+    ys, xs = torch.nonzero(r.face_id[0] >= 0, as_tuple=True)
+    f = r.face_id[0][ys, xs]
+    uv, z = project(v[None], K[None], w2c[None])
+    tri = fm.faces[f]
+    px = torch.stack([xs, ys], -1).float() + 0.5
+    b = pixel_barycentrics(uv[0][tri], z[0][tri], px)
+    assert torch.allclose(b, r.bary[0][ys, xs], atol=2e-3)
+    vv = v.clone().requires_grad_(True)
+    uv2, z2 = project(vv[None], K[None], w2c[None])
+    pixel_barycentrics(uv2[0][tri], z2[0][tri], px)[:, 0].sum().backward()
+    assert torch.isfinite(vv.grad).all() and vv.grad.abs().sum() > 0
+
+
+def test_signed_distance_of_a_disc():
+    yy, xx = np.mgrid[0:64, 0:64] + 0.5
+    r = np.hypot(xx - 32, yy - 32)
+    sdt = signed_distance(r < 20)
+    inner = (r > 5) & (r < 28)
+    assert np.abs(sdt[inner] - (r[inner] - 20)).max() < 1.0
+    assert sdt[32, 32] < -18 and sdt[2, 2] > 20
+
+
+def test_outline_vertices_lie_on_the_rendered_outline(head):
+    from scipy.ndimage import distance_transform_edt
+
+    fm, v, K, w2c, cam = _mesh_view(head)
+    fit = Fitter(fm, LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3)),
+                 FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [], 1), resolve_track_config("tiny"))
+    r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
+    uv, z = project(v[None], K[None], w2c[None])
+    ids = fit.outline_vertices(v, uv[0], z[0], r.depth[0], w2c)
+    assert ids.numel() > 50
+    fg = r.mask[0].numpy()
+    to_bg = distance_transform_edt(fg)
+    p = uv[0][ids].numpy()
+    d = to_bg[np.clip(p[:, 1].astype(int), 0, cam.height - 1), np.clip(p[:, 0].astype(int), 0, cam.width - 1)]
+    assert np.all(d <= 3.0)
+
+
+def test_embedding_file_round_trip_and_errors(tmp_path, head):
+    model, _ = head
+    emb = LandmarkEmbedding(np.arange(40), np.arange(40) * 3, np.tile([0.2, 0.3, 0.5], (40, 1)), np.linspace(0, 0.004, 40))
+    path = save_embedding(tmp_path / "e.npz", emb)
+    back = load_embedding(path, model.n_faces)
+    assert np.array_equal(back.landmark_ids, emb.landmark_ids) and np.allclose(back.bary, emb.bary) and np.allclose(back.spread, emb.spread)
+    with pytest.raises(InputError, match="another mesh"):
+        load_embedding(path, 50)
+    np.savez(tmp_path / "bad.npz", lmk_face_idx=np.zeros(40, int), lmk_b_coords=np.ones((40, 3)), landmark_indices=np.arange(40))
+    with pytest.raises(InputError, match="sum to 1"):
+        load_embedding(tmp_path / "bad.npz", model.n_faces)
+    np.savez(tmp_path / "keys.npz", faces=np.zeros(3))
+    with pytest.raises(InputError, match="lacks key"):
+        load_embedding(tmp_path / "keys.npz", model.n_faces)
+
+
+def test_fit_recovers_the_head_from_ideal_landmarks(head, one_thread):
+    """Landmarks on 160 random triangles of the head, projected from the true meshes (without hair
+    volume) of two timesteps into four cameras: the landmark stages alone bring every vertex within a
+    millimetre of the truth."""
+    model, cap = head
+    fm = FlameModel(model)
+    rng = np.random.default_rng(0)
+    tris = rng.choice(model.n_faces, 160, replace=False)
+    b = rng.dirichlet(np.ones(3), 160)
+    emb = LandmarkEmbedding(np.arange(160), tris, b)
+    cams = [cap.cameras[c] for c in (5, 7, 9, 11)]
+    truth = cap.params.select([0, 1])
+    truth.static_offset = None  # the hair volume is the silhouettes' job
+    with torch.no_grad():
+        verts = fm(**truth.to_torch()).vertices
+    images = []
+    for t in range(2):
+        pts = emb.points(verts[t], fm.faces).numpy()
+        for ci, cam in enumerate(cams):
+            uv, _ = cam.project(pts)
+            full = np.zeros((468, 2))
+            full[:160] = uv
+            images.append(FitImage(t, ci, full, float(np.ptp(uv, 0).max())))
+    problem = FitProblem([FitCamera(c.K, c.w2c, c.width, c.height) for c in cams], images, 2)
+    # the priors are there for biased detections; exact landmarks need only faint ones
+    cfg = resolve_track_config("tiny", None, {"rigid_steps": 60, "steps": 250, "refine_steps": 0, "w_shape": 1e-5,
+                                              "w_expr": 1e-5, "w_pose": 1e-3})
+    fit = Fitter(fm, emb, problem, cfg)
+    res = fit.run()
+    with torch.no_grad():
+        got = fit.full_vertices()
+    err = (got - verts).norm(dim=-1).mean(1) * 1000
+    assert float(err.max()) < 1.0, err
+    assert np.nanmax(res.reprojection_px) < 0.5
+
+
+def test_calibrated_embedding_of_the_synthetic_head(head):
+    from sage_core.track.faces import FaceObserver
+    from sage_core.track.weights import find_models
+
+    observer = FaceObserver(find_models(models_or_skip()))
+    model, _ = head
+    fm = FlameModel(model)
+    with torch.no_grad():
+        v = fm().vertices[0]
+    emb, rep = calibrate_embedding(v, fm.faces, observer, size=256, n_yaw=3)
+    assert rep.views_with_face == rep.views == 9
+    assert rep.kept > 300 and rep.median_spread_mm < 6
+    pts = emb.points(v, fm.faces).numpy()
+    k = {int(i): n for n, i in enumerate(emb.landmark_ids)}
+    tip = v[int(torch.argmax(v[:, 2]))].numpy()
+    assert 1 in k and np.linalg.norm(pts[k[1]] - tip) < 0.012  # face-mesh point 1: the tip of the nose
+    assert 33 in k and 263 in k and pts[k[33], 0] < pts[k[263], 0]  # right eye's outer corner at -x (the head's right)
