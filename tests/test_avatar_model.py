@@ -211,3 +211,23 @@ def test_shape_network_reading_the_detail_grid(init_dir, data, tmp_path):
     assert back.shape_reads_detail
     with torch.no_grad():
         assert torch.equal(back.canonical_state().scales, av.canonical_state().scales)
+
+
+def test_appearance_reuses_the_grid_features_the_shape_network_read(init_dir, data):
+    """With ``detail_grid`` the appearance grid is evaluated once per canonical state: the posed
+    colours from the reused features equal those of a fresh evaluation, values and gradients."""
+    g = torch.Generator().manual_seed(5)
+    app = {"hidden": 16, "sh_degree": 1, "grid": {"n_levels": 4, "n_features": 2, "log2_table": 10, "base_res": 8, "max_res": 64}}
+    av = Avatar.build(init_dir, data, 300, "mlp", app_args=app, shape_args={"hidden": 16, "detail_grid": True}, generator=g)
+    with torch.no_grad():
+        av.appearance.grid.table.normal_(0, 1, generator=g)
+    cs = av.canonical_state(with_sdf=True)
+    assert cs.app_encoding is not None and torch.equal(cs.app_encoding, av.appearance.grid(cs.means))
+    n = torch.nn.functional.normalize(cs.sdf_grad.detach(), dim=-1)
+    view = -cs.rotation[..., 2].detach()
+    shared, _ = av.appearance(cs.means, view, n, cs.feature, grid_features=cs.app_encoding)
+    fresh, _ = av.appearance(cs.means, view, n, cs.feature)
+    assert torch.allclose(shared, fresh, atol=0, rtol=0)
+    (ga,) = torch.autograd.grad(shared.sum(), av.appearance.grid.table, retain_graph=True)
+    (gb,) = torch.autograd.grad(fresh.sum(), av.appearance.grid.table)
+    assert torch.allclose(ga, gb, atol=1e-6) and ga.abs().sum() > 0

@@ -75,6 +75,8 @@ class CanonicalSurfels:
     means: (N, 3); quats: (N, 4) unit wxyz; scales: (N, 2); rotation: (N, 3, 3) = R(quats), the third
     column is the surfel normal t3. With ``with_sdf``: sdf (N,), sdf_grad (N, 3) (differentiable
     when built with ``create_graph``) and feature (N, F_z) of the SDF network at the centres.
+    app_encoding: (N, L·F) the appearance network's hash-grid features at the centres when the shape
+    network read them (:attr:`Avatar.shape_reads_detail`), so the appearance network reuses them.
     """
 
     means: torch.Tensor
@@ -84,6 +86,7 @@ class CanonicalSurfels:
     sdf: torch.Tensor | None = None
     sdf_grad: torch.Tensor | None = None
     feature: torch.Tensor | None = None
+    app_encoding: torch.Tensor | None = None
 
     def __iter__(self) -> Iterator[torch.Tensor]:
         return iter((self.means, self.quats, self.scales))
@@ -137,7 +140,7 @@ def canonical_state(avatar: Avatar, with_sdf: bool = False, create_graph: bool =
     b = s.binding
     Rb, Tb, kb = avatar.R_c[b], avatar.T_c[b], avatar.k_c[b]
     means = kb[:, None] * (Rb @ s.mu_loc[..., None]).squeeze(-1) + Tb
-    sdf = grad = feature = None
+    sdf = grad = feature = app_enc = None
     if avatar.attributes == "free":
         quats = quat_multiply(avatar.q_c[b], quat_normalize(s.q_loc))
         scales = kb[:, None] * torch.exp(s.s_loc)
@@ -149,9 +152,11 @@ def canonical_state(avatar: Avatar, with_sdf: bool = False, create_graph: bool =
             sdf, grad, feature, enc = sdf_with_encoding(avatar, means, create_graph)
         else:
             enc = avatar.sdf.encoding(means)
-        rot, scales = shape_forward(avatar, means, Rb[..., 2], enc)
+        if avatar.shape_reads_detail:
+            app_enc = avatar.appearance.grid(means)
+        rot, scales = shape_forward(avatar, means, Rb[..., 2], enc, app_enc)
         quats = matrix_to_quat(rot)
-    return CanonicalSurfels(means, quats, scales, rot, sdf, grad, feature)
+    return CanonicalSurfels(means, quats, scales, rot, sdf, grad, feature, app_enc)
 
 
 def sdf_with_encoding(
@@ -163,17 +168,19 @@ def sdf_with_encoding(
     return avatar.sdf.gradient_with_encoding(x, create_graph)
 
 
-def shape_forward(avatar: Avatar, x: torch.Tensor, prior_normal: torch.Tensor, enc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def shape_forward(
+    avatar: Avatar, x: torch.Tensor, prior_normal: torch.Tensor, enc: torch.Tensor, app_enc: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The avatar's shape network with the flat-on-triangle prior (mlp mode).
 
     x, prior_normal: (N, 3); enc: (N, L·F) hash features at x -> R (N, 3, 3), s (N, 2); the size
     multiplier is relative to ``avatar.base_scale`` (N,). With :attr:`Avatar.shape_reads_detail` the
-    appearance grid's features at x join ``enc``.
+    appearance grid's features at x join ``enc`` (``app_enc`` (N, L·F) when already computed).
     """
     net = avatar.shape
     assert net is not None
     if avatar.shape_reads_detail:
-        enc = torch.cat([enc, avatar.appearance.grid(x)], -1)
+        enc = torch.cat([enc, avatar.appearance.grid(x) if app_enc is None else app_enc], -1)
     xn = (x - net.center.to(x.dtype)) / net.half_extent
     out = net.mlp(torch.cat([xn, enc], -1))
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
@@ -294,7 +301,7 @@ def posed(
         n = grad.detach() / grad.detach().norm(dim=-1, keepdim=True).clamp_min(1e-12)
         if view_c is None:
             view_c = -cs.rotation[..., 2].detach()
-        colors, opac = avatar.appearance(cs.means, view_c, n, feat)
+        colors, opac = avatar.appearance(cs.means, view_c, n, feat, grid_features=cs.app_encoding)
     colors = avatar.surfels.blend_color_prior(colors)
     opac, scales = avatar.surfels.apply_unseen_floor(opac, scales)
     if avatar.surfels.wrinkle is not None:

@@ -89,8 +89,10 @@ class AppearanceNetwork(nn.Module):
         view_dir: torch.Tensor | None,
         normal: torch.Tensor,
         feature: torch.Tensor,
+        grid_features: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """See the class docstring: -> rgb (N, 3), opacity (N,)."""
+        """See the class docstring: -> rgb (N, 3), opacity (N,). grid_features: (N, L·F) the grid's
+        features at x when already computed (the same values as ``self.grid(x)``)."""
         xn = (x - self.center.to(x.dtype)) / self.half_extent
         parts = [xn]
         if self.view_dependent:
@@ -100,6 +102,6 @@ class AppearanceNetwork(nn.Module):
             parts.append(sh_basis(d, self.sh_degree))
         parts += [normal, feature]
         if self.grid is not None:
-            parts.append(self.grid(x))
+            parts.append(self.grid(x) if grid_features is None else grid_features)
         out = self.mlp(torch.cat(parts, -1))
         return torch.sigmoid(out[:, :3]), torch.sigmoid(out[:, 3])
