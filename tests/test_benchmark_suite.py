@@ -382,7 +382,8 @@ def test_memory_sampler_reads_the_peak_of_the_running_child(tmp_path):
 def test_run_process_keeps_the_exit_code_and_the_output(tmp_path):
     res = run_process([sys.executable, "-c", "import sys; print('made it'); sys.exit(3)"], tmp_path / "log.txt")
     assert res.rc == 3 and "made it" in res.tail and res.wall_s > 0
-    assert res.peak_rss_mib is None or res.peak_rss_mib > 1  # sampled only if the child lived past the first sample
+    # sampled only if the child lived past the first sample, possibly while it was still starting up
+    assert res.peak_rss_mib is None or res.peak_rss_mib > 0
     assert "made it" in (tmp_path / "log.txt").read_text()
 
 
@@ -489,7 +490,9 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     import suite
 
     docs, out = tmp_path / "docs", tmp_path / "out"
-    args = ["--size", "tiny", "--smoke", "--out", str(out), "--rows", "no_phase2,ceiling", "--device", "cpu", "--docs", str(docs)]
+    # one subject keeps the suite's time in bounds; the mean over subjects is tested on its own (mean_tree)
+    args = ["--size", "tiny", "--smoke", "--out", str(out), "--rows", "no_phase2,ceiling", "--device", "cpu", "--docs", str(docs),
+            "--subjects", "1"]
     assert suite.main(args) == 0
     doc = json.loads((docs / "benchmarks" / "suite_tiny.json").read_text())
     assert doc["smoke"] is True and set(doc["rows"]) == {"no_phase2", "ceiling"}
@@ -498,11 +501,10 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert c["metrics"]["test"]["overall"]["count"] == doc["rows"]["no_phase2"]["metrics"]["test"]["overall"]["count"]
     r = doc["rows"]["no_phase2"]
     assert r["errors"] == [], r["errors"]
-    # two detailed subjects (capture seeds 0 and 1), averaged; the geometry check below is the first subject's
-    assert doc["head"] == "detailed" and doc["subject_seeds"] == [0, 1] and [s["seed"] for s in r["subjects"]] == [0, 1]
-    assert all(s["appearance"] == "detailed" for s in r["subjects"]) and (out / "ws" / "no_phase2_seed1").is_dir()
-    n0, n1 = (s["metrics"]["test"]["overall"]["psnr"] for s in r["subjects"])
-    assert r["metrics"]["test"]["overall"]["psnr"] == pytest.approx((n0 + n1) / 2)
+    # one detailed subject (capture seed 0); the row's metrics are its mean over the subjects
+    assert doc["head"] == "detailed" and doc["subject_seeds"] == [0] and [s["seed"] for s in r["subjects"]] == [0]
+    assert all(s["appearance"] == "detailed" for s in r["subjects"]) and not (out / "ws" / "no_phase2_seed1").exists()
+    assert r["metrics"]["test"]["overall"]["psnr"] == pytest.approx(r["subjects"][0]["metrics"]["test"]["overall"]["psnr"])
     assert r["metrics"]["val"]["overall"]["psnr"] > 5 and r["metrics"]["test"]["overall"]["psnr"] > 5
     assert r["metrics"]["test"]["frontal"]["count"] >= 1
     # LPIPS where sage finds the weights (as in CI), reported unavailable where it does not
