@@ -77,3 +77,21 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
 def atomic_write_text(path: str | Path, text: str) -> Path:
     """Write UTF-8 text atomically; returns the path."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def replace_dir(tmp: str | Path, out: str | Path, tag: str) -> None:
+    """Put the finished folder ``tmp`` in place of ``out`` (which may not exist): the old folder is moved
+    aside under a hidden name with ``tag``, the new one renamed in, then the old one deleted, so ``out``
+    is at every moment either the old folder or the new one, never a mix."""
+    import shutil
+
+    tmp, out = Path(tmp), Path(out)
+    if not out.exists():
+        tmp.rename(out)
+        return
+    old = out.with_name(f".{out.name}.{tag}-old")
+    if old.exists():
+        shutil.rmtree(old)
+    out.rename(old)
+    tmp.rename(out)
+    shutil.rmtree(old)

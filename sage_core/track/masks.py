@@ -57,20 +57,10 @@ def person_probability(image: np.ndarray, segmentation: np.ndarray) -> tuple[np.
 
 
 def neck_line_mask(vertices: np.ndarray, ids: tuple[int, int, int], camera: Camera) -> np.ndarray:
-    """(H, W) float32 in [0, 1]: 1 above the line through the neck's two side vertices, anchored at the
-    front-bottom vertex, blurred with a Gaussian of about 3 % of the width (VHAP's export rule)."""
-    import cv2
+    """(H, W) float32 in [0, 1]: VHAP's neck-line cut on the fitted mesh (:func:`sage_core.data.neck_line.neck_line_cut`)."""
+    from ..data.neck_line import neck_line_cut
 
-    uv, _ = camera.project(vertices[list(ids)])
-    (xl, yl), (xr, yr), (xa, ya) = uv
-    k = (yr - yl) / (xr - xl) if abs(xr - xl) > 1e-6 else 0.0
-    b = ya - k * xa
-    W, H = camera.width, camera.height
-    xs = np.arange(W) + 0.5
-    ys = np.arange(H) + 0.5
-    mask = ((k * xs[None, :] + b - ys[:, None]) > 0).astype(np.float32)
-    ks = int(0.03 * W) // 2 * 2 + 1
-    return cv2.GaussianBlur(mask, (ks, ks), ks)
+    return neck_line_cut(vertices, ids, camera)
 
 
 def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray | None, face_height: float,

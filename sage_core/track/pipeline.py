@@ -146,15 +146,9 @@ def _prepare_out(out: Path, force: bool) -> Path:
 
 
 def _promote(tmp: Path, out: Path) -> None:
-    if out.exists():
-        old = out.with_name(f".{out.name}.track-old")
-        if old.exists():
-            shutil.rmtree(old)
-        out.rename(old)
-        tmp.rename(out)
-        shutil.rmtree(old)
-    else:
-        tmp.rename(out)
+    from ..atomic import replace_dir
+
+    replace_dir(tmp, out, "track")
 
 
 def track_capture(

@@ -40,7 +40,9 @@ import numpy as np
 
 from ...errors import ConfigError
 from ..cameras import Camera, camera_to_nerf_frame
+from ...atomic import replace_dir
 from ..imageio import write_image
+from ..neck_line import neck_line_cut
 from ._files import write_json, write_npz, write_ply
 from .appearance import Appearance, Render, Specular, crease_weights, render_head, sample_appearance
 from .config import SynthConfig
@@ -148,20 +150,8 @@ def canonical_vertices(subject: _Subject) -> np.ndarray:
 
 
 def neck_line_mask(head: HeadModel, vertices: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W) float mask in [0, 1] keeping what is above the neck line (docs/formats.md §1.1), blurred."""
-    import cv2
-
-    ids = list(head.neck_line)
-    uv, _ = camera.project(vertices[ids])
-    (xl, yl), (xr, yr), (xa, ya) = uv
-    k = (yr - yl) / (xr - xl) if abs(xr - xl) > 1e-6 else 0.0
-    b = ya - k * xa
-    W, H = camera.width, camera.height
-    xs = np.arange(W) + 0.5
-    ys = np.arange(H) + 0.5
-    mask = ((k * xs[None, :] + b - ys[:, None]) > 0).astype(np.float32)
-    ks = int(0.03 * W) // 2 * 2 + 1
-    return cv2.GaussianBlur(mask, (ks, ks), ks)
+    """(H, W) float mask in [0, 1] keeping what is above the head's neck line (docs/formats.md §1.1), blurred."""
+    return neck_line_cut(vertices, tuple(head.neck_line), camera)
 
 
 def _frame_npz(subject: _Subject, f: Frame) -> dict[str, np.ndarray]:
@@ -363,15 +353,7 @@ def write_capture(out_dir: str | Path, cfg: SynthConfig, progress: Progress | No
     tmp.mkdir(parents=True)
     try:
         _generate(tmp, cfg, progress, preview)
-        if out.exists():
-            old = out.with_name(f".{out.name}.synth-old")
-            if old.exists():
-                shutil.rmtree(old)
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(out)
+        replace_dir(tmp, out, "synth")
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
