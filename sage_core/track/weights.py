@@ -24,6 +24,7 @@ from pathlib import Path
 
 from ..atomic import atomic_write_bytes
 from ..errors import InputError
+from ..workspace import file_sha256
 
 ENV_VAR = "SAGE_MEDIAPIPE_DIR"
 WHEEL_REQUIREMENT = "mediapipe==0.10.21"
@@ -59,13 +60,6 @@ def cache_folder() -> Path:
     return base / "mediapipe"
 
 
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 @dataclass(frozen=True)
