@@ -102,6 +102,13 @@ def test_the_pairs_cover_face_and_neck_surfels_only_and_follow_the_surfel_count(
     assert i.numel() == j.numel() == used.numel() * 4 and int(torch.maximum(i, j).max()) < used.numel()
     used2, _, _ = term.pairs(means[:500], region[:500])
     assert int(used2.max()) < 500
+    # same count, moved surfels (relocation): the old pairs stay until reset, then follow the new centres
+    moved, moved_region = means[:500].flip(0), region[:500].flip(0)
+    assert term.pairs(moved, moved_region) is term.pairs(means[:500], region[:500])
+    term.reset()
+    used3, i3, j3 = term.pairs(moved, moved_region)
+    assert torch.equal(used3, ((moved_region == REGION_FACE) | (moved_region == REGION_NECK)).nonzero().squeeze(-1))
+    assert i3.numel() == used3.numel() * 4 and term.state_dict()["points"].equal(moved)
     with pytest.raises(ValueError):
         SmoothAlbedoLight(neighbours=0)
     with pytest.raises(ValueError):

@@ -50,8 +50,9 @@ class SmoothAlbedoLight:
     """The smooth-albedo light term (module doc) for one avatar's surfel set.
 
     neighbours: k; chroma_sigma: σ of the chromaticity weight. The pairs are built from the canonical
-    centres on the first call of :meth:`loss` and again whenever the number of surfels changes; the
-    centres and eligible surfels they were built from are its state (:meth:`state_dict`).
+    centres on the first call of :meth:`loss` and again whenever the number of surfels changes or
+    :meth:`reset` was called (surfels moved, e.g. by relocation); the centres and eligible surfels they
+    were built from are its state (:meth:`state_dict`).
     """
 
     def __init__(self, neighbours: int = 128, chroma_sigma: float = 0.02) -> None:
@@ -82,6 +83,10 @@ class SmoothAlbedoLight:
             local = neighbour_pairs(self._points.to(canonical_means)[used], self.neighbours)
             self._built = (used, local[:, 0].contiguous(), local[:, 1].contiguous())
         return self._built
+
+    def reset(self) -> None:
+        """Forget the pairs: the next :meth:`loss` builds them from the centres it is given."""
+        self._points = self._eligible = self._built = None
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """The canonical centres and the eligible surfels the pairs were built from (empty before the

@@ -486,6 +486,8 @@ class Phase1Trainer:
             r = relocate.relocate(self)
             terms["relocated"] = torch.tensor(float(r.moved))
             self._not_mouth = av.surfels.region_id != REGION_MOUTH
+            if r.moved and self.light_albedo is not None:
+                self.light_albedo.reset()  # its neighbour pairs were built from the old centres
         rebind = c.schedule.rebind_every
         if rebind > 0 and self.step_count % rebind == 0 and self.step_count < c.iterations:
             n = av.surfels.rebind(av.canonical_vertices, av.faces, frames=(av.R_c, av.T_c, av.k_c), optimizer=self.optimizer)
