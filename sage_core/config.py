@@ -615,13 +615,11 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
         "phase1": {
             "iterations": 1500,
             "surfels.count": 6000,
-            "appearance.hidden": 32,
             "appearance.sh_degree": 2,
             "free.sh_degree": 2,
             "appearance.grid_levels": 8,
             "appearance.grid_log2_table": 15,
             "appearance.grid_max_res": 512,
-            "shape.hidden": 32,
             "lr.sdf": 1e-3,
             "lr.grid": 1e-3,
             "lr.networks": 1e-3,

@@ -554,3 +554,21 @@ def test_the_written_results_name_no_path_of_this_machine(tmp_path):
     import re
 
     assert not re.search(r"(?<![\w.~/-])/(work|home|tmp|root|mnt|data)/", text)
+
+
+def test_discussion_links_hold_from_results_md() -> None:
+    """The discussion is written in docs/benchmarks/ and copied into docs/results.md: its relative
+    links are rebased, and every link of both files points at a file that exists."""
+    import re
+
+    from _suite.report import rebase_links
+
+    text = "see [a](x.md), [b](../y.md#s), [c](https://e.org/z), [d](#here), [e](../../pkg/m.py)"
+    assert rebase_links(text, "benchmarks") == (
+        "see [a](benchmarks/x.md), [b](y.md#s), [c](https://e.org/z), [d](#here), [e](../pkg/m.py)")
+    docs = REPO / "docs"
+    for page in (docs / "results.md", docs / "benchmarks" / "discussion.md"):
+        for target in re.findall(r"\]\(([^)\s#]+)(?:#[^)]*)?\)", page.read_text(encoding="utf-8")):
+            if re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*:", target):
+                continue
+            assert (page.parent / target).exists(), f"{page.name}: broken link {target}"

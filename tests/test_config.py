@@ -26,6 +26,15 @@ def test_preset_overrides_defaults():
     assert tiny.pretrain.steps < default.pretrain.steps
 
 
+def test_tiny_phase1_keeps_the_networks_full_width():
+    """The tiny preset shrinks the capture, steps and grids but not the attribute networks: at 32
+    units they under-fitted a detailed head (docs/results.md, "Networks at full width")."""
+    tiny, default = resolve_config("phase1", "tiny"), resolve_config("phase1", "default")
+    assert tiny.appearance.hidden == default.appearance.hidden == 64
+    assert tiny.shape.hidden == default.shape.hidden == 64
+    assert tiny.appearance.grid_levels < default.appearance.grid_levels
+
+
 def test_precedence_preset_file_flags(tmp_path):
     f = tmp_path / "c.yaml"
     f.write_text("init_mesh:\n  mc_resolution: 96\n  pretrain:\n    steps: 50\n    lr_mlp: 0.002\n")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import platform
+import posixpath
+import re
 from typing import Any
 
 from .rows import ROW_IDS, ROWS
@@ -427,8 +429,25 @@ def render_document(docs: list[dict[str, Any]], discussion: str | None = None) -
     for d in sorted(docs, key=lambda d: order.get(str(d.get("size")), 9)):
         parts.append(render_markdown(d))
     if discussion:
-        parts += ["", discussion.strip()]
+        parts += ["", rebase_links(discussion.strip(), "benchmarks")]
     return "\n".join(parts).rstrip() + "\n"
 
 
-__all__ = ["SCHEMA", "machine_info", "merge_results", "render_markdown", "render_document"]
+_LINK = re.compile(r"(\]\()([^)\s]+)(\))")
+
+
+def rebase_links(markdown: str, folder: str) -> str:
+    """Relative link targets of ``markdown`` written from ``folder`` (relative to docs/), rewritten
+    to hold from docs/ itself: the discussion lives in docs/benchmarks/ and is copied into
+    docs/results.md. Absolute, scheme and anchor-only targets are left alone."""
+
+    def fix(m: re.Match[str]) -> str:
+        target = m.group(2)
+        if target.startswith(("#", "/")) or re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*:", target):
+            return m.group(0)
+        return m.group(1) + posixpath.normpath(posixpath.join(folder, target)) + m.group(3)
+
+    return _LINK.sub(fix, markdown)
+
+
+__all__ = ["SCHEMA", "machine_info", "merge_results", "rebase_links", "render_markdown", "render_document"]
