@@ -183,6 +183,10 @@ def _machine() -> dict:
             "load_average": [round(x, 2) for x in os.getloadavg()], "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
 
 
+def _sec(timings: dict, key: str) -> str:
+    return f"{timings[key]:.0f}" if key in timings else "—"
+
+
 def _fmt(e: dict) -> str:
     return f"{e['mean_mm']:.2f} / {e['max_mm']:.1f}"
 
@@ -215,11 +219,14 @@ def markdown(doc: dict) -> str:
         e = v["errors"]
         lines += ["", f"Head-turn video: {v['seconds']:.0f} s at {v['fps']:.0f} fps ({v['frames']} frames, {v['size'][0]}x{v['size'][1]}), "
                       f"`{v['command']}`", "",
-                  "| frames tracked | dropped | wall time (s) | faces | images | embedding | fit | masks | camera (mm) | aligned (mm) | focal error |",
-                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-                  f"| {v['timesteps']} | {v['dropped']} | {v['wall_s']:.0f} | " + " | ".join(f"{v['timings_s'].get(k, 0):.0f}" for k in
-                                                                                  ("faces", "images", "embedding", "fit", "masks"))
-                  + f" | {_fmt(e['camera'])} | {_fmt(e['aligned'])} | {e['focal_rel_error']:+.1%} |"]
+                  "Times in seconds: the wall time of the whole command and its phases; the fit is split into the "
+                  "keyframes' full schedule and the tracking of every frame (or one joint fit of all frames).", "",
+                  "| frames tracked | dropped | wall time | faces | images | embedding | fit | fit: keyframes | fit: tracking "
+                  "| masks | landmark error (px) | camera (mm) | aligned (mm) | focal error |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+                  f"| {v['timesteps']} | {v['dropped']} | {v['wall_s']:.0f} | "
+                  + " | ".join(_sec(v["timings_s"], k) for k in ("faces", "images", "embedding", "fit", "fit_keyframes", "fit_track", "masks"))
+                  + f" | {v['reprojection_px']:.2f} | {_fmt(e['camera'])} | {_fmt(e['aligned'])} | {e['focal_rel_error']:+.1%} |"]
     lines += ["", "Commands per case are in `track.json` (`cases[].command`)."]
     return "\n".join(lines) + "\n"
 
