@@ -115,7 +115,7 @@ class FitProblem:
     camera_relative: bool = False
     times: np.ndarray | None = None
 
-    def subset(self, rows: np.ndarray) -> "FitProblem":
+    def subset(self, rows: np.ndarray) -> FitProblem:
         """The problem restricted to the timesteps ``rows`` (sorted, renumbered 0..len-1, their images
         shared, not copied); ``times`` keeps their positions on the time axis."""
         rows = np.asarray(rows, np.int64)
@@ -737,7 +737,7 @@ class Fitter:
         self._optimise(full, c.steps, "shape")
         self._optimise(full, c.refine_steps, "refine")
 
-    def _child(self, rows: np.ndarray, progress: Progress | None) -> "Fitter":
+    def _child(self, rows: np.ndarray, progress: Progress | None) -> Fitter:
         """A fitter of the timesteps ``rows`` sharing this one's model, embedding, config and seed."""
         return Fitter(self.flame, self.emb, self.p.subset(rows), self.cfg, progress, seed=int(self.gen.initial_seed()))
 
