@@ -92,6 +92,30 @@ def test_outline_vertices_lie_on_the_rendered_outline(head):
     assert np.all(d <= 3.0)
 
 
+def test_silhouette_pulls_inward_only_vertices_just_inwards(head):
+    """A person mask wider than the mesh (hair around the head) pulls every outline vertex outwards,
+    except those marked inward-only; a narrower one pulls all of them inwards alike."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    fm, v, K, w2c, cam = _mesh_view(head)
+    cover = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height).mask[0].numpy()
+    emb = LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3))
+    terms = {}
+    for name, person in (("wide", binary_dilation(cover, iterations=4)), ("narrow", binary_erosion(cover, iterations=4))):
+        for inward in (None, np.ones(fm.n_vertices, bool)):
+            image = FitImage(0, 0, None, 100.0, np.zeros((*cover.shape, 3), np.float32), person.astype(np.float32))
+            fit = Fitter(fm, emb, FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [image], 1,
+                                             silhouette_inward=inward), resolve_track_config("tiny"))
+            r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
+            uv, z = project(v[None], K[None], w2c[None])
+            fit.outline = fit.outline_vertices(v, uv[0], z[0], r.depth[0], w2c)[None]
+            fit.sub_lookup = torch.arange(fm.n_vertices)
+            with torch.no_grad():
+                terms[name, inward is not None] = float(fit.silhouette_term(v[None]))
+    assert terms["wide", False] > 1.0 and terms["wide", True] == 0.0
+    assert terms["narrow", True] == pytest.approx(terms["narrow", False]) and terms["narrow", False] > 1.0
+
+
 def test_embedding_file_round_trip_and_errors(tmp_path, head):
     model, _ = head
     emb = LandmarkEmbedding(np.arange(40), np.arange(40) * 3, np.tile([0.2, 0.3, 0.5], (40, 1)), np.linspace(0, 0.004, 40))
@@ -254,7 +278,7 @@ def test_problem_subset_and_keyframe_smoothing_gaps(head):
 
 
 @pytest.mark.parametrize("flags", [{"keyframes": -1}, {"track_chunk": 0}, {"track_steps": -5}, {"track_outline_period": 0},
-                                   {"outline_period": 0}, {"keyframes": 2.5}])
+                                   {"outline_period": 0}, {"keyframes": 2.5}, {"silhouette_two_sided": "hair"}])
 def test_sequence_options_are_validated(flags):
     from sage_core.errors import ConfigError
 

@@ -96,6 +96,11 @@ class TrackConfig:
                                  choices=("auto", "on", "off"))
     w_landmark_offset: float = _opt(0.1, "Weight of the size prior of the landmark offsets (squared, in centimetres).", ge=0)
     w_silhouette: float = _opt(1.0, "Weight of the silhouette term (mesh outline against the segmentation's outline).", ge=0)
+    silhouette_two_sided: str = _opt("auto", "Outline vertices the silhouette pulls both ways: face (the FLAME masks' face and neck "
+                                             "regions; elsewhere — scalp, ears, back of the head, which hair may cover — only inwards, "
+                                             "when outside the person mask), all (every outline vertex; also without region masks), "
+                                             "or auto (face for calibrated cameras, all for one uncalibrated camera).",
+                                     choices=("auto", "face", "all"))
     silhouette_scale: float = _opt(0.01, "Robust scale of the silhouette distances (fraction of the face size).", gt=0)
     w_photo: float = _opt(1.0, "Weight of the photometric term (rasterized vertex colours against the images).", ge=0)
     w_shape: float = _opt(0.01, "Weight of the identity prior (squared coefficients).", ge=0)

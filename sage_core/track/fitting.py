@@ -94,6 +94,8 @@ class FitProblem:
         smooth: smooth per-timestep parameters over time (videos).
         hair: vertex ids of the scalp offsets' region (None: no offsets).
         silhouette_exclude: (V,) bool, vertices never used as outline points (the neck opening).
+        silhouette_inward: (V,) bool, outline vertices that the silhouette only pulls inwards (when they
+            lie outside the person mask): where hair may cover the head's outline (ears, back of the head).
         landmark_offsets: fit one in-plane offset per landmark, shared by all images (the input sees
             the head from several directions, so a landmark's consistent disagreement with the
             embedding can be told from the shape).
@@ -111,6 +113,7 @@ class FitProblem:
     smooth: bool = False
     hair: np.ndarray | None = None
     silhouette_exclude: np.ndarray | None = None
+    silhouette_inward: np.ndarray | None = None
     landmark_offsets: bool = False
     camera_relative: bool = False
     times: np.ndarray | None = None
@@ -227,6 +230,8 @@ class Fitter:
             slot[problem.hair] = np.arange(len(problem.hair))
             self.hair_edges = torch.as_tensor(slot[e], dtype=torch.long, device=self.device)
         # per-image silhouette maps at the fit resolution
+        self.sil_inward = torch.as_tensor(problem.silhouette_inward if problem.silhouette_inward is not None
+                                          else np.zeros(V, bool), device=self.device)
         self.sil_exclude = torch.as_tensor(problem.silhouette_exclude if problem.silhouette_exclude is not None
                                            else np.zeros(V, bool), device=self.device)
         ev, ef = edge_faces(self.faces.cpu().numpy())
@@ -525,7 +530,7 @@ class Fitter:
         uv, _ = project(pts, Kf, w2c[self.sil_c])
         sdt, size = self.sdt_maps()
         d = sample_map(sdt, uv, *size) / self.sil_scale[:, None]
-        keep = valid & (d.abs() < 0.2)
+        keep = valid & (d.abs() < 0.2) & ~(self.sil_inward[self.outline.clamp_min(0)] & (d < 0))
         return (charbonnier(d, self.cfg.silhouette_scale) * keep).sum() / keep.sum().clamp_min(1)
 
     def priors(self) -> torch.Tensor:

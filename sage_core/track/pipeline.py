@@ -338,8 +338,16 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     lmk_offsets = cfg.landmark_offsets == "on" or (cfg.landmark_offsets == "auto" and several_views)
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
+    inward = None
+    face_only = cfg.silhouette_two_sided == "face" or (cfg.silhouette_two_sided == "auto" and source.kind == "multiview")
+    if face_only and len(groups.get("face", [])):
+        both = np.zeros(V, bool)
+        for k in ("face", "neck"):
+            both[np.asarray(groups.get(k, []), np.int64)] = True
+        inward = ~both
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
-                         silhouette_exclude=exclude, landmark_offsets=lmk_offsets, camera_relative=source.kind != "multiview")
+                         silhouette_exclude=exclude, silhouette_inward=inward, landmark_offsets=lmk_offsets,
+                         camera_relative=source.kind != "multiview")
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
     fit = fitter.run()
     timings["fit"] = time.time() - t0
