@@ -183,6 +183,10 @@ def _machine() -> dict:
             "load_average": [round(x, 2) for x in os.getloadavg()], "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
 
 
+def _sec(timings: dict, key: str) -> str:
+    return f"{timings[key]:.0f}" if key in timings else "—"
+
+
 def _fmt(e: dict) -> str:
     return f"{e['mean_mm']:.2f} / {e['max_mm']:.1f}"
 
@@ -210,16 +214,25 @@ def markdown(doc: dict) -> str:
                      f"{r['wall_s']:.0f} | {r['reprojection_px']:.2f} | {_fmt(e['world'])} | {_fmt(e['camera'])} | "
                      f"{_fmt(e['aligned'])} | {e['aligned']['scale']:.3f} | "
                      f"{_fmt(e['rigid_per_timestep']) if 'rigid_per_timestep' in e else '—'} | {e['focal_rel_error']:+.1%} | {own_text} |")
-    if doc.get("video"):
-        v = doc["video"]
-        e = v["errors"]
-        lines += ["", f"Head-turn video: {v['seconds']:.0f} s at {v['fps']:.0f} fps ({v['frames']} frames, {v['size'][0]}x{v['size'][1]}), "
-                      f"`{v['command']}`", "",
-                  "| frames tracked | dropped | wall time (s) | faces | images | embedding | fit | masks | camera (mm) | aligned (mm) | focal error |",
-                  "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-                  f"| {v['timesteps']} | {v['dropped']} | {v['wall_s']:.0f} | " + " | ".join(f"{v['timings_s'].get(k, 0):.0f}" for k in
-                                                                                  ("faces", "images", "embedding", "fit", "masks"))
-                  + f" | {_fmt(e['camera'])} | {_fmt(e['aligned'])} | {e['focal_rel_error']:+.1%} |"]
+    runs = doc.get("video_runs") or ([{"label": "", "run": {"command": doc["command"], "machine": doc["machine"],
+                                                             "load_after": doc["load_after"]}, "video": doc["video"]}]
+                                     if doc.get("video") else [])
+    if runs:
+        lines += ["", "Head-turn videos of a synthetic head (yaw ±60°, 360x640, 30 fps). Times in seconds: the wall time of "
+                      "the whole command and its phases; the fit is split into the keyframes' full schedule and the tracking "
+                      "of every frame (a joint fit of all frames has neither). Commands, machine and load per row in "
+                      "`track.json` (`video_runs`).", "",
+                  "| video | fit | frames tracked | dropped | wall time | faces | images | embedding | fit | fit: keyframes "
+                  "| fit: tracking | masks | landmark error (px) | camera (mm) | aligned (mm) | focal error |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in runs:
+            v = r["video"]
+            e = v["errors"]
+            lines.append(f"| {v['seconds']:.0f} s ({v['frames']} frames) | {r['label']} | {v['timesteps']} | {v['dropped']} | "
+                         f"{v['wall_s']:.0f} | "
+                         + " | ".join(_sec(v["timings_s"], k) for k in ("faces", "images", "embedding", "fit", "fit_keyframes",
+                                                                         "fit_track", "masks"))
+                         + f" | {v['reprojection_px']:.2f} | {_fmt(e['camera'])} | {_fmt(e['aligned'])} | {e['focal_rel_error']:+.1%} |")
     lines += ["", "Commands per case are in `track.json` (`cases[].command`)."]
     return "\n".join(lines) + "\n"
 

@@ -135,7 +135,8 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
 
 @pytest.mark.slow
 def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
-    """A clip of the frontal camera with one blank frame: that frame is dropped and reported."""
+    """A clip of the frontal camera with one blank frame: that frame is dropped and reported. Fitted
+    on 3 keyframes, then tracked in chunks of 2 frames."""
     from sage_core.data.imageio import read_image
     from sage_core.export.video import VideoWriter
 
@@ -146,10 +147,13 @@ def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
         for f in frames:
             vw.write(f)
     out = tmp_path / "cap"
-    res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--landmark-embedding", embedding, "--set", "steps=100"])
+    res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--landmark-embedding", embedding, "--set", "steps=100",
+                  "--set", "keyframes=3", "--set", "track_chunk=2", "--set", "track_steps=10"])
     assert res.exit_code == 0, res.output
     report = json.loads((out / "track" / "report.json").read_text())
     assert report["regime"] == "sv-hr" and report["timesteps"] == 6
+    assert {"fit_keyframes", "fit_track"} <= set(report["timings_s"]) and "track" in report["losses"]
+    assert max(im["reprojection_px"] for im in report["per_image"]) < 8
     assert [d["timestep_id"] for d in report["dropped"]] == ["frame_00003"] and report["dropped"][0]["kind"] == "no-face"
     ids = [f["timestep_id"] for f in json.loads((out / "transforms.json").read_text())["frames"]]
     assert "frame_00003" not in ids and len(ids) == 6

@@ -92,6 +92,30 @@ def test_outline_vertices_lie_on_the_rendered_outline(head):
     assert np.all(d <= 3.0)
 
 
+def test_silhouette_pulls_inward_only_vertices_just_inwards(head):
+    """A person mask wider than the mesh (hair around the head) pulls every outline vertex outwards,
+    except those marked inward-only; a narrower one pulls all of them inwards alike."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    fm, v, K, w2c, cam = _mesh_view(head)
+    cover = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height).mask[0].numpy()
+    emb = LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3))
+    terms = {}
+    for name, person in (("wide", binary_dilation(cover, iterations=4)), ("narrow", binary_erosion(cover, iterations=4))):
+        for inward in (None, np.ones(fm.n_vertices, bool)):
+            image = FitImage(0, 0, None, 100.0, np.zeros((*cover.shape, 3), np.float32), person.astype(np.float32))
+            fit = Fitter(fm, emb, FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [image], 1,
+                                             silhouette_inward=inward), resolve_track_config("tiny"))
+            r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
+            uv, z = project(v[None], K[None], w2c[None])
+            fit.outline = fit.outline_vertices(v, uv[0], z[0], r.depth[0], w2c)[None]
+            fit.sub_lookup = torch.arange(fm.n_vertices)
+            with torch.no_grad():
+                terms[name, inward is not None] = float(fit.silhouette_term(v[None]))
+    assert terms["wide", False] > 1.0 and terms["wide", True] == 0.0
+    assert terms["narrow", True] == pytest.approx(terms["narrow", False]) and terms["narrow", False] > 1.0
+
+
 def test_embedding_file_round_trip_and_errors(tmp_path, head):
     model, _ = head
     emb = LandmarkEmbedding(np.arange(40), np.arange(40) * 3, np.tile([0.2, 0.3, 0.5], (40, 1)), np.linspace(0, 0.004, 40))
@@ -161,3 +185,102 @@ def test_calibrated_embedding_of_the_synthetic_head(head):
     tip = v[int(torch.argmax(v[:, 2]))].numpy()
     assert 1 in k and np.linalg.norm(pts[k[1]] - tip) < 0.012  # face-mesh point 1: the tip of the nose
     assert 33 in k and 263 in k and pts[k[33], 0] < pts[k[263], 0]  # right eye's outer corner at -x (the head's right)
+
+
+def _turning_sequence(head, n: int):
+    """Landmarks on 160 random triangles of the tiny head turning from -40 to 40 degrees of yaw over
+    ``n`` frames (with a nod and a jaw opening and closing), seen by one camera, and the true meshes."""
+    model, cap = head
+    fm = FlameModel(model)
+    rng = np.random.default_rng(1)
+    tris = rng.choice(model.n_faces, 160, replace=False)
+    emb = LandmarkEmbedding(np.arange(160), tris, rng.dirichlet(np.ones(3), 160))
+    s = np.linspace(0, 1, n)
+    rot = np.stack([0.15 * np.sin(2 * np.pi * s), np.deg2rad(-40 + 80 * s), np.zeros(n)], 1)
+    jaw = np.stack([0.12 * np.sin(np.pi * s) ** 2, np.zeros(n), np.zeros(n)], 1)
+    truth = cap.params.select([0] * n)
+    truth.static_offset = None
+    truth.rotation = rot.astype(np.float32)
+    truth.jaw_pose = jaw.astype(np.float32)
+    with torch.no_grad():
+        verts = fm(**truth.to_torch()).vertices
+    cam = cap.cameras[8]
+    images = []
+    for t in range(n):
+        uv, _ = cam.project(emb.points(verts[t], fm.faces).numpy())
+        full = np.zeros((468, 2))
+        full[:160] = uv
+        images.append(FitImage(t, 0, full, float(np.ptp(uv, 0).max())))
+    problem = FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], images, n, smooth=True, camera_relative=True)
+    return fm, emb, problem, verts
+
+
+def test_keyframes_then_chunks_track_a_sequence_without_seams(head, one_thread):
+    """A 24-frame head turn: 5 keyframes with the full schedule, then chunks of 5 frames with the
+    shared parameters frozen. Every frame lies on its landmarks, its mesh near the truth (one camera:
+    after one similarity for the whole sequence), and the head's motion across the chunk seams is as
+    smooth as inside the chunks."""
+    from sage_core.track.truth import _umeyama
+
+    n = 24
+    fm, emb, problem, verts = _turning_sequence(head, n)
+    cfg = resolve_track_config("tiny", None, {"rigid_steps": 60, "steps": 200, "refine_steps": 0, "w_shape": 1e-5,
+                                              "w_expr": 1e-5, "w_pose": 1e-3, "keyframes": 5, "track_chunk": 5,
+                                              "track_steps": 30, "w_smooth": 0.5})
+    fit = Fitter(fm, emb, problem, cfg)
+    res = fit.run()
+    assert res.keyframes == [0, 6, 12, 17, 23] and set(res.timings) == {"keyframes", "track"}
+    assert "keyframes_shape" in res.losses and "track" in res.losses
+    assert np.nanmax(res.reprojection_px) < 0.5, res.reprojection_px
+    with torch.no_grad():
+        got = fit.full_vertices().double().numpy()
+    true = verts.double().numpy()
+    R, t, s = _umeyama(got.reshape(-1, 3), true.reshape(-1, 3))
+    err = np.linalg.norm(s * got @ R.T + t - true, axis=-1).mean(1) * 1000
+    assert err.mean() < 2.0 and err.max() < 4.0, err
+    # frame-to-frame motion of the vertices against the truth's: across the seams (4->5, 9->10, ...) as
+    # inside the chunks
+    dev = np.linalg.norm(np.diff(got, axis=0) - np.diff(true, axis=0), axis=-1).mean(1) * 1000
+    seams = np.arange(4, n - 1, 5)
+    inner = np.setdiff1d(np.arange(n - 1), seams)
+    assert dev[seams].max() < 2 * dev[inner].max(), (dev[seams], dev[inner])
+
+
+def test_keyframes_zero_or_short_sequences_fit_every_frame_jointly(head, one_thread):
+    """keyframes=0, or no more timesteps than keyframes: the three stages on all frames at once."""
+    fm, emb, problem, _ = _turning_sequence(head, 6)
+    for flags in ({"keyframes": 0}, {"keyframes": 6}):
+        cfg = resolve_track_config("tiny", None, {"rigid_steps": 5, "steps": 5, "refine_steps": 0, **flags})
+        res = Fitter(fm, emb, problem, cfg).run()
+        assert res.keyframes == list(range(6)) and set(res.timings) == {"joint"}
+        assert "track" not in res.losses
+
+
+def test_problem_subset_and_keyframe_smoothing_gaps(head):
+    fm, emb, problem, _ = _turning_sequence(head, 10)
+    sub = problem.subset(np.array([0, 4, 9]))
+    assert sub.n_timesteps == 3 and [im.timestep for im in sub.images] == [0, 1, 2]
+    assert np.array_equal(sub.times, [0, 4, 9]) and sub.images[1].landmarks is problem.images[4].landmarks
+    assert [im.timestep for im in problem.images] == list(range(10))  # the original is untouched
+    assert np.array_equal(sub.subset(np.array([1, 2])).times, [4, 9])
+    # a difference over a gap of g frames weighs 1/g² of one between neighbours
+    from sage_core.track.fitting import PER_TIMESTEP
+
+    cfg = resolve_track_config("tiny")
+    fit = Fitter(fm, emb, sub, cfg)
+    with torch.no_grad():
+        fit.params["rotation"][1, 1] = 1.0
+        assert float(fit.smoothness()) == pytest.approx((1 / 16 + 1 / 25) / 2, rel=1e-5)
+        # a chunk's fixed neighbour joins at a gap of 1 frame
+        fit.smooth_before = {k: fit.params[k][:1].clone() for k in PER_TIMESTEP}
+        fit.smooth_before["jaw_pose"] = fit.smooth_before["jaw_pose"] + 0.5
+        assert float(fit.smoothness()) == pytest.approx((0.25 * 3 + 1 / 16 + 1 / 25) / 3, rel=1e-5)
+
+
+@pytest.mark.parametrize("flags", [{"keyframes": -1}, {"track_chunk": 0}, {"track_steps": -5}, {"track_outline_period": 0},
+                                   {"outline_period": 0}, {"keyframes": 2.5}, {"silhouette_two_sided": "hair"}])
+def test_sequence_options_are_validated(flags):
+    from sage_core.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        resolve_track_config("default", None, flags)

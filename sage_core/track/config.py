@@ -71,6 +71,19 @@ class TrackConfig:
     refine_steps: int = _opt(60, "Adam steps with the photometric term added.", ge=0)
     refine_batch: int = _opt(8, "Images rasterized per refinement step for the photometric term (all when fewer).", ge=1)
     outline_refresh: int = _opt(4, "Images re-rasterized per step to update their outline vertices (the silhouette term).", ge=1)
+    outline_period: int = _opt(20, "Steps between two rasterizations of an image's outline in the shape and refine stages "
+                                   "(fewer when outline_refresh per step cannot keep up).", ge=1)
+    keyframes: int = _opt(30, "Sequences with more timesteps than this are fitted on this many evenly spaced keyframes with "
+                              "the full schedule (identity, focal length, landmark and scalp offsets, the keyframes' own "
+                              "parameters), then every timestep is tracked with those shared parameters frozen "
+                              "(track_chunk, track_steps). 0: every timestep in the full schedule at once (slow for videos).", ge=0)
+    track_chunk: int = _opt(30, "Tracking after the keyframes: timesteps fitted together, in time order, each chunk's "
+                                "smoothing tied to its neighbours.", ge=1)
+    track_steps: int = _opt(30, "Tracking after the keyframes: Adam steps per chunk (landmarks, silhouettes, priors, smoothing; "
+                                "warm-started from the keyframes interpolated).", ge=0)
+    track_lr: float = _opt(0.01, "Tracking after the keyframes: Adam learning rate (as lr; smaller, the start is close).", gt=0)
+    track_outline_period: int = _opt(30, "Tracking after the keyframes: steps between two rasterizations of an image's outline "
+                                         "(each chunk starts with all of them).", ge=1)
     fit_height: int = _opt(256, "Image height of the rasterized terms (pixels).", ge=32)
     lr: float = _opt(0.02, "Adam learning rate (poses in radians, translation in decimetres, coefficients as they are).", gt=0)
     w_landmark: float = _opt(1.0, "Weight of the landmark reprojection term (robust, in units of the face size).", ge=0)
@@ -83,6 +96,11 @@ class TrackConfig:
                                  choices=("auto", "on", "off"))
     w_landmark_offset: float = _opt(0.1, "Weight of the size prior of the landmark offsets (squared, in centimetres).", ge=0)
     w_silhouette: float = _opt(1.0, "Weight of the silhouette term (mesh outline against the segmentation's outline).", ge=0)
+    silhouette_two_sided: str = _opt("auto", "Outline vertices the silhouette pulls both ways: face (the FLAME masks' face and neck "
+                                             "regions; elsewhere — scalp, ears, back of the head, which hair may cover — only inwards, "
+                                             "when outside the person mask), all (every outline vertex; also without region masks), "
+                                             "or auto (face for calibrated cameras, all for one uncalibrated camera).",
+                                     choices=("auto", "face", "all"))
     silhouette_scale: float = _opt(0.01, "Robust scale of the silhouette distances (fraction of the face size).", gt=0)
     w_photo: float = _opt(1.0, "Weight of the photometric term (rasterized vertex colours against the images).", ge=0)
     w_shape: float = _opt(0.01, "Weight of the identity prior (squared coefficients).", ge=0)
@@ -101,7 +119,7 @@ class TrackConfig:
 PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "default": {},
     "tiny": {"calib_views": 3, "calib_size": 256, "rigid_steps": 60, "steps": 200, "refine_steps": 20, "refine_batch": 4,
-             "fit_height": 160, "max_height": 400},
+             "fit_height": 160, "max_height": 400, "keyframes": 12, "track_steps": 20},
 }
 """What each preset changes against the dataclass defaults (tiny: tests, seconds per capture)."""
 

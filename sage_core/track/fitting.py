@@ -19,12 +19,20 @@ Three stages, all with Adam on every frame together:
 3. **refine**: adds the photometric term on minibatches of images rasterized at the current fit (the
    images against the mesh coloured with the running mean of the colours every image sees at each
    vertex, through barycentrics that follow the vertices).
+
+Long sequences (more timesteps than ``cfg.keyframes``) are fitted in two passes: the three stages on
+evenly spaced keyframes (the shared parameters: identity, focal length, rig scale, landmark and scalp
+offsets, and the keyframes' own), then every timestep with the shared parameters frozen, chunk by chunk
+in time order (``cfg.track_chunk`` timesteps, warm-started from the keyframes interpolated, a short
+**track** stage of ``cfg.track_steps`` on landmarks and silhouettes), each chunk's temporal smoothing
+tied to the timestep before it (already tracked) and the one after it (still the interpolation).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -44,7 +52,10 @@ Progress = Callable[..., None]
 TRANS_UNIT = 0.1  # metres per unit of the translation parameter
 PIXEL_UNIT = 100.0  # pixels per unit of a camera-relative head position
 OFFSET_UNIT = 0.01  # metres per unit of the scalp offset parameter
-OUTLINE_PERIOD = 20  # steps between two rasterizations of an image's outline (when the budget allows)
+SHARED = ("shape", "log_focal", "log_rig_scale", "offset", "lmk_offset")
+"""Parameters shared by all timesteps (fitted on the keyframes of a long sequence, then frozen)."""
+PER_TIMESTEP = ("expr", "rotation", "translation", "neck_pose", "jaw_pose", "eyes_pose")
+"""Parameters of each timestep (rows of the parameter tensors); all of them are smoothed over time."""
 
 
 @dataclass
@@ -83,12 +94,16 @@ class FitProblem:
         smooth: smooth per-timestep parameters over time (videos).
         hair: vertex ids of the scalp offsets' region (None: no offsets).
         silhouette_exclude: (V,) bool, vertices never used as outline points (the neck opening).
+        silhouette_inward: (V,) bool, outline vertices that the silhouette only pulls inwards (when they
+            lie outside the person mask): where hair may cover the head's outline (ears, back of the head).
         landmark_offsets: fit one in-plane offset per landmark, shared by all images (the input sees
             the head from several directions, so a landmark's consistent disagreement with the
             embedding can be told from the shape).
         camera_relative: one uncalibrated camera: the head's position is fitted relative to it (its
             pixel position and a depth that scales with the focal length), so that a change of focal
             length moves every head along its viewing ray instead of changing the images.
+        times: (n_timesteps,) position of each timestep on the time axis in frames (None: consecutive);
+            the smoothing weighs the difference of two neighbouring timesteps by 1 / gap².
     """
 
     cameras: list[FitCamera]
@@ -98,8 +113,19 @@ class FitProblem:
     smooth: bool = False
     hair: np.ndarray | None = None
     silhouette_exclude: np.ndarray | None = None
+    silhouette_inward: np.ndarray | None = None
     landmark_offsets: bool = False
     camera_relative: bool = False
+    times: np.ndarray | None = None
+
+    def subset(self, rows: np.ndarray) -> FitProblem:
+        """The problem restricted to the timesteps ``rows`` (sorted, renumbered 0..len-1, their images
+        shared, not copied); ``times`` keeps their positions on the time axis."""
+        rows = np.asarray(rows, np.int64)
+        new = {int(t): k for k, t in enumerate(rows)}
+        times = (np.arange(self.n_timesteps, dtype=np.float64) if self.times is None else np.asarray(self.times, np.float64))[rows]
+        images = [replace(im, timestep=new[im.timestep]) for im in self.images if im.timestep in new]
+        return replace(self, images=images, n_timesteps=len(rows), times=times)
 
 
 @dataclass
@@ -114,6 +140,8 @@ class FitResult:
         reprojection_max_px: (N_images,) largest landmark error of each image.
         losses: stage -> final loss value.
         rig_scale: the fitted scale (1 when fixed).
+        timings: pass -> seconds (``joint``, or ``keyframes`` and ``track``).
+        keyframes: the timestep rows fitted with the full schedule (all of them without keyframes).
     """
 
     shape: np.ndarray
@@ -129,6 +157,8 @@ class FitResult:
     reprojection_max_px: np.ndarray
     losses: dict[str, float] = field(default_factory=dict)
     rig_scale: float = 1.0
+    timings: dict[str, float] = field(default_factory=dict)
+    keyframes: list[int] = field(default_factory=list)
 
 
 def _active(dirs: torch.Tensor, limit: int) -> int:
@@ -200,6 +230,8 @@ class Fitter:
             slot[problem.hair] = np.arange(len(problem.hair))
             self.hair_edges = torch.as_tensor(slot[e], dtype=torch.long, device=self.device)
         # per-image silhouette maps at the fit resolution
+        self.sil_inward = torch.as_tensor(problem.silhouette_inward if problem.silhouette_inward is not None
+                                          else np.zeros(V, bool), device=self.device)
         self.sil_exclude = torch.as_tensor(problem.silhouette_exclude if problem.silhouette_exclude is not None
                                            else np.zeros(V, bool), device=self.device)
         ev, ef = edge_faces(self.faces.cpu().numpy())
@@ -210,15 +242,7 @@ class Fitter:
         # silhouettes: each image's signed distance to its person mask's outline (fit resolution, padded
         # to one size) and the mesh vertices on its outline, re-rasterized a few images at a time
         self.sil_images = [i for i, im in enumerate(problem.images) if im.person is not None]
-        if self.sil_images:
-            hmax = max(problem.images[i].person.shape[0] for i in self.sil_images)
-            wmax = max(problem.images[i].person.shape[1] for i in self.sil_images)
-            sdt = np.full((len(self.sil_images), hmax, wmax), float(max(hmax, wmax)), np.float32)
-            for k, i in enumerate(self.sil_images):
-                m = problem.images[i].person
-                sdt[k, : m.shape[0], : m.shape[1]] = signed_distance(m > 0.5)
-            self.sdt = self._t(sdt)
-            self.sdt_size = (wmax, hmax)
+        self._sdt: torch.Tensor | None = None  # computed when the silhouette term first needs it
         self.sil_t = torch.as_tensor([problem.images[i].timestep for i in self.sil_images], dtype=torch.long, device=self.device)
         self.sil_c = torch.as_tensor([problem.images[i].camera for i in self.sil_images], dtype=torch.long, device=self.device)
         self.sil_fit = self._t(np.array([[problem.images[i].person.shape[1] / problem.cameras[problem.images[i].camera].width,
@@ -230,6 +254,26 @@ class Fitter:
         self._rebuild_subset()
         self.z0 = 1.0  # reference depth of camera-relative head positions (set by init_rigid)
         self.losses: dict[str, float] = {}
+        self.timings: dict[str, float] = {}
+        self.keyframes: list[int] = list(range(T))
+        # fixed neighbours of the first and last row for the smoothing (a chunk of a longer sequence):
+        # name -> (1, d) tensors, or None
+        self.smooth_before: dict[str, torch.Tensor] | None = None
+        self.smooth_after: dict[str, torch.Tensor] | None = None
+
+    def sdt_maps(self) -> tuple[torch.Tensor, tuple[int, int]]:
+        """(signed distances (N_sil, h, w) of every silhouette image to its person mask's outline at the
+        fit resolution, padded to one size; (w, h)), computed once."""
+        if self._sdt is None:
+            ims = [self.p.images[i] for i in self.sil_images]
+            hmax = max(im.person.shape[0] for im in ims)
+            wmax = max(im.person.shape[1] for im in ims)
+            sdt = np.full((len(ims), hmax, wmax), float(max(hmax, wmax)), np.float32)
+            for k, im in enumerate(ims):
+                sdt[k, : im.person.shape[0], : im.person.shape[1]] = signed_distance(im.person > 0.5)
+            self._sdt = self._t(sdt)
+            self._sdt_size = (wmax, hmax)
+        return self._sdt, self._sdt_size
 
     # -- model and cameras -------------------------------------------------------------------------
 
@@ -484,8 +528,9 @@ class Fitter:
         cid = self.sub_lookup[self.outline.clamp_min(0)]
         pts = verts[self.sil_t[:, None].expand_as(cid), cid]  # (N, M, 3)
         uv, _ = project(pts, Kf, w2c[self.sil_c])
-        d = sample_map(self.sdt, uv, *self.sdt_size) / self.sil_scale[:, None]
-        keep = valid & (d.abs() < 0.2)
+        sdt, size = self.sdt_maps()
+        d = sample_map(sdt, uv, *size) / self.sil_scale[:, None]
+        keep = valid & (d.abs() < 0.2) & ~(self.sil_inward[self.outline.clamp_min(0)] & (d < 0))
         return (charbonnier(d, self.cfg.silhouette_scale) * keep).sum() / keep.sum().clamp_min(1)
 
     def priors(self) -> torch.Tensor:
@@ -494,10 +539,8 @@ class Fitter:
         loss = loss + c.w_pose * ((P["jaw_pose"] ** 2).sum(1) + (P["neck_pose"] ** 2).sum(1)
                                   + 4.0 * (P["eyes_pose"] ** 2).sum(1)).mean()
         loss = loss + c.w_focal * (P["log_focal"] ** 2).sum()
-        if self.p.smooth and self.p.n_timesteps > 1:
-            d = lambda x: ((x[1:] - x[:-1]) ** 2).sum(1).mean()  # noqa: E731
-            loss = loss + c.w_smooth * (d(P["expr"]) + d(P["jaw_pose"]) + d(P["neck_pose"]) + d(P["eyes_pose"])
-                                        + d(P["rotation"]) + d(P["translation"]))
+        if self.p.smooth:
+            loss = loss + c.w_smooth * self.smoothness()
         if self.p.landmark_offsets:
             loss = loss + c.w_landmark_offset * (P["lmk_offset"] ** 2).sum(1).mean()
         if self.hair is not None:
@@ -507,6 +550,26 @@ class Fitter:
             diff = padded[self.hair_edges[:, 0]] - padded[self.hair_edges[:, 1]]
             loss = loss + c.w_offset_smooth * (diff ** 2).mean()
         return loss
+
+    def smoothness(self) -> torch.Tensor:
+        """Sum over the per-timestep parameters of the mean squared difference of neighbouring timesteps,
+        each pair weighted by 1 / gap² (``problem.times``), the fixed neighbours ``smooth_before`` /
+        ``smooth_after`` (a chunk's) joining the sequence at a gap of 1."""
+        P = self.params
+        gap = np.diff(np.arange(self.p.n_timesteps, dtype=np.float64) if self.p.times is None else np.asarray(self.p.times, np.float64))
+        gap = np.concatenate([[1.0] if self.smooth_before is not None else [], gap, [1.0] if self.smooth_after is not None else []])
+        if gap.size == 0:
+            return torch.zeros((), dtype=self.dtype, device=self.device)
+        w = self._t(1.0 / np.maximum(gap, 1e-6) ** 2)
+        total = torch.zeros((), dtype=self.dtype, device=self.device)
+        for n in PER_TIMESTEP:
+            x = P[n]
+            if self.smooth_before is not None:
+                x = torch.cat([self.smooth_before[n], x])
+            if self.smooth_after is not None:
+                x = torch.cat([x, self.smooth_after[n]])
+            total = total + (w * ((x[1:] - x[:-1]) ** 2).sum(1)).mean()
+        return total
 
     # -- rasterized terms ------------------------------------------------------------------------
 
@@ -605,7 +668,7 @@ class Fitter:
             p = self.params[n]
             if p.numel() == 0:
                 continue
-            lr = c.lr * (2.0 if n in ("expr", "shape", "offset") else 1.0)
+            lr = (c.track_lr if stage == "track" else c.lr) * (2.0 if n in ("expr", "shape", "offset") else 1.0)
             groups.append({"params": [p], "lr": lr, "base": lr})
         if not groups:
             return
@@ -620,8 +683,9 @@ class Fitter:
         if use_sil and self.outline.shape[1] == 0:
             self.refresh_outlines(len(self.sil_images))
         loss = torch.zeros(())
-        # every image is re-rasterized about every OUTLINE_PERIOD steps, at most outline_refresh per step
-        per_step = min(float(c.outline_refresh), len(self.sil_images) / OUTLINE_PERIOD)
+        # every image is re-rasterized about every outline_period steps, at most outline_refresh per step
+        period = c.track_outline_period if stage == "track" else c.outline_period
+        per_step = min(float(c.outline_refresh), len(self.sil_images) / period)
         credit = 0.0
         for step in range(steps):
             if use_sil and step > 0:
@@ -654,7 +718,18 @@ class Fitter:
             p.requires_grad_(False)
 
     def run(self) -> FitResult:
-        """All stages; returns the fit."""
+        """All stages; returns the fit. A sequence with more timesteps than ``cfg.keyframes`` (> 0) is fitted
+        on keyframes and then tracked chunk by chunk (module docstring)."""
+        if 0 < self.cfg.keyframes < self.p.n_timesteps:
+            self.run_keyframes()
+        else:
+            t0 = time.time()
+            self.run_joint()
+            self.timings["joint"] = time.time() - t0
+        return self.result()
+
+    def run_joint(self) -> None:
+        """The three stages on every timestep at once."""
         c = self.cfg
         if self.p.fit_rig_scale:
             self.init_rig_scale()
@@ -666,7 +741,64 @@ class Fitter:
             + (["offset"] if self.hair is not None else [])
         self._optimise(full, c.steps, "shape")
         self._optimise(full, c.refine_steps, "refine")
-        return self.result()
+
+    def _child(self, rows: np.ndarray, progress: Progress | None) -> Fitter:
+        """A fitter of the timesteps ``rows`` sharing this one's model, embedding, config and seed."""
+        return Fitter(self.flame, self.emb, self.p.subset(rows), self.cfg, progress, seed=int(self.gen.initial_seed()))
+
+    def run_keyframes(self) -> None:
+        """Keyframes with the full schedule, then every timestep tracked with the shared parameters frozen."""
+        c = self.cfg
+        T = self.p.n_timesteps
+        keys = np.unique(np.linspace(0, T - 1, c.keyframes).round().astype(np.int64))
+        t0 = time.time()
+        kf = self._child(keys, self.progress)
+        kf.run_joint()
+        self.z0 = kf.z0
+        with torch.no_grad():
+            for n in SHARED:
+                self.params[n].copy_(kf.params[n])
+            for n in PER_TIMESTEP:
+                self.params[n].copy_(self._interpolate(kf.params[n], keys, T))
+        self.losses.update({f"keyframes_{k}": v for k, v in kf.losses.items()})
+        self.keyframes = [int(k) for k in keys]
+        self.timings["keyframes"] = time.time() - t0
+        t0 = time.time()
+        chunks = [np.arange(a, min(a + c.track_chunk, T)) for a in range(0, T, c.track_chunk)]
+        losses = []
+        for k, rows in enumerate(chunks):
+            ch = self._child(rows, None)
+            ch.z0 = self.z0
+            with torch.no_grad():
+                for n in SHARED:
+                    ch.params[n].copy_(self.params[n])
+                for n in PER_TIMESTEP:
+                    ch.params[n].copy_(self.params[n][rows])
+            if self.p.smooth:
+                a, b = int(rows[0]), int(rows[-1])
+                ch.smooth_before = {n: self.params[n][a - 1: a].clone() for n in PER_TIMESTEP} if a > 0 else None
+                ch.smooth_after = {n: self.params[n][b + 1: b + 2].clone() for n in PER_TIMESTEP} if b + 1 < T else None
+            ch._optimise(list(PER_TIMESTEP), c.track_steps, "track")
+            with torch.no_grad():
+                for n in PER_TIMESTEP:
+                    self.params[n][rows] = ch.params[n]
+            losses.append(ch.losses.get("track", float("nan")))
+            if self.progress is not None:
+                self.progress(k + 1, len(chunks), "fitting: tracking every frame")
+        if losses:
+            self.losses["track"] = float(np.mean(losses))
+        self.timings["track"] = time.time() - t0
+
+    def _interpolate(self, values: torch.Tensor, keys: np.ndarray, n: int) -> torch.Tensor:
+        """Rows (len(keys), d) at the timesteps ``keys`` linearly interpolated to all ``n`` timesteps
+        (held constant beyond the first and last key)."""
+        pos = np.arange(n, dtype=np.float64)
+        hi = np.clip(np.searchsorted(keys, pos, side="right"), 1, len(keys) - 1) if len(keys) > 1 else np.zeros(n, np.int64)
+        lo = np.maximum(hi - 1, 0)
+        span = np.maximum(keys[hi] - keys[lo], 1)
+        w = np.clip((pos - keys[lo]) / span, 0.0, 1.0)
+        w = self._t(w)[:, None]
+        return values[torch.as_tensor(lo)] * (1 - w) + values[torch.as_tensor(hi)] * w
 
     def result(self) -> FitResult:
         """The fitted parameters (numpy), cameras and per-image landmark errors."""
@@ -706,4 +838,5 @@ class Fitter:
                 translation=np32(self.world_translation(P["translation"], P["expr"])), static_offset=None if off is None else np32(off),
                 cameras=cams, reprojection_px=rep, reprojection_max_px=rep_max, losses=dict(self.losses),
                 rig_scale=float(torch.exp(P["log_rig_scale"][0])) if self.p.fit_rig_scale else 1.0,
+                timings={k: round(v, 2) for k, v in self.timings.items()}, keyframes=list(self.keyframes),
             )

@@ -294,6 +294,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
             of = OutFrame(ti, out_cams[vi].index, out_cams[vi].name, out_cams[vi], t, original[t])
             np.save(raw / f"{of.name}.npy", (np.clip(out_img, 0, 1) * 65535).astype(np.uint16))
             person, how = person_probability(out_img, seg(out_img))
+            np.save(raw / f"{of.name}.person.npy", np.round(np.clip(person, 0, 1) * 255).astype(np.uint8))  # reused by the masks
             mask_kinds[how] += 1
             h = min(cfg.fit_height, out_img.shape[0])
             w = max(1, int(round(out_img.shape[1] * h / out_img.shape[0])))
@@ -337,11 +338,20 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     lmk_offsets = cfg.landmark_offsets == "on" or (cfg.landmark_offsets == "auto" and several_views)
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
+    inward = None
+    face_only = cfg.silhouette_two_sided == "face" or (cfg.silhouette_two_sided == "auto" and source.kind == "multiview")
+    if face_only and len(groups.get("face", [])):
+        both = np.zeros(V, bool)
+        for k in ("face", "neck"):
+            both[np.asarray(groups.get(k, []), np.int64)] = True
+        inward = ~both
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
-                         silhouette_exclude=exclude, landmark_offsets=lmk_offsets, camera_relative=source.kind != "multiview")
+                         silhouette_exclude=exclude, silhouette_inward=inward, landmark_offsets=lmk_offsets,
+                         camera_relative=source.kind != "multiview")
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
     fit = fitter.run()
     timings["fit"] = time.time() - t0
+    timings.update({f"fit_{k}": v for k, v in fit.timings.items()})
 
     # -- world re-centring of a monocular capture (VHAP): mean translation 0, the camera moves along
     cams = [Camera(c.K, c.w2c, c.width, c.height, oc.index, oc.name) for c, oc in zip(fit.cameras, out_cams)]
@@ -381,7 +391,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         with torch.no_grad():
             r = rasterize_mesh(v, faces_t, torch.as_tensor(cs.K, dtype=v.dtype), torch.as_tensor(cs.w2c, dtype=v.dtype), w, h)
         coverage = cv2.resize(r.mask[0].float().numpy(), (W, H), interpolation=cv2.INTER_LINEAR)
-        person, _ = person_probability(img, seg(img))
+        person = np.load(raw / f"{f.name}.person.npy").astype(np.float32) / 255.0
         neck = neck_line_mask(v.double().numpy(), neck_ids, f.camera) if cfg.neck_line else None
         fh = im.face_height if im.landmarks is not None else float(np.sqrt(max(coverage.sum(), 1.0)))
         mask = refine_mask(person, coverage, neck, fh)
