@@ -247,11 +247,14 @@ def test_keyframes_then_chunks_track_a_sequence_without_seams(head, one_thread):
 
 
 def test_keyframes_zero_or_short_sequences_fit_every_frame_jointly(head, one_thread):
-    """keyframes=0, or no more timesteps than keyframes: the three stages on all frames at once."""
+    """keyframes=0, no more timesteps than keyframes, or timesteps in no order (a folder of photos, a
+    rig: ``smooth`` off): the three stages on all frames at once."""
+    from dataclasses import replace
+
     fm, emb, problem, _ = _turning_sequence(head, 6)
-    for flags in ({"keyframes": 0}, {"keyframes": 6}):
+    for flags, prob in (({"keyframes": 0}, problem), ({"keyframes": 6}, problem), ({"keyframes": 3}, replace(problem, smooth=False))):
         cfg = resolve_track_config("tiny", None, {"rigid_steps": 5, "steps": 5, "refine_steps": 0, **flags})
-        res = Fitter(fm, emb, problem, cfg).run()
+        res = Fitter(fm, emb, prob, cfg).run()
         assert res.keyframes == list(range(6)) and set(res.timings) == {"joint"}
         assert "track" not in res.losses
 

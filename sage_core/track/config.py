@@ -73,7 +73,7 @@ class TrackConfig:
     outline_refresh: int = _opt(4, "Images re-rasterized per step to update their outline vertices (the silhouette term).", ge=1)
     outline_period: int = _opt(20, "Steps between two rasterizations of an image's outline in the shape and refine stages "
                                    "(fewer when outline_refresh per step cannot keep up).", ge=1)
-    keyframes: int = _opt(30, "Sequences with more timesteps than this are fitted on this many evenly spaced keyframes with "
+    keyframes: int = _opt(30, "Ordered sequences (a video, or images with smooth_sequences) with more timesteps than this are fitted on this many evenly spaced keyframes with "
                               "the full schedule (identity, focal length, landmark and scalp offsets, the keyframes' own "
                               "parameters), then every timestep is tracked with those shared parameters frozen "
                               "(track_chunk, track_steps). 0: every timestep in the full schedule at once (slow for videos).", ge=0)

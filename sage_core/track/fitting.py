@@ -20,7 +20,7 @@ Three stages, all with Adam on every frame together:
    images against the mesh coloured with the running mean of the colours every image sees at each
    vertex, through barycentrics that follow the vertices).
 
-Long sequences (more timesteps than ``cfg.keyframes``) are fitted in two passes: the three stages on
+Long ordered sequences (videos; more timesteps than ``cfg.keyframes``) are fitted in two passes: the three stages on
 evenly spaced keyframes (the shared parameters: identity, focal length, rig scale, landmark and scalp
 offsets, and the keyframes' own), then every timestep with the shared parameters frozen, chunk by chunk
 in time order (``cfg.track_chunk`` timesteps, warm-started from the keyframes interpolated, a short
@@ -718,9 +718,11 @@ class Fitter:
             p.requires_grad_(False)
 
     def run(self) -> FitResult:
-        """All stages; returns the fit. A sequence with more timesteps than ``cfg.keyframes`` (> 0) is fitted
-        on keyframes and then tracked chunk by chunk (module docstring)."""
-        if 0 < self.cfg.keyframes < self.p.n_timesteps:
+        """All stages; returns the fit. An ordered sequence (``problem.smooth``: a video, or images with
+        ``smooth_sequences``) with more timesteps than ``cfg.keyframes`` (> 0) is fitted on keyframes and
+        then tracked chunk by chunk (module docstring): interpolating between keyframes is a start only
+        where neighbouring timesteps are close in time. Anything else is fitted jointly."""
+        if self.p.smooth and 0 < self.cfg.keyframes < self.p.n_timesteps:
             self.run_keyframes()
         else:
             t0 = time.time()
