@@ -11,6 +11,12 @@ as a folder of frames, the camera folders with the rig's transforms.json), track
 (:func:`sage_core.track.truth.compare_to_truth`: vertex error in the world, in each camera's frame,
 and after one similarity alignment of the whole sequence; focal length error).
 
+``--avatars`` also trains an avatar (``sage run``, ``--avatar-preset``) on the tracked capture and one
+on the capture's own parameters, for the monocular and multiview regimes, and compares them on the
+same held-out images: the tracking is rerun with ``crop=false`` and ``neck_line=false`` so the tracked
+capture's images are the capture's own pixels, and the scores are taken over the test images both
+captures hold (matched by the capture's timestep and camera). The one-shot photo holds nothing out.
+
 ``--video`` also renders a head-turn video of a synthetic head (yaw ±60°, some pitch, ``--video-fps``
 frames per second for ``--video-seconds``, ``--video-size``) as an MP4 and tracks it: the time of the
 issue's "20-second 30-fps head-turn video" target, and its vertex error against the rendered truth.
@@ -55,23 +61,84 @@ def _capture(work: Path, regime: str, preset: str) -> Path:
     return cap
 
 
-def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int) -> dict:
-    """Synthesise (or reuse), track and compare one regime."""
-    from sage_core.track.truth import compare_to_truth, input_from_capture
+def _train_ratio(info: dict) -> str:
+    """``train_ratio=...`` that gives the tracked capture the synthetic capture's train timesteps: the
+    ratio written in full precision (six digits, 8/11 -> 0.727273, put a ninth frame in train)."""
+    return f"train_ratio={info['config']['train_timesteps'] / info['counts']['timesteps']!r}"
 
-    cap = _capture(work, regime, synth_preset)
+
+def _input(work: Path, regime: str, synth_preset: str, cap: Path) -> tuple[Path, Path | None]:
+    """The ``sage track`` input made from a synthetic capture (written once, reused)."""
+    from sage_core.track.truth import input_from_capture
+
     inp_dir = work / f"in_{regime}_{synth_preset}"
     if not inp_dir.exists():
-        inp, cams = input_from_capture(cap, inp_dir)
-    else:
-        inp = next(p for p in (inp_dir / "rig", inp_dir / "frames", *sorted(inp_dir.glob("*.png"))) if p.exists())
-        cams = inp_dir / "transforms.json" if (inp_dir / "transforms.json").is_file() else None
+        return input_from_capture(cap, inp_dir)
+    inp = next(p for p in (inp_dir / "rig", inp_dir / "frames", *sorted(inp_dir.glob("*.png"))) if p.exists())
+    return inp, (inp_dir / "transforms.json" if (inp_dir / "transforms.json").is_file() else None)
+
+
+def _test_scores(ws: Path, capture_timestep: dict[int, int] | None = None) -> dict[tuple[int, int], dict]:
+    """Per-image test metrics of a workspace's phase-2 evaluation, keyed by (capture timestep, camera);
+    ``capture_timestep`` maps a tracked capture's timestep index to the synthetic capture's."""
+    doc = json.loads((ws / "eval" / "phase2" / "test" / "metrics.json").read_text())
+    out = {}
+    for m in doc["images"]:
+        t = m["timestep"] if capture_timestep is None else capture_timestep[m["timestep"]]
+        out[(t, m["camera"])] = m
+    return out
+
+
+def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, avatar_preset: str, avatar_sets: list[str],
+                threads: int) -> dict:
+    """Train an avatar on the tracked capture and one on the capture's own parameters; compare them on
+    the same test images (module docstring)."""
+    cap = _capture(work, regime, synth_preset)
+    inp, cams = _input(work, regime, synth_preset, cap)
+    info = json.loads((cap / "gt" / "info.json").read_text())
+    tracked = work / f"tracked_{regime}_{synth_preset}_{track_preset}_uncropped"
+    model = str(cap / "model" / "synth_flame.pkl")
+    if not (tracked / "transforms.json").is_file():
+        args = ["track", str(inp), str(tracked), "--flame-model", model, "--preset", track_preset, "--quiet", "--force",
+                "--set", _train_ratio(info), "--set", "crop=false", "--set", "neck_line=false"]
+        if cams is not None:
+            args += ["--cameras", str(cams)]
+        _sage(args, threads)
+    ids = {f["timestep_index"]: int(f["timestep_id"]) for f in json.loads((tracked / "transforms.json").read_text())["frames"]}
+    runs = {}
+    for name, capture in (("own", cap), ("tracked", tracked)):
+        ws = work / f"avatar_{regime}_{synth_preset}_{name}_{avatar_preset}"
+        args = ["run", str(capture), str(ws), "--flame-model", model, "--regime", REGIME_OF[regime], "--preset", avatar_preset,
+                "--seed", "0", "--quiet"]
+        for kv in avatar_sets:
+            args += ["--set", kv]
+        wall, _ = _sage(args, threads)
+        runs[name] = {"workspace": ws.name, "wall_s": round(wall, 1), "command": "sage " + " ".join(args)}
+    own = _test_scores(work / runs["own"]["workspace"])
+    trk = _test_scores(work / runs["tracked"]["workspace"], ids)
+    common = sorted(set(own) & set(trk))
+    if not common:
+        raise RuntimeError(f"{regime}: the two captures share no test image")
+    for name, scores in (("own", own), ("tracked", trk)):
+        runs[name]["test_images"] = len(scores)
+        runs[name]["common"] = {k: round(sum(float(scores[c][k]) for c in common) / len(common), 4)
+                                for k in ("psnr", "ssim", "lpips") if all(scores[c].get(k) is not None for c in common)}
+    return {"regime": regime, "track_regime": REGIME_OF[regime], "synth_preset": synth_preset, "avatar_preset": avatar_preset,
+            "avatar_sets": avatar_sets, "common_images": len(common),
+            "common_timesteps": sorted({t for t, _ in common}), "runs": runs,
+            "psnr_difference_db": round(runs["tracked"]["common"]["psnr"] - runs["own"]["common"]["psnr"], 3)}
+
+
+def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int) -> dict:
+    """Synthesise (or reuse), track and compare one regime."""
+    from sage_core.track.truth import compare_to_truth
+
+    cap = _capture(work, regime, synth_preset)
+    inp, cams = _input(work, regime, synth_preset, cap)
     out = work / f"tracked_{regime}_{synth_preset}_{track_preset}"
     info = json.loads((cap / "gt" / "info.json").read_text())
-    n_train = info["config"]["train_timesteps"]
-    n_all = info["counts"]["timesteps"]
     args = ["track", str(inp), str(out), "--flame-model", str(cap / "model" / "synth_flame.pkl"), "--preset", track_preset,
-            "--quiet", "--force", "--set", f"train_ratio={n_train / n_all:.6f}"]
+            "--quiet", "--force", "--set", _train_ratio(info)]
     if cams is not None:
         args += ["--cameras", str(cams)]
     wall, _ = _sage(args, threads)
@@ -214,6 +281,9 @@ def markdown(doc: dict) -> str:
                      f"{r['wall_s']:.0f} | {r['reprojection_px']:.2f} | {_fmt(e['world'])} | {_fmt(e['camera'])} | "
                      f"{_fmt(e['aligned'])} | {e['aligned']['scale']:.3f} | "
                      f"{_fmt(e['rigid_per_timestep']) if 'rigid_per_timestep' in e else '—'} | {e['focal_rel_error']:+.1%} | {own_text} |")
+    notes = doc.get("notes") or {}
+    if notes.get("cases"):
+        lines += ["", notes["cases"]]
     runs = doc.get("video_runs") or ([{"label": "", "run": {"command": doc["command"], "machine": doc["machine"],
                                                              "load_after": doc["load_after"]}, "video": doc["video"]}]
                                      if doc.get("video") else [])
@@ -233,7 +303,24 @@ def markdown(doc: dict) -> str:
                          + " | ".join(_sec(v["timings_s"], k) for k in ("faces", "images", "embedding", "fit", "fit_keyframes",
                                                                          "fit_track", "masks"))
                          + f" | {v['reprojection_px']:.2f} | {_fmt(e['camera'])} | {_fmt(e['aligned'])} | {e['focal_rel_error']:+.1%} |")
+        if notes.get("video"):
+            lines += ["", notes["video"]]
     lines += ["", "Commands per case are in `track.json` (`cases[].command`)."]
+    if doc.get("avatars"):
+        a0 = doc["avatars"][0]
+        lines += ["", "Avatars trained on the tracked capture against avatars trained on the capture's own parameters (the "
+                      "tracker-like fit `sage synth` writes), scored on the same test images: the tracking rerun with "
+                      "`crop=false neck_line=false`, so both captures hold the same pixels; images matched by the capture's "
+                      f"timestep and camera. Training: `sage run ... --preset {a0['avatar_preset']}"
+                      + "".join(f" --set {kv}" for kv in a0["avatar_sets"]) + "`, seed 0; commands in `track.json` "
+                      "(`avatars[].runs`).", "",
+                  "| regime | test images | own parameters: PSNR / SSIM / LPIPS | `sage track`'s: PSNR / SSIM / LPIPS | difference (dB) |",
+                  "|---|---:|---|---|---:|"]
+        for a in doc["avatars"]:
+            o, t = a["runs"]["own"]["common"], a["runs"]["tracked"]["common"]
+            lines.append(f"| {a['regime']} ({a['track_regime']}) | {a['common_images']} | {o['psnr']:.2f} / {o['ssim']:.4f} / "
+                         f"{o.get('lpips', float('nan')):.4f} | {t['psnr']:.2f} / {t['ssim']:.4f} / {t.get('lpips', float('nan')):.4f} | "
+                         f"{a['psnr_difference_db']:+.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -266,6 +353,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=Path("bench-track"))
     ap.add_argument("--docs", type=Path, default=REPO / "docs" / "benchmarks")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--avatars", action="store_true",
+                    help="also train avatars on the tracked and the own-parameter captures (monocular, multiview) and compare them")
+    ap.add_argument("--only-avatars", action="store_true",
+                    help="run only the avatar comparison and put it into DOCS/track.json beside the cases already there")
+    ap.add_argument("--avatar-preset", default="tiny", choices=("tiny", "small", "default"))
+    ap.add_argument("--avatar-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a --set for both avatars' sage run (repeatable)")
     ap.add_argument("--rescore", action="store_true",
                     help="recompute the errors of DOCS/track.json's tracked captures in WORK (no tracking; times kept)")
     a = ap.parse_args(argv)
@@ -275,13 +369,29 @@ def main(argv: list[str] | None = None) -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     command = "python benchmarks/track.py " + " ".join(argv if argv is not None else sys.argv[1:])
     machine = _machine()
+    avatars = None
+    if a.avatars or a.only_avatars:
+        avatars = [avatar_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset,
+                               a.track_preset, a.avatar_preset, a.avatar_set, a.threads)
+                   for r in a.regimes.split(",") if r in ("monocular", "multiview")]
+        for x in avatars:
+            x["machine"] = machine
+            x["benchmark_command"] = command
+    if a.only_avatars:
+        doc = json.loads((a.docs / "track.json").read_text())
+        doc["avatars"] = avatars
+        doc.pop("avatar", None)  # the earlier, not like-for-like comparison
+        (a.docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
+        (a.docs / "track.md").write_text(markdown(doc))
+        print(markdown(doc))
+        return
     cases = [track_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset, a.track_preset,
                         a.threads) for r in a.regimes.split(",") if r]
     video = None
     if a.video:
         w, h = (int(x) for x in a.video_size.split("x"))
         video = video_case(a.out, a.video_seconds, a.video_fps, (w, h), a.track_preset, a.threads)
-    doc = {"command": command, "machine": machine, "threads": a.threads, "cases": cases, "video": video,
+    doc = {"command": command, "machine": machine, "threads": a.threads, "cases": cases, "video": video, "avatars": avatars,
            "load_after": [round(x, 2) for x in os.getloadavg()]}
     a.docs.mkdir(parents=True, exist_ok=True)
     (a.docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
