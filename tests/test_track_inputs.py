@@ -204,6 +204,7 @@ def test_crop_window_and_output_camera():
 
 def test_split_rule_and_written_capture_reads_back(tmp_path):
     from sage_core.data.capture import read_capture
+    from sage_core.flame.params import FlameParams
     from sage_core.track.capture_writer import OutFrame, split_of, write_flame_params, write_transforms
 
     assert [split_of(t, 10, 0.7, 0, None) for t in range(10)] == ["train"] * 7 + ["test"] * 3
@@ -216,14 +217,15 @@ def test_split_rule_and_written_capture_reads_back(tmp_path):
         write_png(tmp_path / "images" / f"{f.name}.png", _img(80, 64))
         write_png(tmp_path / "fg_masks" / f"{f.name}.png", np.ones((80, 64), np.float32))
     rng = np.random.default_rng(1)
-    params = {"shape": rng.normal(size=300).astype(np.float32), "expr": rng.normal(size=(T, 100)).astype(np.float32),
-              **{k: rng.normal(size=(T, 3)).astype(np.float32) * 0.1 for k in ("rotation", "neck_pose", "jaw_pose", "translation")},
-              "eyes_pose": np.zeros((T, 6), np.float32)}
-    write_flame_params(tmp_path, params, np.zeros((10, 3), np.float32))
+    params = FlameParams(shape=rng.normal(size=300).astype(np.float32), expr=rng.normal(size=(T, 100)).astype(np.float32),
+                         **{k: rng.normal(size=(T, 3)).astype(np.float32) * 0.1 for k in ("rotation", "neck_pose", "jaw_pose", "translation")},
+                         eyes_pose=np.zeros((T, 6), np.float32), static_offset=np.zeros((10, 3), np.float32), dynamic_offset=None,
+                         timesteps=np.arange(T))
+    write_flame_params(tmp_path, params)
     counts = write_transforms(tmp_path, frames, T, 0.7, 1)
     assert counts == {"train": 3, "val": 3, "test": 0}
     cap = read_capture(tmp_path)
-    assert cap.params.n_timesteps == T and np.allclose(cap.params.expr, params["expr"])
+    assert cap.params.n_timesteps == T and np.allclose(cap.params.expr, params.expr)
     assert np.allclose(cap.cameras[1].K, cams[1].K) and np.allclose(cap.cameras[0].w2c, cams[0].w2c)
     assert {f.split for f in cap.frames if f.camera_index == 1} == {"val"}
     assert cap.canonical is not None and np.allclose(cap.canonical.jaw_pose, [[0.3, 0, 0]])

@@ -12,8 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import atomic_write_bytes, atomic_writer
+from ..atomic import atomic_write_bytes
 from ..data.cameras import Camera, camera_to_nerf_frame
+from ..flame.params import FlameParams, save_param_npz
 
 
 @dataclass
@@ -83,26 +84,20 @@ def write_transforms(root: Path, frames: list[OutFrame], n_timesteps: int, train
     return {k: len(v) for k, v in by_split.items()}
 
 
-def _savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    with atomic_writer(path) as fh:
-        np.savez(fh, **arrays)
+def write_flame_params(root: Path, params: FlameParams) -> None:
+    """``flame_param/{ti:05d}.npz`` for every row of ``params`` (VHAP's keys and shapes, written by
+    :func:`save_param_npz`) and ``canonical_flame_param.npz`` (zero pose and expression, jaw 0.3 rad
+    open, the tracked identity and static offset).
 
-
-def write_flame_params(root: Path, params: dict[str, np.ndarray], static_offset: np.ndarray | None) -> None:
-    """``flame_param/{ti:05d}.npz`` per timestep with VHAP's keys and shapes, and
-    ``canonical_flame_param.npz`` (zero pose and expression, jaw 0.3 rad open, the tracked identity).
-
-    params: shape (S,), expr (T, E), rotation / neck_pose / jaw_pose / translation (T, 3), eyes_pose (T, 6).
+    params: shape (S,), expr (T, E), rotation / neck_pose / jaw_pose / translation (T, 3), eyes_pose (T, 6),
+    static_offset (V, 3) or None; row t is written as ``flame_param/{t:05d}.npz``.
     """
-    f32 = np.float32
-    T = params["expr"].shape[0]
-    common = {"shape": params["shape"].astype(f32).reshape(-1)}
-    if static_offset is not None:
-        common["static_offset"] = static_offset.astype(f32)[None]
-    for t in range(T):
-        arrays = {k: params[k][t:t + 1].astype(f32) for k in ("translation", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "expr")}
-        _savez(root / "flame_param" / f"{t:05d}.npz", {**arrays, **common})
-    zeros3 = np.zeros((1, 3), f32)
-    canonical = {"translation": zeros3, "rotation": zeros3, "neck_pose": zeros3, "jaw_pose": np.array([[0.3, 0, 0]], f32),
-                 "eyes_pose": np.zeros((1, 6), f32), "expr": np.zeros((1, params["expr"].shape[1]), f32), **common}
-    _savez(root / "canonical_flame_param.npz", canonical)
+    for t in range(params.n_timesteps):
+        save_param_npz(root / "flame_param" / f"{t:05d}.npz", params, t)
+    zeros3 = np.zeros((1, 3), np.float32)
+    canonical = FlameParams(
+        shape=params.shape, expr=np.zeros((1, params.n_expr), np.float32), rotation=zeros3, neck_pose=zeros3,
+        jaw_pose=np.array([[0.3, 0, 0]], np.float32), eyes_pose=np.zeros((1, 6), np.float32), translation=zeros3,
+        static_offset=params.static_offset, dynamic_offset=None, timesteps=np.zeros(1, np.int64),
+    )
+    save_param_npz(root / "canonical_flame_param.npz", canonical, 0)

@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..flame import FlameModel
+from ..flame import FlameModel, FlameParams
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..render.mesh_raster import rasterize_mesh
 from .config import TrackConfig
@@ -130,11 +130,12 @@ class FitProblem:
 
 @dataclass
 class FitResult:
-    """The fit: FLAME parameters per timestep (numpy float32), cameras, and per-image diagnostics.
+    """The fit: FLAME parameters per timestep, cameras, and per-image diagnostics.
 
     Attributes:
-        shape: (S,); expr: (T, E); rotation, neck_pose, jaw_pose, translation: (T, 3); eyes_pose: (T, 6).
-        static_offset: (V, 3) or None.
+        params: the fitted FLAME parameters (numpy float32): shape (S,), expr (T, E), rotation,
+            neck_pose, jaw_pose, translation (T, 3), eyes_pose (T, 6), static_offset (V, 3) or None
+            (the scalp offsets), dynamic_offset None, timesteps (T,) the rows 0..T-1.
         cameras: the fitted cameras (focal length, rig scale applied).
         reprojection_px: (N_images,) mean landmark error in output pixels (NaN without landmarks).
         reprojection_max_px: (N_images,) largest landmark error of each image.
@@ -144,14 +145,7 @@ class FitResult:
         keyframes: the timestep rows fitted with the full schedule (all of them without keyframes).
     """
 
-    shape: np.ndarray
-    expr: np.ndarray
-    rotation: np.ndarray
-    neck_pose: np.ndarray
-    jaw_pose: np.ndarray
-    eyes_pose: np.ndarray
-    translation: np.ndarray
-    static_offset: np.ndarray | None
+    params: FlameParams
     cameras: list[FitCamera]
     reprojection_px: np.ndarray
     reprojection_max_px: np.ndarray
@@ -834,11 +828,15 @@ class Fitter:
             expr[:, : self.n_expr] = P["expr"]
             shape = torch.zeros(self.flame.n_shape, dtype=self.dtype, device=self.device)
             shape[: self.n_shape] = P["shape"]
-            return FitResult(
+            params = FlameParams(
                 shape=np32(shape), expr=np32(expr), rotation=np32(P["rotation"]), neck_pose=np32(P["neck_pose"]),
                 jaw_pose=np32(P["jaw_pose"]), eyes_pose=np32(P["eyes_pose"]),
-                translation=np32(self.world_translation(P["translation"], P["expr"])), static_offset=None if off is None else np32(off),
-                cameras=cams, reprojection_px=rep, reprojection_max_px=rep_max, losses=dict(self.losses),
+                translation=np32(self.world_translation(P["translation"], P["expr"])),
+                static_offset=None if off is None else np32(off), dynamic_offset=None,
+                timesteps=np.arange(self.p.n_timesteps, dtype=np.int64),
+            )
+            return FitResult(
+                params=params, cameras=cams, reprojection_px=rep, reprojection_max_px=rep_max, losses=dict(self.losses),
                 rig_scale=float(torch.exp(P["log_rig_scale"][0])) if self.p.fit_rig_scale else 1.0,
                 timings={k: round(v, 2) for k, v in self.timings.items()}, keyframes=list(self.keyframes),
             )

@@ -356,8 +356,8 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     # -- world re-centring of a monocular capture (VHAP): mean translation 0, the camera moves along
     cams = [Camera(c.K, c.w2c, c.width, c.height, oc.index, oc.name) for c, oc in zip(fit.cameras, out_cams)]
     if source.kind != "multiview":
-        t_mean = fit.translation.mean(0).astype(np.float64)
-        fit.translation = (fit.translation - t_mean).astype(np.float32)
+        t_mean = fit.params.translation.mean(0).astype(np.float64)
+        fit.params.translation = (fit.params.translation - t_mean).astype(np.float32)
         for c in cams:
             c.w2c = c.w2c.copy()
             c.w2c[:3, 3] = c.w2c[:3, 3] + c.w2c[:3, :3] @ t_mean
@@ -366,17 +366,10 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
 
     # -- masks and matted images
     t0 = time.time()
-    params = {"shape": fit.shape, "expr": fit.expr, "rotation": fit.rotation, "neck_pose": fit.neck_pose,
-              "jaw_pose": fit.jaw_pose, "eyes_pose": fit.eyes_pose, "translation": fit.translation}
     with torch.no_grad():
-        tt = lambda a: torch.as_tensor(a, device=flame.v_template.device)  # noqa: E731
-        off = None if fit.static_offset is None else tt(fit.static_offset)
         verts_all = []
         for chunk in np.array_split(np.arange(len(obs.kept)), max(1, math.ceil(len(obs.kept) / 64))):
-            verts_all.append(flame(shape=tt(fit.shape), expr=tt(fit.expr[chunk]), rotation=tt(fit.rotation[chunk]),
-                                   neck_pose=tt(fit.neck_pose[chunk]), jaw_pose=tt(fit.jaw_pose[chunk]),
-                                   eyes_pose=tt(fit.eyes_pose[chunk]), translation=tt(fit.translation[chunk]),
-                                   static_offset=off).vertices.cpu())
+            verts_all.append(flame(**fit.params.select(chunk).to_torch(flame.v_template.device)).vertices.cpu())
         verts = torch.cat(verts_all)
     neck_ids = neck_line_vertices(model.v_template, model.faces, model.face_table == "flame" and model.n_base_vertices == 5023)
     from ..render.mesh_raster import rasterize_mesh
@@ -403,7 +396,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     timings["masks"] = time.time() - t0
 
     # -- parameters, transforms, report files
-    write_flame_params(root, params, fit.static_offset)
+    write_flame_params(root, fit.params)
     val_camera = cfg.val_camera
     if val_camera is None and source.kind == "multiview" and len(source.views) > 1:
         idx = [c.index for c in out_cams]
