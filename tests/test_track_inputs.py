@@ -15,7 +15,7 @@ from sage_core.data.cameras import Camera, camera_to_nerf_frame, look_at
 from sage_core.errors import ConfigError, InputError
 from sage_core.track.camera_files import read_cameras
 from sage_core.track.config import resolve_track_config
-from sage_core.track.inputs import _orient, read_oriented, read_source
+from sage_core.track.inputs import read_rgb, read_source
 from sage_core.track.observe import MONOCULAR_W2C, crop_window
 
 
@@ -47,13 +47,6 @@ def test_single_image_folder_and_sizes(tmp_path):
         read_source(p, cameras=tmp_path / "transforms.json")
 
 
-def test_exif_orientation_is_applied():
-    a = np.arange(24, dtype=np.float32).reshape(2, 4, 3)
-    assert _orient(a, 6).shape == (4, 2, 3) and np.array_equal(_orient(a, 6)[0, -1], a[0, 0])  # 90° clockwise
-    assert np.array_equal(_orient(a, 3), a[::-1, ::-1]) and np.array_equal(_orient(a, 1), a)
-    assert np.array_equal(_orient(_orient(a, 6), 8), a)
-
-
 def test_exif_focal_and_orientation_from_a_jpeg(tmp_path):
     import OpenImageIO as oiio
 
@@ -65,11 +58,31 @@ def test_exif_focal_and_orientation_from_a_jpeg(tmp_path):
     out = oiio.ImageOutput.create(str(path))
     assert out.open(str(path), spec) and out.write_image(img)
     out.close()
-    pixels, focal = read_oriented(path)
-    assert pixels.shape == (60, 40, 3)  # stored landscape, shown portrait
-    assert focal == pytest.approx(26 / 36 * 60)
+    pixels = read_rgb(path)
+    assert pixels.shape == (60, 40, 3) and pixels.dtype == np.float32  # stored landscape, shown portrait
     src = read_source(path)
     assert (src.views[0].width, src.views[0].height) == (40, 60) and src.views[0].exif_focal == pytest.approx(26 / 36 * 60)
+
+
+def test_images_with_alpha_or_grey_become_rgb_on_white(tmp_path):
+    from sage_core.data.imageio import write_image
+
+    rgba = np.zeros((4, 6, 4), np.float32)
+    rgba[..., :3] = 0.2
+    rgba[:, :3, 3] = 1.0  # left half opaque, right half transparent
+    write_image(tmp_path / "cut_out.png", rgba, bits=16)
+    rgb = read_rgb(tmp_path / "cut_out.png")
+    assert rgb.shape == (4, 6, 3) and np.allclose(rgb[:, :3], 0.2, atol=1e-4) and np.allclose(rgb[:, 3:], 1.0)
+    ga = np.stack([np.full((4, 6), 0.4), rgba[..., 3]], -1).astype(np.float32)
+    write_image(tmp_path / "grey_alpha.png", ga, bits=16)
+    grey = read_rgb(tmp_path / "grey_alpha.png")
+    assert grey.shape == (4, 6, 3) and np.allclose(grey[:, :3], 0.4, atol=1e-4) and np.allclose(grey[:, 3:], 1.0)
+    write_image(tmp_path / "grey.png", ga[..., 0], bits=16)
+    assert read_rgb(tmp_path / "grey.png").shape == (4, 6, 3)
+    (tmp_path / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(40))
+    with pytest.raises(InputError) as e:
+        read_rgb(tmp_path / "broken.png")
+    assert e.value.path == tmp_path / "broken.png" and "image" in str(e.value)
 
 
 def test_video_frames_fps_and_corrupt_files(tmp_path):

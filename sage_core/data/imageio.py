@@ -1,11 +1,14 @@
-"""Image reading and writing through OpenImageIO (PNG 8/16-bit, EXR float).
+"""Image reading and writing through OpenImageIO (PNG 8/16-bit, JPEG, TIFF, EXR float, ...).
 
-Images are float32 arrays in [0, 1], shape (H, W, C), linear as stored.
+Images are float32 arrays in [0, 1], shape (H, W, C), linear as stored. Headers (size, EXIF
+orientation and focal length) can be read without decoding the pixels (:func:`read_header`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -13,45 +16,105 @@ from ..atomic import atomic_path
 from ..errors import InputError, require_file
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read an image as float32 (H, W, C) in [0, 1] (EXR values are returned unscaled).
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image file's header says, before any pixel is decoded.
+
+    Attributes:
+        width, height, channels: as stored in the file.
+        orientation: EXIF orientation 1..8 (1: upright as stored; 5..8 swap width and height).
+        focal_35mm: EXIF ``FocalLengthIn35mmFilm`` in millimetres, or None when absent.
+    """
+
+    width: int
+    height: int
+    channels: int
+    orientation: int = 1
+    focal_35mm: float | None = None
+
+    @property
+    def upright_size(self) -> tuple[int, int]:
+        """(width, height) of the image once its EXIF orientation is applied."""
+        return (self.height, self.width) if self.orientation in (5, 6, 7, 8) else (self.width, self.height)
+
+    @property
+    def focal_px(self) -> float | None:
+        """The 35 mm equivalent focal length in pixels (36 mm across the longer side), or None."""
+        if self.focal_35mm is None:
+            return None
+        return self.focal_35mm / 36.0 * max(self.width, self.height)
+
+
+def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
+    """Turn/mirror an image (H, W, ...) stored with EXIF orientation 1..8 so it shows upright.
+
+    Returns a contiguous array, (W, H, ...) for orientations 5..8; other values return ``image``.
+    """
+    ops = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+           5: lambda a: np.swapaxes(a, 0, 1), 6: lambda a: np.rot90(a, -1),
+           7: lambda a: np.swapaxes(a[::-1, ::-1], 0, 1), 8: lambda a: np.rot90(a, 1)}
+    return np.ascontiguousarray(ops[orientation](image)) if orientation in ops else image
+
+
+def _open(path: Path) -> Any:
+    """An open OpenImageIO input of ``path``; InputError naming the file when it is missing or unreadable."""
+    import OpenImageIO as oiio
+
+    require_file(path, "image file")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(path, f"cannot open the image ({oiio.geterror().strip() or 'unknown format'})")
+    return inp
+
+
+def _header_of(spec: Any) -> ImageHeader:
+    f35 = float(spec.get_float_attribute("Exif:FocalLengthIn35mmFilm", 0.0))
+    return ImageHeader(int(spec.width), int(spec.height), int(spec.nchannels),
+                       int(spec.get_int_attribute("Orientation", 1)), f35 if f35 > 0 else None)
+
+
+def read_header(path: str | Path) -> ImageHeader:
+    """The header of an image file (size, channels, EXIF orientation and focal length), no pixels.
 
     Raises InputError naming the file when it is missing or unreadable.
     """
-    import OpenImageIO as oiio
-
     path = Path(path)
-    require_file(path, "image file")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(path, f"cannot open image: {oiio.geterror()}")
+    inp = _open(path)
+    try:
+        return _header_of(inp.spec())
+    finally:
+        inp.close()
+
+
+def read_image(path: str | Path, upright: bool = False) -> np.ndarray:
+    """Read an image as float32 (H, W, C) in [0, 1] (EXR values are returned unscaled).
+
+    8- and 16-bit files are scaled to [0, 1]; every channel is kept (grey (H, W, 1), alpha last, the
+    colours then premultiplied by it as OpenImageIO associates alpha on reading).
+    upright: apply the file's EXIF orientation (photos from phones and cameras), so (H, W) are the
+    upright size (:attr:`ImageHeader.upright_size`); False returns the pixels as stored.
+    Raises InputError naming the file when it is missing, unreadable, truncated or corrupt.
+    """
+    path = Path(path)
+    inp = _open(path)
     try:
         spec = inp.spec()
+        orientation = _header_of(spec).orientation
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
     finally:
         inp.close()
-    if data is None or not isinstance(data, np.ndarray):
-        raise InputError(path, "cannot decode image")
+    if data is None or not isinstance(data, np.ndarray) or data.size == 0:
+        raise InputError(path, "cannot decode the image (truncated or corrupt file)")
     data = np.asarray(data, dtype=np.float32)
     if data.ndim == 2:
         data = data[:, :, None]
-    return data
+    return apply_orientation(data, orientation) if upright else data
 
 
 def image_size(path: str | Path) -> tuple[int, int, int]:
-    """(width, height, channels) read from the header only."""
-    import OpenImageIO as oiio
-
-    path = Path(path)
-    require_file(path, "image file")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(path, f"cannot open image: {oiio.geterror()}")
-    try:
-        spec = inp.spec()
-        return int(spec.width), int(spec.height), int(spec.nchannels)
-    finally:
-        inp.close()
+    """(width, height, channels) read from the header only, as stored (no EXIF orientation)."""
+    h = read_header(path)
+    return h.width, h.height, h.channels
 
 
 def write_image(path: str | Path, image: np.ndarray, bits: int = 8) -> None:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.cameras import Camera
+from ..data.imageio import read_header, read_image
 from ..errors import ConfigError, InputError
 from .camera_files import CameraSet, read_cameras
 
@@ -97,7 +98,7 @@ class TrackSource:
             return
         for t in self.timesteps:
             if t in v.files:
-                img = read_oriented(v.files[t])[0]
+                img = read_rgb(v.files[t])
                 if v.distortion is not None and v.calibrated is not None:
                     img = undistort(img, v.calibrated, v.distortion)
                 yield t, img
@@ -105,67 +106,27 @@ class TrackSource:
 
 # -- images ----------------------------------------------------------------------------------------
 
-def _orient(img: np.ndarray, orientation: int) -> np.ndarray:
-    """Apply an EXIF orientation (1..8) so the image shows upright."""
-    ops = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
-           5: lambda a: np.transpose(a, (1, 0, 2)), 6: lambda a: np.rot90(a, -1),
-           7: lambda a: np.rot90(a, 1)[::-1], 8: lambda a: np.rot90(a, 1)}
-    return np.ascontiguousarray(ops[orientation](img)) if orientation in ops else img
+def read_rgb(path: Path) -> np.ndarray:
+    """An image file as (H, W, 3) float32 in [0, 1], upright (EXIF orientation applied).
 
-
-def read_oriented(path: Path) -> tuple[np.ndarray, float | None]:
-    """(image (H, W, 3) float32 in [0, 1], EXIF focal in pixels or None) of an image file, upright.
-
-    RGBA is composited onto white, grey is repeated to RGB. InputError names the file when it cannot
-    be decoded.
+    Read with the project's image reader (:func:`sage_core.data.imageio.read_image`); an alpha
+    channel is composited onto white, grey is repeated to RGB. InputError names the file when it is
+    missing or cannot be decoded.
     """
-    import OpenImageIO as oiio
-
-    if not path.is_file():
-        raise InputError(path, "image file not found")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(path, f"cannot open the image ({oiio.geterror().strip() or 'unknown format'})")
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        orientation = int(spec.get_int_attribute("Orientation", 1))
-        f35 = float(spec.get_float_attribute("Exif:FocalLengthIn35mmFilm", 0.0))
-    finally:
-        inp.close()
-    if data is None or not isinstance(data, np.ndarray) or data.size == 0:
-        raise InputError(path, "cannot decode the image (truncated or corrupt file)")
-    img = np.asarray(data, dtype=np.float32)
-    if img.ndim == 2:
-        img = img[:, :, None]
+    img = read_image(path, upright=True)
     if img.shape[2] in (2, 4):
         a = img[:, :, -1:]
         img = img[:, :, :-1] * a + (1.0 - a)
     if img.shape[2] == 1:
         img = np.repeat(img, 3, axis=2)
-    img = np.clip(img[:, :, :3], 0.0, 1.0)
-    img = _orient(img, orientation)
-    focal = f35 / 36.0 * max(img.shape[:2]) if f35 > 0 else None
-    return img, focal
+    return np.clip(img[:, :, :3], 0.0, 1.0)
 
 
 def _header(path: Path) -> tuple[int, int, float | None]:
     """(width, height, EXIF focal in pixels) after orientation, from the header."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(path, f"cannot open the image ({oiio.geterror().strip() or 'unknown format'})")
-    try:
-        spec = inp.spec()
-        w, h = int(spec.width), int(spec.height)
-        orientation = int(spec.get_int_attribute("Orientation", 1))
-        f35 = float(spec.get_float_attribute("Exif:FocalLengthIn35mmFilm", 0.0))
-    finally:
-        inp.close()
-    if orientation in (5, 6, 7, 8):
-        w, h = h, w
-    return w, h, (f35 / 36.0 * max(w, h) if f35 > 0 else None)
+    head = read_header(path)
+    w, h = head.upright_size
+    return w, h, head.focal_px
 
 
 def undistort(img: np.ndarray, cam: Camera, dist: np.ndarray) -> np.ndarray:
