@@ -201,7 +201,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
 
     from sage_core.data.capture import read_capture
     from sage_core.flame import FlameModel, load_flame_model
-    from sage_core.track.truth import _summary, _umeyama
+    from sage_core.track.truth import error_summary, similarity_fit
 
     video = work / f"headturn_{int(seconds)}s_{int(fps)}fps_{size[0]}x{size[1]}.mp4"
     meta_path = video.with_suffix(".json")
@@ -229,7 +229,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         pairs.append((a, b))
         e = np.linalg.norm(a - b, axis=1) * 1000
         cam_err.append((e.mean(), e.max()))
-    R, tv, s = _umeyama(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]))
+    R, tv, s = similarity_fit(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]))
     aligned = [(np.linalg.norm(s * a @ R.T + tv - b, axis=1) * 1000) for a, b in pairs]
     report = json.loads((out / "track" / "report.json").read_text())
     focal = report["camera"]["cameras"][0]["focal_input_px"]
@@ -237,7 +237,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         "video": video.name, "seconds": seconds, "fps": fps, "size": list(size), "frames": meta["frames"],
         "timesteps": report["timesteps"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
-        "errors": {"camera": _summary(cam_err), "aligned": {**_summary([(e.mean(), e.max()) for e in aligned]), "scale": round(s, 4)},
+        "errors": {"camera": error_summary(cam_err), "aligned": {**error_summary([(e.mean(), e.max()) for e in aligned]), "scale": round(s, 4)},
                    "focal_rel_error": round(focal / float(truth["K"][0, 0]) - 1, 4)},
         "command": "sage " + " ".join(args), "render_s": meta.get("render_s"),
     }

@@ -220,7 +220,7 @@ def test_keyframes_then_chunks_track_a_sequence_without_seams(head, one_thread):
     shared parameters frozen. Every frame lies on its landmarks, its mesh near the truth (one camera:
     after one similarity for the whole sequence), and the head's motion across the chunk seams is as
     smooth as inside the chunks."""
-    from sage_core.track.truth import _umeyama
+    from sage_core.track.truth import similarity_fit
 
     n = 24
     fm, emb, problem, verts = _turning_sequence(head, n)
@@ -235,7 +235,7 @@ def test_keyframes_then_chunks_track_a_sequence_without_seams(head, one_thread):
     with torch.no_grad():
         got = fit.full_vertices().double().numpy()
     true = verts.double().numpy()
-    R, t, s = _umeyama(got.reshape(-1, 3), true.reshape(-1, 3))
+    R, t, s = similarity_fit(got.reshape(-1, 3), true.reshape(-1, 3))
     err = np.linalg.norm(s * got @ R.T + t - true, axis=-1).mean(1) * 1000
     assert err.mean() < 2.0 and err.max() < 4.0, err
     # frame-to-frame motion of the vertices against the truth's: across the seams (4->5, 9->10, ...) as

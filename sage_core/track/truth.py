@@ -77,8 +77,13 @@ def _read_ply_vertices(path: Path) -> np.ndarray:
     return np.asarray(trimesh.load(path, process=False).vertices, dtype=np.float64)
 
 
-def _umeyama(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Similarity (R, t, s) with s·R·a + t ≈ b (least squares over rows of (N, 3) arrays)."""
+def similarity_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The similarity transform that best maps points ``a`` onto ``b`` (Umeyama's least squares).
+
+    a, b: (N, 3) corresponding points (N >= 3, not all on a line). Returns (R (3, 3) rotation,
+    t (3,) translation, s scale) minimising the mean of |s·R·a_i + t − b_i|², so that
+    ``s * a @ R.T + t ≈ b``.
+    """
     ma, mb = a.mean(0), b.mean(0)
     A, B = a - ma, b - mb
     U, S, Vt = np.linalg.svd(B.T @ A / len(a))
@@ -100,7 +105,13 @@ def _rigid(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, mb - R @ ma
 
 
-def _summary(per_t: list[tuple[float, float]]) -> dict[str, float]:
+def error_summary(per_t: list[tuple[float, float]]) -> dict[str, float]:
+    """Vertex errors of T timesteps summarised, in mm rounded to 0.001.
+
+    per_t: T pairs (mean, max) of one timestep's vertex errors in mm, i.e. a (T, 2) table.
+    Returns ``mean_mm`` (mean of the means), ``max_mm`` (largest max) and ``worst_timestep_mean_mm``
+    (largest mean).
+    """
     arr = np.array(per_t)
     return {"mean_mm": round(float(arr[:, 0].mean()), 3), "max_mm": round(float(arr[:, 1].max()), 3),
             "worst_timestep_mean_mm": round(float(arr[:, 0].max()), 3)}
@@ -152,7 +163,7 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         cam_pairs.append((a, b))
         per.append({"timestep": int(t), "truth_timestep": true_t, "world_mean_mm": round(float(e.mean()), 3),
                     "camera_mean_mm": round(float(ec.mean()), 3)})
-    R, tvec, s = _umeyama(np.concatenate([a for a, _ in cam_pairs]), np.concatenate([b for _, b in cam_pairs]))
+    R, tvec, s = similarity_fit(np.concatenate([a for a, _ in cam_pairs]), np.concatenate([b for _, b in cam_pairs]))
     aligned, rigid = [], []
     for a, b in cam_pairs:
         ea = np.linalg.norm((s * a @ R.T + tvec) - b, axis=1) * 1000
@@ -168,10 +179,10 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
     focal_rel = float(cam0["focal_input_px"] / tc.K[0, 0] - 1.0)
     return {
         "timesteps": len(per),
-        "world": _summary(world),
-        "camera": _summary(camera),
-        "aligned": {**_summary(aligned), "scale": round(s, 4)},
-        "rigid_per_timestep": _summary(rigid),
+        "world": error_summary(world),
+        "camera": error_summary(camera),
+        "aligned": {**error_summary(aligned), "scale": round(s, 4)},
+        "rigid_per_timestep": error_summary(rigid),
         "focal_rel_error": round(focal_rel, 4),
         "per_timestep": per,
         "truth_tracking_error": json.loads((Path(truth) / "gt" / "info.json").read_text()).get("tracking", {}).get("error"),
