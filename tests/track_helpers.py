@@ -27,7 +27,7 @@ def _models_dir() -> str | None:
 
 
 def _litert() -> str | None:
-    from sage_core.track._litert import litert_available
+    from sage_core.track.litert import litert_available
 
     return litert_available()
 

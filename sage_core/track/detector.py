@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._litert import TFLiteModel
+from .litert import TFLiteModel
 
 INPUT_SIZE = 128
 SCORE_CLIP = 100.0

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._litert import TFLiteModel
 from .detector import Detection
+from .litert import TFLiteModel
 
 CROP = 192
 ROI_SCALE = 1.5

@@ -178,9 +178,9 @@ def track_capture(
     writing anything.
     """
     from ..flame import FlameModel, load_flame_model, load_masks
-    from ._litert import litert_available
     from .faces import FaceObserver
     from .inputs import read_source
+    from .litert import litert_available
     from .observe import observe
     from .weights import find_models
 

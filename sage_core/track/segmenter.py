@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._litert import TFLiteModel
+from .litert import TFLiteModel
 
 INPUT_SIZE = 256
 
