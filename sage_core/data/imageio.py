@@ -111,6 +111,24 @@ def read_image(path: str | Path, upright: bool = False) -> np.ndarray:
     return apply_orientation(data, orientation) if upright else data
 
 
+def over_white(image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) colours of an image read by :func:`read_image` on a white background.
+
+    image: (H, W, C) with C = 1 (grey), 2 (grey, alpha), 3 (RGB) or 4 (RGBA). The colours of an image
+    with alpha are premultiplied (as read), so white is added where the alpha is below one:
+    ``rgb + (1 - alpha)``; grey is repeated to three channels. Raises ValueError for other C.
+    """
+    c = image.shape[2]
+    if c not in (1, 2, 3, 4):
+        raise ValueError(f"image has {c} channels, expected 1 to 4")
+    rgb = image[:, :, : 3 if c >= 3 else 1]
+    if c in (2, 4):
+        rgb = rgb + (1.0 - image[:, :, -1:])
+    if rgb.shape[2] == 1:
+        rgb = np.repeat(rgb, 3, axis=2)
+    return rgb
+
+
 def image_size(path: str | Path) -> tuple[int, int, int]:
     """(width, height, channels) read from the header only, as stored (no EXIF orientation)."""
     h = read_header(path)

@@ -313,18 +313,13 @@ def _check_options(regime: str, background: str, downsample: float | None, heigh
 
 
 def _load_rgb(path: Path) -> np.ndarray:
-    """(H, W, 3) float32; RGBA is composited onto white with its alpha."""
-    from .imageio import read_image
+    """(H, W, 3) float32; RGBA is composited onto white with its alpha (grey is repeated)."""
+    from .imageio import over_white, read_image
 
     img = read_image(path)
-    if img.shape[2] == 4:
-        a = img[:, :, 3:4]
-        img = img[:, :, :3] * a + (1.0 - a)
-    elif img.shape[2] == 1:
-        img = np.repeat(img, 3, axis=2)
-    elif img.shape[2] != 3:
-        raise InputError(path, f"image has {img.shape[2]} channels, expected 3 or 4")
-    return np.ascontiguousarray(img[:, :, :3], dtype=np.float32)
+    if img.shape[2] not in (1, 3, 4):
+        raise InputError(path, f"image has {img.shape[2]} channels, expected 1, 3 or 4")
+    return np.ascontiguousarray(over_white(img), dtype=np.float32)
 
 
 def _load_mask(path: Path) -> np.ndarray:

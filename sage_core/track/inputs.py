@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.cameras import Camera
-from ..data.imageio import read_header, read_image
+from ..data.imageio import over_white, read_header, read_image
 from ..errors import ConfigError, InputError
 from .camera_files import CameraSet, read_cameras
 
@@ -110,16 +110,10 @@ def read_rgb(path: Path) -> np.ndarray:
     """An image file as (H, W, 3) float32 in [0, 1], upright (EXIF orientation applied).
 
     Read with the project's image reader (:func:`sage_core.data.imageio.read_image`); an alpha
-    channel is composited onto white, grey is repeated to RGB. InputError names the file when it is
+    channel is composited onto white (:func:`~sage_core.data.imageio.over_white`), grey is repeated to RGB. InputError names the file when it is
     missing or cannot be decoded.
     """
-    img = read_image(path, upright=True)
-    if img.shape[2] in (2, 4):
-        a = img[:, :, -1:]
-        img = img[:, :, :-1] * a + (1.0 - a)
-    if img.shape[2] == 1:
-        img = np.repeat(img, 3, axis=2)
-    return np.clip(img[:, :, :3], 0.0, 1.0)
+    return np.clip(over_white(read_image(path, upright=True)), 0.0, 1.0)
 
 
 def _header(path: Path) -> tuple[int, int, float | None]:
