@@ -129,16 +129,20 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
             "psnr_difference_db": round(runs["tracked"]["common"]["psnr"] - runs["own"]["common"]["psnr"], 3)}
 
 
-def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int) -> dict:
-    """Synthesise (or reuse), track and compare one regime."""
+def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int, known_focal: bool = False) -> dict:
+    """Synthesise (or reuse), track and compare one regime; ``known_focal`` gives one camera's true focal
+    length (``--set focal=...``), as a photo's EXIF would."""
     from sage_core.track.truth import compare_to_truth
 
     cap = _capture(work, regime, synth_preset)
     inp, cams = _input(work, regime, synth_preset, cap)
-    out = work / f"tracked_{regime}_{synth_preset}_{track_preset}"
+    out = work / f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}"
     info = json.loads((cap / "gt" / "info.json").read_text())
     args = ["track", str(inp), str(out), "--flame-model", str(cap / "model" / "synth_flame.pkl"), "--preset", track_preset,
             "--quiet", "--force", "--set", _train_ratio(info)]
+    if known_focal:
+        frame = json.loads((cap / "transforms.json").read_text())["frames"][0]
+        args += ["--set", f"focal={frame['fl_x']}"]
     if cams is not None:
         args += ["--cameras", str(cams)]
     wall, _ = _sage(args, threads)
@@ -146,7 +150,7 @@ def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, th
     report = json.loads((out / "track" / "report.json").read_text())
     return {
         "regime": regime, "track_regime": report["regime"], "synth_preset": synth_preset, "track_preset": track_preset,
-        "image_size": [info["config"]["width"], info["config"]["height"]], "timesteps": report["timesteps"],
+        "known_focal": known_focal, "image_size": [info["config"]["width"], info["config"]["height"]], "timesteps": report["timesteps"],
         "images": report["images"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
         "focal_source": report["camera"]["focal_source"], "errors": err,
@@ -277,7 +281,8 @@ def markdown(doc: dict) -> str:
         e = r["errors"]
         own = r["capture_tracking_error"]
         own_text = f"{own['mean_mm']:.2f} / {own['max_mm']:.1f}" if own else "—"
-        lines.append(f"| {r['regime']} ({r['track_regime']}) | {r['images']} | {r['image_size'][0]}x{r['image_size'][1]} | "
+        label = f"{r['regime']} ({r['track_regime']}{', focal length given' if r.get('known_focal') else ''})"
+        lines.append(f"| {label} | {r['images']} | {r['image_size'][0]}x{r['image_size'][1]} | "
                      f"{r['wall_s']:.0f} | {r['reprojection_px']:.2f} | {_fmt(e['world'])} | {_fmt(e['camera'])} | "
                      f"{_fmt(e['aligned'])} | {e['aligned']['scale']:.3f} | "
                      f"{_fmt(e['rigid_per_timestep']) if 'rigid_per_timestep' in e else '—'} | {e['focal_rel_error']:+.1%} | {own_text} |")
@@ -353,6 +358,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=Path("bench-track"))
     ap.add_argument("--docs", type=Path, default=REPO / "docs" / "benchmarks")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--known-focal", action="store_true",
+                    help="also track the one-camera regimes with the true focal length given (as EXIF would give it)")
+    ap.add_argument("--only-known-focal", action="store_true",
+                    help="run only those and add them to DOCS/track.json's cases (replacing earlier known-focal cases)")
     ap.add_argument("--avatars", action="store_true",
                     help="also train avatars on the tracked and the own-parameter captures (monocular, multiview) and compare them")
     ap.add_argument("--only-avatars", action="store_true",
@@ -377,6 +386,18 @@ def main(argv: list[str] | None = None) -> None:
         for x in avatars:
             x["machine"] = machine
             x["benchmark_command"] = command
+    one_camera = [r for r in a.regimes.split(",") if r in ("monocular", "oneshot")]
+    if a.only_known_focal:
+        doc = json.loads((a.docs / "track.json").read_text())
+        extra = [track_case(a.out, r, a.synth_preset, a.track_preset, a.threads, known_focal=True) for r in one_camera]
+        for x in extra:
+            x["machine"] = machine
+            x["benchmark_command"] = command
+        doc["cases"] = [c for c in doc["cases"] if not c.get("known_focal")] + extra
+        (a.docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
+        (a.docs / "track.md").write_text(markdown(doc))
+        print(markdown(doc))
+        return
     if a.only_avatars:
         doc = json.loads((a.docs / "track.json").read_text())
         doc["avatars"] = avatars
@@ -387,6 +408,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     cases = [track_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset, a.track_preset,
                         a.threads) for r in a.regimes.split(",") if r]
+    if a.known_focal:
+        cases += [track_case(a.out, r, a.synth_preset, a.track_preset, a.threads, known_focal=True) for r in one_camera]
     video = None
     if a.video:
         w, h = (int(x) for x in a.video_size.split("x"))

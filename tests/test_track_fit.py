@@ -116,6 +116,15 @@ def test_silhouette_pulls_inward_only_vertices_just_inwards(head):
     assert terms["narrow", True] == pytest.approx(terms["narrow", False]) and terms["narrow", False] > 1.0
 
 
+def test_face_only_silhouette_rule():
+    """auto pulls only the face and neck both ways unless a focal length is fitted; face and all are
+    taken as given."""
+    from sage_core.track.pipeline import face_only_silhouette
+
+    assert face_only_silhouette("auto", focal_fitted=False) and not face_only_silhouette("auto", focal_fitted=True)
+    assert face_only_silhouette("face", focal_fitted=True) and not face_only_silhouette("all", focal_fitted=False)
+
+
 def test_embedding_file_round_trip_and_errors(tmp_path, head):
     model, _ = head
     emb = LandmarkEmbedding(np.arange(40), np.arange(40) * 3, np.tile([0.2, 0.3, 0.5], (40, 1)), np.linspace(0, 0.004, 40))

@@ -99,7 +99,7 @@ class TrackConfig:
     silhouette_two_sided: str = _opt("auto", "Outline vertices the silhouette pulls both ways: face (the FLAME masks' face and neck "
                                              "regions; elsewhere — scalp, ears, back of the head, which hair may cover — only inwards, "
                                              "when outside the person mask), all (every outline vertex; also without region masks), "
-                                             "or auto (face for calibrated cameras, all for one uncalibrated camera).",
+                                             "or auto (face when the focal length is known: calibrated cameras, EXIF or focal; all while it is fitted).",
                                      choices=("auto", "face", "all"))
     silhouette_scale: float = _opt(0.01, "Robust scale of the silhouette distances (fraction of the face size).", gt=0)
     w_photo: float = _opt(1.0, "Weight of the photometric term (rasterized vertex colours against the images).", ge=0)

@@ -99,6 +99,17 @@ class TrackResult:
         return rows
 
 
+def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
+    """Whether the silhouette pulls only the face and neck outline both ways (the rest only inwards).
+
+    mode: ``TrackConfig.silhouette_two_sided`` (face, all, auto); focal_fitted: a camera's focal length
+    is being fitted. ``auto`` is face-only unless a focal length is fitted: with the scalp pulled only
+    inwards a fitted focal length drifted (monocular clip −22 % → −26 %), while with it known face-only
+    lowered every error (docs/track.md).
+    """
+    return mode == "face" or (mode == "auto" and not focal_fitted)
+
+
 def infer_regime(kind: str, n_timesteps: int) -> str:
     """The regime an input suggests: one image -> one-shot, a sequence -> sv-hr, a rig -> mv-sf / mv-mf."""
     if kind == "multiview":
@@ -339,7 +350,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
     inward = None
-    face_only = cfg.silhouette_two_sided == "face" or (cfg.silhouette_two_sided == "auto" and source.kind == "multiview")
+    face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
     if face_only and len(groups.get("face", [])):
         both = np.zeros(V, bool)
         for k in ("face", "neck"):
