@@ -262,6 +262,11 @@ def _fmt(e: dict) -> str:
     return f"{e['mean_mm']:.2f} / {e['max_mm']:.1f}"
 
 
+def _region(e: dict, name: str) -> str:
+    r = (e.get("regions") or {}).get(name)
+    return f"{r['world_mm']:.2f} / {r['aligned_mm']:.2f}" if r else "—"
+
+
 def markdown(doc: dict) -> str:
     """The tables of ``track.md``."""
     lines = ["# `sage track` on synthetic subjects", "",
@@ -275,8 +280,10 @@ def markdown(doc: dict) -> str:
              "the last column.", "",
              "**rigid per timestep**: after a rotation and translation of each timestep's mesh alone (shape and expression "
              "error without pose and camera).", "",
-             "| regime | images | size | wall time (s) | landmark error (px) | world (mm) | camera (mm) | aligned (mm) | scale | rigid per timestep (mm) | focal error | capture's own (mm) |",
-             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "**face**, **scalp**: the mean world / aligned error over the FLAME masks' face and scalp vertices (the scalp, "
+             "half of the vertices, lies under the hair, which only its outline shows).", "",
+             "| regime | images | size | wall time (s) | landmark error (px) | world (mm) | camera (mm) | aligned (mm) | scale | rigid per timestep (mm) | face (mm) | scalp (mm) | focal error | capture's own (mm) |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in doc["cases"]:
         e = r["errors"]
         own = r["capture_tracking_error"]
@@ -285,7 +292,8 @@ def markdown(doc: dict) -> str:
         lines.append(f"| {label} | {r['images']} | {r['image_size'][0]}x{r['image_size'][1]} | "
                      f"{r['wall_s']:.0f} | {r['reprojection_px']:.2f} | {_fmt(e['world'])} | {_fmt(e['camera'])} | "
                      f"{_fmt(e['aligned'])} | {e['aligned']['scale']:.3f} | "
-                     f"{_fmt(e['rigid_per_timestep']) if 'rigid_per_timestep' in e else '—'} | {e['focal_rel_error']:+.1%} | {own_text} |")
+                     f"{_fmt(e['rigid_per_timestep']) if 'rigid_per_timestep' in e else '—'} | {_region(e, 'face')} | "
+                     f"{_region(e, 'scalp')} | {e['focal_rel_error']:+.1%} | {own_text} |")
     notes = doc.get("notes") or {}
     if notes.get("cases"):
         lines += ["", notes["cases"]]
@@ -414,8 +422,17 @@ def main(argv: list[str] | None = None) -> None:
     if a.video:
         w, h = (int(x) for x in a.video_size.split("x"))
         video = video_case(a.out, a.video_seconds, a.video_fps, (w, h), a.track_preset, a.threads)
-    doc = {"command": command, "machine": machine, "threads": a.threads, "cases": cases, "video": video, "avatars": avatars,
+    old = json.loads((a.docs / "track.json").read_text()) if (a.docs / "track.json").is_file() else {}
+    doc = {"command": command, "machine": machine, "threads": a.threads, "cases": cases,
            "load_after": [round(x, 2) for x in os.getloadavg()]}
+    # what this run did not measure is kept from the previous results (with its own commands and machine)
+    doc["video"] = video
+    for key in ("video_runs", "notes", "cases_previous_version"):
+        if key in old and not (key == "video_runs" and video is not None):
+            doc[key] = old[key]
+    if video is None and old.get("video") and "video_runs" not in old:
+        doc["video"] = old["video"]
+    doc["avatars"] = avatars if avatars is not None else old.get("avatars")
     a.docs.mkdir(parents=True, exist_ok=True)
     (a.docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
     (a.docs / "track.md").write_text(markdown(doc))

@@ -175,3 +175,4 @@ def test_calibrated_rig(tmp_path, tiny_capture, model, embedding):
     assert {f["camera_index"] for f in val} == {8}
     err = compare_to_truth(out, sub)
     assert err["world"]["mean_mm"] < 5.0, err["world"]
+    assert set(err["regions"]) == {"face", "neck", "scalp"} and err["regions"]["face"]["world_mm"] < 5.0, err["regions"]

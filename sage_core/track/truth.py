@@ -19,6 +19,9 @@ Vertex errors, in mm, per timestep (mean and max over vertices), summarised over
 - ``rigid_per_timestep``: after a rotation and translation of each timestep's mesh on its own (no
   scale): the error of the head's shape and expression alone, as face-reconstruction benchmarks
   measure it, with the pose and the camera left out.
+- ``regions``: the world and aligned errors averaged over the FLAME masks' face, neck and scalp
+  vertices (when the capture's model has ``FLAME_masks.pkl``): the scalp, half the vertices, lies
+  under the hair, which only its outline shows.
 """
 
 from __future__ import annotations
@@ -117,6 +120,25 @@ def error_summary(per_t: list[tuple[float, float]]) -> dict[str, float]:
             "worst_timestep_mean_mm": round(float(arr[:, 0].max()), 3)}
 
 
+REGIONS: tuple[str, ...] = ("face", "neck", "scalp")
+"""FLAME mask regions of the per-region errors: the face and neck an image shows, and the scalp that
+hair covers (about half of FLAME's vertices, seen only through the hair's outline)."""
+
+
+def _region_errors(masks_file: Path, world: np.ndarray, aligned: np.ndarray) -> dict[str, dict[str, float]] | None:
+    """Mean vertex error (mm) over each of :data:`REGIONS`, world and aligned.
+
+    world, aligned: (V,) per-vertex errors averaged over the timesteps. None without a masks file.
+    """
+    from ..flame.regions import load_masks
+
+    if not masks_file.is_file():
+        return None
+    masks = load_masks(masks_file)
+    return {k: {"world_mm": round(float(world[masks[k]].mean()), 3), "aligned_mm": round(float(aligned[masks[k]].mean()), 3)}
+            for k in REGIONS if k in masks and len(masks[k])}
+
+
 def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
     """Vertex and camera errors of a ``sage track`` capture of a synthetic capture (module docstring).
 
@@ -141,7 +163,7 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
     with torch.no_grad():
         kw = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in p.to_torch(dtype=torch.float64).items()}
         verts = model(**kw).vertices.numpy()
-    world, camera, cam_pairs, per = [], [], [], []
+    world, camera, cam_pairs, per, world_v = [], [], [], [], []
     cam_frames = {}
     for f in tr.frames:
         cam_frames.setdefault(f.timestep, f)
@@ -154,6 +176,7 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         mine = verts[row]
         e = np.linalg.norm(mine - true_v, axis=1) * 1000
         world.append((e.mean(), e.max()))
+        world_v.append(e)
         f = cam_frames[int(t)]
         tc = gt_cam[true_t].get(f.camera_index) or next(iter(gt_cam[true_t].values()))
         a = mine @ f.camera.w2c[:3, :3].T + f.camera.w2c[:3, 3]
@@ -164,10 +187,11 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         per.append({"timestep": int(t), "truth_timestep": true_t, "world_mean_mm": round(float(e.mean()), 3),
                     "camera_mean_mm": round(float(ec.mean()), 3)})
     R, tvec, s = similarity_fit(np.concatenate([a for a, _ in cam_pairs]), np.concatenate([b for _, b in cam_pairs]))
-    aligned, rigid = [], []
+    aligned, rigid, aligned_v = [], [], []
     for a, b in cam_pairs:
         ea = np.linalg.norm((s * a @ R.T + tvec) - b, axis=1) * 1000
         aligned.append((ea.mean(), ea.max()))
+        aligned_v.append(ea)
         Rr, tr_ = _rigid(a, b)
         er = np.linalg.norm(a @ Rr.T + tr_ - b, axis=1) * 1000
         rigid.append((er.mean(), er.max()))
@@ -184,6 +208,7 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         "aligned": {**error_summary(aligned), "scale": round(s, 4)},
         "rigid_per_timestep": error_summary(rigid),
         "focal_rel_error": round(focal_rel, 4),
+        "regions": _region_errors(Path(truth) / "model" / "FLAME_masks.pkl", np.mean(world_v, 0), np.mean(aligned_v, 0)),
         "per_timestep": per,
         "truth_tracking_error": json.loads((Path(truth) / "gt" / "info.json").read_text()).get("tracking", {}).get("error"),
     }
