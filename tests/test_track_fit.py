@@ -268,6 +268,29 @@ def test_keyframes_zero_or_short_sequences_fit_every_frame_jointly(head, one_thr
         assert "track" not in res.losses
 
 
+def test_rotations_interpolate_along_the_shortest_rotation():
+    """Between two keyframes a rotation moves along the geodesic at constant angular speed: the
+    midpoint is half the angle from both ends; about one axis it equals the linear mix; eyes_pose's
+    two rotations are interpolated each on its own."""
+    from sage_core.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+    from sage_core.track.fitting import interpolate_rotations
+
+    def angle(Ra, Rb):
+        return matrix_to_axis_angle(Ra.transpose(-1, -2) @ Rb).norm(dim=-1)
+
+    a = torch.tensor([[0.0, 1.0, 0.0, 0.1, 0.0, 0.0]], dtype=torch.float64)
+    b = torch.tensor([[0.8, 0.0, 0.3, 0.5, 0.0, 0.0]], dtype=torch.float64)
+    Ra, Rb = axis_angle_to_matrix(a.reshape(-1, 3)), axis_angle_to_matrix(b.reshape(-1, 3))
+    total = angle(Ra, Rb)
+    for w in (0.0, 0.25, 0.5, 1.0):
+        m = axis_angle_to_matrix(interpolate_rotations(a, b, torch.tensor([[w]], dtype=torch.float64)).reshape(-1, 3))
+        assert torch.allclose(angle(Ra, m), w * total, atol=1e-6) and torch.allclose(angle(m, Rb), (1 - w) * total, atol=1e-6)
+    mid = interpolate_rotations(a, b, torch.tensor([[0.5]], dtype=torch.float64))
+    assert torch.allclose(mid[0, 3:], torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64), atol=1e-7)  # one axis: linear
+    lin = (a[0, :3] + b[0, :3]) / 2
+    assert not torch.allclose(mid[0, :3], lin, atol=1e-3)  # two axes: not the coefficient mix
+
+
 def test_problem_subset_and_keyframe_smoothing_gaps(head):
     fm, emb, problem, _ = _turning_sequence(head, 10)
     sub = problem.subset(np.array([0, 4, 9]))

@@ -55,6 +55,9 @@ OFFSET_UNIT = 0.01  # metres per unit of the scalp offset parameter
 SHARED = ("shape", "log_focal", "log_rig_scale", "offset", "lmk_offset")
 """Parameters shared by all timesteps (fitted on the keyframes of a long sequence, then frozen)."""
 PER_TIMESTEP = ("expr", "rotation", "translation", "neck_pose", "jaw_pose", "eyes_pose")
+ROTATIONS = ("rotation", "neck_pose", "jaw_pose", "eyes_pose")
+"""Per-timestep parameters that are axis-angle rotations (eyes_pose: two of them), interpolated along
+the rotation between two keyframes rather than coefficient by coefficient."""
 """Parameters of each timestep (rows of the parameter tensors); all of them are smoothed over time."""
 
 
@@ -153,6 +156,19 @@ class FitResult:
     rig_scale: float = 1.0
     timings: dict[str, float] = field(default_factory=dict)
     keyframes: list[int] = field(default_factory=list)
+
+
+def interpolate_rotations(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Rotations a fraction ``w`` of the way from ``a`` to ``b`` along the shortest rotation between them.
+
+    a, b: (N, 3k) k axis-angle vectors per row; w: (N, 1) in [0, 1]. Returns (N, 3k) axis-angle.
+    """
+    n = a.shape[0]
+    Ra = axis_angle_to_matrix(a.reshape(n, -1, 3).double())
+    Rb = axis_angle_to_matrix(b.reshape(n, -1, 3).double())
+    rel = matrix_to_axis_angle(Ra.transpose(-1, -2) @ Rb)  # (N, k, 3), angle <= pi
+    out = matrix_to_axis_angle(Ra @ axis_angle_to_matrix(rel * w.double()[:, :, None]))
+    return out.reshape(n, -1).to(a.dtype)
 
 
 def _active(dirs: torch.Tensor, limit: int) -> int:
@@ -755,7 +771,7 @@ class Fitter:
             for n in SHARED:
                 self.params[n].copy_(kf.params[n])
             for n in PER_TIMESTEP:
-                self.params[n].copy_(self._interpolate(kf.params[n], keys, T))
+                self.params[n].copy_(self._interpolate(kf.params[n], keys, T, rotation=n in ROTATIONS))
         self.losses.update({f"keyframes_{k}": v for k, v in kf.losses.items()})
         self.keyframes = [int(k) for k in keys]
         self.timings["keyframes"] = time.time() - t0
@@ -785,16 +801,20 @@ class Fitter:
             self.losses["track"] = float(np.mean(losses))
         self.timings["track"] = time.time() - t0
 
-    def _interpolate(self, values: torch.Tensor, keys: np.ndarray, n: int) -> torch.Tensor:
-        """Rows (len(keys), d) at the timesteps ``keys`` linearly interpolated to all ``n`` timesteps
-        (held constant beyond the first and last key)."""
+    def _interpolate(self, values: torch.Tensor, keys: np.ndarray, n: int, rotation: bool = False) -> torch.Tensor:
+        """Rows (len(keys), d) at the timesteps ``keys`` interpolated to all ``n`` timesteps (held constant
+        beyond the first and last key): linearly, or with ``rotation`` (d a multiple of 3, axis-angle
+        vectors) along the shortest rotation from one key to the next, at constant angular speed."""
         pos = np.arange(n, dtype=np.float64)
         hi = np.clip(np.searchsorted(keys, pos, side="right"), 1, len(keys) - 1) if len(keys) > 1 else np.zeros(n, np.int64)
         lo = np.maximum(hi - 1, 0)
         span = np.maximum(keys[hi] - keys[lo], 1)
         w = np.clip((pos - keys[lo]) / span, 0.0, 1.0)
         w = self._t(w)[:, None]
-        return values[torch.as_tensor(lo)] * (1 - w) + values[torch.as_tensor(hi)] * w
+        a, b = values[torch.as_tensor(lo)], values[torch.as_tensor(hi)]
+        if not rotation:
+            return a * (1 - w) + b * w
+        return interpolate_rotations(a, b, w)
 
     def result(self) -> FitResult:
         """The fitted parameters (numpy), cameras and per-image landmark errors."""
