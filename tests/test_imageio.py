@@ -95,8 +95,13 @@ def test_unreadable_images_are_named(tmp_path):
     (tmp_path / "garbage.png").write_bytes(b"\x00not an image" * 10)
     (tmp_path / "cut.png").write_bytes(good.read_bytes()[: len(good.read_bytes()) // 2])
     (tmp_path / "folder.png").mkdir()
+    jpg = tmp_path / "good.jpg"
+    write_image(jpg, np.random.default_rng(1).random((64, 80, 3)).astype(np.float32))
+    (tmp_path / "cut.jpg").write_bytes(jpg.read_bytes()[: len(jpg.read_bytes()) // 2])  # libjpeg would fill it with grey
+    assert read_image(jpg).shape == (64, 80, 3)
     cases = {"missing.png": "image file not found", "folder.png": "is a folder", "garbage.png": "cannot open the image",
-             "cut.png": "cannot decode the image (truncated or corrupt file)"}
+             "cut.png": "cannot decode the image (truncated or corrupt file)",
+             "cut.jpg": "cannot decode the image (truncated file: the data ends early)"}
     for name, text in cases.items():
         with pytest.raises(InputError, match=text.replace("(", r"\(").replace(")", r"\)")) as e:
             read_image(tmp_path / name, upright=True)

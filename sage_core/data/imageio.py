@@ -56,6 +56,11 @@ def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(ops[orientation](image)) if orientation in ops else image
 
 
+TRUNCATED = "Premature end of JPEG file"
+"""libjpeg's message for a file whose data stops before the image ends (other libjpeg warnings, such as
+extraneous bytes, also come with readable files and are not errors)."""
+
+
 def _open(path: Path) -> Any:
     """An open OpenImageIO input of ``path``; InputError naming the file when it is missing or unreadable."""
     import OpenImageIO as oiio
@@ -101,8 +106,11 @@ def read_image(path: str | Path, upright: bool = False) -> np.ndarray:
         spec = inp.spec()
         orientation = _header_of(spec).orientation
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        error = inp.geterror() if hasattr(inp, "geterror") else ""
     finally:
         inp.close()
+    if TRUNCATED in error:  # libjpeg fills the missing rows with grey and only warns
+        raise InputError(path, "cannot decode the image (truncated file: the data ends early)")
     if data is None or not isinstance(data, np.ndarray) or data.size == 0:
         raise InputError(path, "cannot decode the image (truncated or corrupt file)")
     data = np.asarray(data, dtype=np.float32)
