@@ -337,6 +337,14 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _write(docs: Path, doc: dict) -> None:
+    """``docs/track.json`` and ``docs/track.md`` from ``doc``; the tables printed."""
+    docs.mkdir(parents=True, exist_ok=True)
+    (docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (docs / "track.md").write_text(markdown(doc))
+    print(markdown(doc))
+
+
 def rescore(work: Path, docs: Path) -> None:
     """Recompute the vertex errors of the cases in ``docs/track.json`` from their tracked captures in
     ``work`` (after a change of the error measures), keeping the measured times; rewrites both files."""
@@ -347,9 +355,7 @@ def rescore(work: Path, docs: Path) -> None:
         out = work / f"tracked_{r['regime']}_{r['synth_preset']}_{r['track_preset']}"
         r["errors"] = compare_to_truth(out, work / f"cap_{r['regime']}_{r['synth_preset']}")
     doc["rescored"] = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
-    (docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (docs / "track.md").write_text(markdown(doc))
-    print(markdown(doc))
+    _write(docs, doc)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -402,17 +408,13 @@ def main(argv: list[str] | None = None) -> None:
             x["machine"] = machine
             x["benchmark_command"] = command
         doc["cases"] = [c for c in doc["cases"] if not c.get("known_focal")] + extra
-        (a.docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
-        (a.docs / "track.md").write_text(markdown(doc))
-        print(markdown(doc))
+        _write(a.docs, doc)
         return
     if a.only_avatars:
         doc = json.loads((a.docs / "track.json").read_text())
         doc["avatars"] = avatars
         doc.pop("avatar", None)  # the earlier, not like-for-like comparison
-        (a.docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
-        (a.docs / "track.md").write_text(markdown(doc))
-        print(markdown(doc))
+        _write(a.docs, doc)
         return
     cases = [track_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset, a.track_preset,
                         a.threads) for r in a.regimes.split(",") if r]
@@ -423,7 +425,7 @@ def main(argv: list[str] | None = None) -> None:
         w, h = (int(x) for x in a.video_size.split("x"))
         video = video_case(a.out, a.video_seconds, a.video_fps, (w, h), a.track_preset, a.threads)
     old = json.loads((a.docs / "track.json").read_text()) if (a.docs / "track.json").is_file() else {}
-    doc = {"command": command, "machine": machine, "threads": a.threads, "cases": cases,
+    doc = {"command": command, "machine": machine, "threads": a.threads, "cases": cases or old.get("cases", []),
            "load_after": [round(x, 2) for x in os.getloadavg()]}
     # what this run did not measure is kept from the previous results (with its own commands and machine)
     doc["video"] = video
@@ -433,10 +435,7 @@ def main(argv: list[str] | None = None) -> None:
     if video is None and old.get("video") and "video_runs" not in old:
         doc["video"] = old["video"]
     doc["avatars"] = avatars if avatars is not None else old.get("avatars")
-    a.docs.mkdir(parents=True, exist_ok=True)
-    (a.docs / "track.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (a.docs / "track.md").write_text(markdown(doc))
-    print(markdown(doc))
+    _write(a.docs, doc)
 
 
 if __name__ == "__main__":

@@ -114,11 +114,11 @@ def test_unreadable_images_are_named(tmp_path):
 
 def test_half_transparent_pixels_on_white_take_their_alpha_once(tmp_path):
     """A PNG pixel of colour c (stored unassociated) at alpha a shows c·a + (1 - a) on white, in the
-    shared helper, in sage track's reader and in sage ingest's."""
+    shared helper, in sage track's reader and in the reader sage ingest uses."""
     import cv2
 
     from sage_core.data.imageio import over_white
-    from sage_core.data.ingest import _load_rgb
+    from sage_core.data.imageio import read_on_white
     from sage_core.track.inputs import read_rgb
 
     bgra = np.zeros((2, 3, 4), np.uint8)
@@ -127,10 +127,15 @@ def test_half_transparent_pixels_on_white_take_their_alpha_once(tmp_path):
     assert cv2.imwrite(str(tmp_path / "edge.png"), bgra)
     a = np.array([255, 128, 0]) / 255.0
     want = 200 / 255.0 * a + (1 - a)  # 0.784, 0.894, 1.0
-    for got in (over_white(read_image(tmp_path / "edge.png")), read_rgb(tmp_path / "edge.png"), _load_rgb(tmp_path / "edge.png")):
+    for got in (over_white(read_image(tmp_path / "edge.png")), read_rgb(tmp_path / "edge.png"), read_on_white(tmp_path / "edge.png")):
         assert got.shape == (2, 3, 3)
         np.testing.assert_allclose(got[0, :, 0], want, atol=2e-3)
     grey = over_white(np.full((1, 2, 2), 0.25, np.float32))  # grey 0.25 premultiplied at alpha 0.25
     np.testing.assert_allclose(grey, 1.0)
     with pytest.raises(ValueError):
         over_white(np.zeros((1, 1, 5), np.float32))
+    five = tmp_path / "five.exr"
+    write_image(five, np.zeros((2, 2, 5), np.float32))
+    with pytest.raises(InputError, match="5 channels") as e:
+        read_on_white(five)
+    assert e.value.path == five

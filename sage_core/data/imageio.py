@@ -106,7 +106,7 @@ def read_image(path: str | Path, upright: bool = False) -> np.ndarray:
         spec = inp.spec()
         orientation = _header_of(spec).orientation
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        error = inp.geterror() if hasattr(inp, "geterror") else ""
+        error = inp.geterror()
     finally:
         inp.close()
     if TRUNCATED in error:  # libjpeg fills the missing rows with grey and only warns
@@ -135,6 +135,17 @@ def over_white(image: np.ndarray) -> np.ndarray:
     if rgb.shape[2] == 1:
         rgb = np.repeat(rgb, 3, axis=2)
     return rgb
+
+
+def read_on_white(path: str | Path, upright: bool = False) -> np.ndarray:
+    """An image file as (H, W, 3) float32 on white: :func:`read_image` then :func:`over_white`.
+
+    Raises InputError naming the file as :func:`read_image` does, and for a channel count other than 1 to 4.
+    """
+    try:
+        return np.ascontiguousarray(over_white(read_image(path, upright=upright)), dtype=np.float32)
+    except ValueError as exc:
+        raise InputError(Path(path), str(exc)) from None
 
 
 def image_size(path: str | Path) -> tuple[int, int, int]:

@@ -312,16 +312,6 @@ def _check_options(regime: str, background: str, downsample: float | None, heigh
         raise ConfigError(f"workers must be at least 1, got {workers}")
 
 
-def _load_rgb(path: Path) -> np.ndarray:
-    """(H, W, 3) float32; RGBA is composited onto white with its alpha (grey is repeated)."""
-    from .imageio import over_white, read_image
-
-    img = read_image(path)
-    if img.shape[2] not in (1, 3, 4):
-        raise InputError(path, f"image has {img.shape[2]} channels, expected 1, 3 or 4")
-    return np.ascontiguousarray(over_white(img), dtype=np.float32)
-
-
 def _load_mask(path: Path) -> np.ndarray:
     """(H, W) float32 in [0, 1]: the single channel, or the alpha of an RGBA mask."""
     from .imageio import read_image
@@ -376,10 +366,10 @@ def _write_frame(
     f: CaptureFrame, role: str, out_dir: Path, size: tuple[int, int], background: str
 ) -> dict[str, Any]:
     """Read, convert, resize and write one frame's image (and mask); returns its frames.json entry."""
-    from .imageio import write_image
+    from .imageio import read_on_white, write_image
 
     name = _frame_name(f)
-    img = _load_rgb(f.image_path)
+    img = read_on_white(f.image_path)
     mask = _load_mask(f.mask_path) if f.mask_path is not None else None
     if (img.shape[1], img.shape[0]) != (f.camera.width, f.camera.height):
         raise InputError(f.image_path, f"image is {img.shape[1]}x{img.shape[0]}, expected "

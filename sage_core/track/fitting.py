@@ -55,10 +55,10 @@ OFFSET_UNIT = 0.01  # metres per unit of the scalp offset parameter
 SHARED = ("shape", "log_focal", "log_rig_scale", "offset", "lmk_offset")
 """Parameters shared by all timesteps (fitted on the keyframes of a long sequence, then frozen)."""
 PER_TIMESTEP = ("expr", "rotation", "translation", "neck_pose", "jaw_pose", "eyes_pose")
+"""Parameters of each timestep (rows of the parameter tensors); all of them are smoothed over time."""
 ROTATIONS = ("rotation", "neck_pose", "jaw_pose", "eyes_pose")
 """Per-timestep parameters that are axis-angle rotations (eyes_pose: two of them), interpolated along
 the rotation between two keyframes rather than coefficient by coefficient."""
-"""Parameters of each timestep (rows of the parameter tensors); all of them are smoothed over time."""
 
 
 @dataclass

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.cameras import Camera
-from ..data.imageio import over_white, read_header, read_image
+from ..data.imageio import read_header, read_on_white
 from ..errors import ConfigError, InputError
 from .camera_files import CameraSet, read_cameras
 
@@ -109,11 +109,10 @@ class TrackSource:
 def read_rgb(path: Path) -> np.ndarray:
     """An image file as (H, W, 3) float32 in [0, 1], upright (EXIF orientation applied).
 
-    Read with the project's image reader (:func:`sage_core.data.imageio.read_image`); an alpha
-    channel is composited onto white (:func:`~sage_core.data.imageio.over_white`), grey is repeated to RGB. InputError names the file when it is
-    missing or cannot be decoded.
+    Read with :func:`sage_core.data.imageio.read_on_white` (alpha applied once, grey repeated to RGB),
+    clipped to [0, 1]. InputError names the file when it is missing or cannot be decoded.
     """
-    return np.clip(over_white(read_image(path, upright=True)), 0.0, 1.0)
+    return np.clip(read_on_white(path, upright=True), 0.0, 1.0)
 
 
 def _header(path: Path) -> tuple[int, int, float | None]:
