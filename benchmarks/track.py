@@ -33,6 +33,7 @@ import json
 import os
 import platform
 import subprocess
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -159,9 +160,11 @@ def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, th
     }
 
 
-def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], seed: int = 0) -> tuple[Path, dict]:
+def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], seed: int = 0,
+                 sway_mm: float = 0.0) -> tuple[Path, dict]:
     """A head-turn MP4 of a synthetic head (exact model) and its truth: model file, per-frame FLAME
-    parameters and the camera (VHAP monocular convention)."""
+    parameters and the camera (VHAP monocular convention). ``sway_mm``: the head also drifts, up to
+    this far towards and away from the camera and half as far sideways (slower than the turns)."""
     import numpy as np
     import torch
 
@@ -180,9 +183,12 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
     yaw = np.deg2rad(60.0 * np.sin(2 * np.pi * s))  # right, back through frontal, left and back
     pitch = np.deg2rad(8.0 * np.sin(4 * np.pi * s + 0.5))
     rot = np.stack([pitch, yaw, np.zeros(n)], 1)
+    sway = sway_mm / 1000.0
+    trans = np.stack([0.5 * sway * np.sin(2 * np.pi * 0.7 * s + 1.0), np.zeros(n), sway * np.sin(2 * np.pi * 1.5 * s)], 1)
     model = flame_model(subject.head)
     with torch.no_grad():
         verts = model(shape=torch.as_tensor(subject.shape, dtype=torch.float64), rotation=torch.as_tensor(rot, dtype=torch.float64),
+                      translation=torch.as_tensor(trans, dtype=torch.float64),
                       static_offset=torch.as_tensor(subject.static_offset, dtype=torch.float64)).vertices.numpy()
         neutral = model(shape=torch.as_tensor(subject.shape, dtype=torch.float64),
                         static_offset=torch.as_tensor(subject.static_offset, dtype=torch.float64))
@@ -192,14 +198,16 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
             r = render_head(subject.head, verts[t], cam, subject.app, crease, supersample=1)
             neck = neck_line_mask(subject.head, verts[t], cam)
             vw.write(r.rgb * neck[..., None] + (1 - neck[..., None]))
-    np.savez(path.with_suffix(".truth.npz"), vertices=verts.astype(np.float32), rotation=rot, K=cam.K, w2c=cam.w2c,
+    np.savez(path.with_suffix(".truth.npz"), vertices=verts.astype(np.float32), rotation=rot, translation=trans, K=cam.K, w2c=cam.w2c,
              faces=subject.head.faces)
     del neutral
     return path, {"model": str(model_files["npz"]), "frames": n}
 
 
-def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], track_preset: str, threads: int) -> dict:
-    """Render (or reuse) the head-turn video, track it, and compare the meshes with the rendered truth."""
+def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], track_preset: str, threads: int,
+               sway_mm: float = 0.0, sets: list[str] | None = None) -> dict:
+    """Render (or reuse) the head-turn video, track it (``sets``: extra ``--set KEY=VALUE`` of the tracking),
+    and compare the meshes with the rendered truth."""
     import numpy as np
     import torch
 
@@ -207,16 +215,19 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
     from sage_core.flame import FlameModel, load_flame_model
     from sage_core.track.truth import error_summary, similarity_fit
 
-    video = work / f"headturn_{int(seconds)}s_{int(fps)}fps_{size[0]}x{size[1]}.mp4"
+    sway = f"_sway{sway_mm:g}mm" if sway_mm else ""
+    video = work / f"headturn_{int(seconds)}s_{int(fps)}fps_{size[0]}x{size[1]}{sway}.mp4"
     meta_path = video.with_suffix(".json")
     if not meta_path.is_file():
         t0 = time.time()
-        _, meta = render_video(video, seconds, fps, size)
+        _, meta = render_video(video, seconds, fps, size, sway_mm=sway_mm)
         meta["render_s"] = round(time.time() - t0, 1)
         meta_path.write_text(json.dumps(meta))
     meta = json.loads(meta_path.read_text())
-    out = work / f"tracked_video_{track_preset}"
+    out = work / f"tracked_video{sway}_{track_preset}"
     args = ["track", str(video), str(out), "--flame-model", meta["model"], "--preset", track_preset, "--quiet", "--force"]
+    for kv in sets or []:
+        args += ["--set", kv]
     wall, _ = _sage(args, threads)
     truth = np.load(video.with_suffix(".truth.npz"))
     tr = read_capture(out, check_images=False)
@@ -238,7 +249,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
     report = json.loads((out / "track" / "report.json").read_text())
     focal = report["camera"]["cameras"][0]["focal_input_px"]
     return {
-        "video": video.name, "seconds": seconds, "fps": fps, "size": list(size), "frames": meta["frames"],
+        "video": video.name, "seconds": seconds, "fps": fps, "size": list(size), "frames": meta["frames"], "sway_mm": sway_mm,
         "timesteps": report["timesteps"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
         "errors": {"camera": error_summary(cam_err), "aligned": {**error_summary([(e.mean(), e.max()) for e in aligned]), "scale": round(s, 4)},
@@ -301,7 +312,8 @@ def markdown(doc: dict) -> str:
                                                              "load_after": doc["load_after"]}, "video": doc["video"]}]
                                      if doc.get("video") else [])
     if runs:
-        lines += ["", "Head-turn videos of a synthetic head (yaw ±60°, 360x640, 30 fps). Times in seconds: the wall time of "
+        lines += ["", "Head-turn videos of a synthetic head (yaw ±60°, 360x640, 30 fps; some also drifting towards and away from "
+                      "the camera by the amount given and half as far sideways). Times in seconds: the wall time of "
                       "the whole command and its phases; the fit is split into the keyframes' full schedule and the tracking "
                       "of every frame (a joint fit of all frames has neither). Commands, machine and load per row in "
                       "`track.json` (`video_runs`).", "",
@@ -311,7 +323,8 @@ def markdown(doc: dict) -> str:
         for r in runs:
             v = r["video"]
             e = v["errors"]
-            lines.append(f"| {v['seconds']:.0f} s ({v['frames']} frames) | {r['label']} | {v['timesteps']} | {v['dropped']} | "
+            sway = f", drifting ±{v['sway_mm']:g} mm" if v.get("sway_mm") else ""
+            lines.append(f"| {v['seconds']:.0f} s ({v['frames']} frames{sway}) | {r['label']} | {v['timesteps']} | {v['dropped']} | "
                          f"{v['wall_s']:.0f} | "
                          + " | ".join(_sec(v["timings_s"], k) for k in ("faces", "images", "embedding", "fit", "fit_keyframes",
                                                                          "fit_track", "masks"))
@@ -369,6 +382,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--video-seconds", type=float, default=20.0)
     ap.add_argument("--video-fps", type=float, default=30.0)
     ap.add_argument("--video-size", default="360x640")
+    ap.add_argument("--video-sway", type=float, default=0.0, metavar="MM",
+                    help="the video's head also drifts this far towards and away from the camera (half as far sideways)")
+    ap.add_argument("--video-label", default=None,
+                    help="add the video run to DOCS/track.json's video_runs under this label (replacing a run of the same "
+                         "video and label) instead of making it the only video row")
+    ap.add_argument("--video-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a --set for the video's tracking (repeatable)")
     ap.add_argument("--out", type=Path, default=Path("bench-track"))
     ap.add_argument("--docs", type=Path, default=REPO / "docs" / "benchmarks")
     ap.add_argument("--threads", type=int, default=2)
@@ -390,7 +410,7 @@ def main(argv: list[str] | None = None) -> None:
         rescore(a.out, a.docs)
         return
     a.out.mkdir(parents=True, exist_ok=True)
-    command = "python benchmarks/track.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "python benchmarks/track.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     machine = _machine()
     avatars = None
     if a.avatars or a.only_avatars:
@@ -423,8 +443,15 @@ def main(argv: list[str] | None = None) -> None:
     video = None
     if a.video:
         w, h = (int(x) for x in a.video_size.split("x"))
-        video = video_case(a.out, a.video_seconds, a.video_fps, (w, h), a.track_preset, a.threads)
+        video = video_case(a.out, a.video_seconds, a.video_fps, (w, h), a.track_preset, a.threads, a.video_sway, a.video_set)
     old = json.loads((a.docs / "track.json").read_text()) if (a.docs / "track.json").is_file() else {}
+    if video is not None and a.video_label is not None:
+        run = {"label": a.video_label, "run": {"command": command, "machine": machine,
+                                               "load_after": [round(x, 2) for x in os.getloadavg()]}, "video": video}
+        old["video_runs"] = [r for r in old.get("video_runs", []) if (r["video"]["video"], r["label"]) != (video["video"], a.video_label)] + [run]
+        old.pop("video", None)
+        _write(a.docs, old)
+        return
     doc = {"command": command, "machine": machine, "threads": a.threads, "cases": cases or old.get("cases", []),
            "load_after": [round(x, 2) for x in os.getloadavg()]}
     # what this run did not measure is kept from the previous results (with its own commands and machine)

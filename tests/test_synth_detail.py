@@ -16,6 +16,7 @@ from sage_core.data.imageio import read_image
 from sage_core.data.synthetic import make_capture, preset, write_capture
 from sage_core.data.synthetic.capture import canonical_vertices, make_subject
 from sage_core.data.synthetic.config import (
+    MULTIVIEW_AROUND_DEFAULT,
     NOVEL_AROUND_DEFAULT,
     SynthConfig,
     parse_sets,
@@ -66,7 +67,13 @@ def test_config_keeps_old_captures_readable_and_presets_add_views_around() -> No
     assert det.novel_around == NOVEL_AROUND_DEFAULT and det.to_dict()["appearance"] == "detailed"
     assert SynthConfig.from_dict(det.to_dict()) == det
     assert preset("tiny", "monocular", appearance="detailed", novel_around=0).novel_around == 0
-    assert preset("small", "multiview", appearance="detailed").novel_around == 0  # no gt/novel in the multiview regime
+    mv = preset("small", "multiview", appearance="detailed")
+    assert mv.novel_multiview and mv.novel_around == MULTIVIEW_AROUND_DEFAULT and mv.to_dict()["novel_multiview"] is True
+    assert not preset("small", "multiview", appearance="detailed", novel_multiview=False).novel_multiview
+    assert "novel_multiview" not in preset("small", "multiview").to_dict()  # smooth: as earlier versions wrote it
+    assert parse_sets(["novel_multiview=false"]) == {"novel_multiview": False}
+    with pytest.raises(ConfigError, match="bool"):
+        parse_sets(["novel_multiview=maybe"])
     assert parse_sets(["appearance=smooth", "novel_around=3"]) == {"appearance": "smooth", "novel_around": 3}
     with pytest.raises(ConfigError, match="appearance"):
         preset("tiny", appearance="photoreal")
@@ -227,6 +234,34 @@ def test_views_around_the_head_are_grouped(tmp_path: Path) -> None:
             assert c[2] < -0.5 * np.hypot(c[0], c[2])
         img = read_image(out / "gt" / "novel" / fr["file_path"])
         assert (img[..., :3] < 0.99).any(axis=-1).mean() > 0.1  # the head is in view, not cut away
+
+
+def test_multiview_novel_views_show_the_training_timestep_from_new_directions(detailed: Path, tmp_path: Path) -> None:
+    """gt/novel of a detailed multiview capture: the first training timestep with its written
+    parameters, seen from cameras no training camera is close to (off the arc and around the head);
+    the capture itself is what it is without them."""
+    from sage_core.data.cameras import camera_from_nerf_frame
+
+    info = json.loads((detailed / "gt" / "info.json").read_text())
+    novel = detailed / "gt" / "novel"
+    assert info["novel"]["training_timestep"] == 0 and not (novel / "transforms_test.json").exists()
+    assert (novel / "flame_param" / "00000.npz").read_bytes() == (detailed / "flame_param" / "00000.npz").read_bytes()
+    val = json.loads((novel / "transforms_val.json").read_text())["frames"]
+    train = json.loads((detailed / "transforms_train.json").read_text())["frames"]
+    assert {f["timestep_index"] for f in val} == {0} and set(info["novel"]["view_groups"]) == {"front", "side", "back"}
+
+    def direction(fr: dict) -> np.ndarray:
+        c = camera_from_nerf_frame(fr).center
+        return c / np.linalg.norm(c)
+
+    seen = np.stack([direction(f) for f in train])
+    for fr in val:
+        nearest = np.degrees(np.arccos(np.clip(seen @ direction(fr), -1, 1)).min())
+        assert nearest > 8.0, (fr["camera_index"], nearest)
+    cfg = SynthConfig.from_dict(info["config"])
+    plain = write_capture(tmp_path / "plain", cfg.with_overrides(novel_multiview=False, novel_around=0))
+    for p in sorted(q for q in plain.rglob("*") if q.is_file() and q.name != "info.json"):
+        assert p.read_bytes() == (detailed / p.relative_to(plain)).read_bytes(), p
 
 
 def test_ceiling_reproduces_an_exact_detailed_capture(tmp_path: Path) -> None:

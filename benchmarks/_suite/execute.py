@@ -10,7 +10,7 @@ from typing import Any, Callable
 from sage_core.workspace import Workspace, now_iso
 
 from . import collect
-from .rows import ROWS, RowSpec, Settings, Step
+from .rows import ROWS, RowSpec, Settings, Step, row_eval_splits
 from .runner import command_line, run_process, sage_argv
 from .workspaces import capture_is_current, ceiling_command, copy_command, copy_stages, motion_command, write_test_motion
 
@@ -220,7 +220,7 @@ def _collect_subject(row: RowSpec, st: Settings, keys: list[str], records: dict[
         rec["gpu_peak_mib"] = srec.get("gpu_peak_mib")
         rec["shared"] = stage in row.copy_stages
         stages[stage] = rec
-    for split in row.eval_splits:
+    for split in row_eval_splits(st, row):
         srec = records.get(st.key(f"{row.id}:eval:{split}")) or {}
         stages[f"eval:{split}"] = {"wall_time_s": srec.get("run_wall_s"), "peak_rss_mib": srec.get("peak_rss_mib"),
                                    "gpu_peak_mib": srec.get("gpu_peak_mib"), "measured": "subprocess"}  # fmt: skip
@@ -231,7 +231,7 @@ def _collect_subject(row: RowSpec, st: Settings, keys: list[str], records: dict[
     out["stages"] = stages
 
     metrics: dict[str, Any] = {}
-    for split in row.eval_splits:
+    for split in row_eval_splits(st, row):
         names = ("val", "test") if split == "all" else (split,)
         for name in names:
             try:

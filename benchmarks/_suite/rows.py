@@ -376,6 +376,14 @@ def synth_argv(st: Settings, kind: str) -> list[str]:
             "--preset", st.size.synth_preset, *st.size.synth_args.get(regime, ()), "--seed", str(st.capture_seed), "--quiet"]  # fmt: skip
 
 
+def row_eval_splits(st: Settings, row: RowSpec) -> tuple[str, ...]:
+    """The splits ``row`` is evaluated on: its own, and ``novel`` for a trained row on a detailed
+    multiview capture (whose ``gt/novel`` holds held-out views of the training timestep)."""
+    if row.ceiling or not row.capture.startswith("multiview") or st.head != "detailed" or "novel" in row.eval_splits:
+        return row.eval_splits
+    return (*row.eval_splits, "novel")
+
+
 def own_stages(row: RowSpec) -> list[str]:
     """The workspace stages a row runs itself, in order (none for the tracking ceiling: it renders
     the capture's ground truth on the ingested data it copies)."""
@@ -411,7 +419,7 @@ def row_steps(st: Settings, row: RowSpec) -> list[Step]:
         steps.append(Step("cli", key, stage_argv(st, row, stage), row=row.id, stage=stage, deps=deps, subject=sub))
         deps = [key]
     last = deps
-    for split in row.eval_splits:
+    for split in row_eval_splits(st, row):
         key = k(f"{row.id}:eval:{split}")
         if row.ceiling:
             steps.append(Step("ceiling", key, row=row.id, deps=last, capture=st.capture_dir(row.capture), out=st.ws(row.id), split=split,

@@ -108,6 +108,15 @@ class TrackConfig:
     w_pose: float = _opt(1.0, "Weight of the prior on jaw, neck and eye rotations (squared radians).", ge=0)
     w_smooth: float = _opt(5.0, "Weight of the temporal smoothing of videos (squared frame-to-frame differences).", ge=0)
     smooth_sequences: bool = _opt(False, "Also smooth folders of images over time (they may be unordered photos).")
+    steady_depth: bool = _opt(False, "Hold the head's distance from one uncalibrated camera steady over the frames of a video or a "
+                                     "folder: for a head turning in front of a camera that stays put (a tripod). A head's depth "
+                                     "from one image rests on its apparent size, which the outline and landmarks give to about "
+                                     "1 %; the frames agreeing on it removes that jitter, but a head that really moves towards "
+                                     "or away from the camera is then tracked worse (docs/track.md).")
+    w_steady_depth: float = _opt(1.0, "Weight of the steady-depth prior (robust, per frame).", ge=0)
+    steady_depth_scale: float = _opt(0.01, "Robust scale of the steady-depth prior: log-depth deviations from the frames' "
+                                           "common depth up to this (1 %) cost quadratically, larger ones (the camera or "
+                                           "the person really moved) only linearly.", gt=0)
     w_focal: float = _opt(0.001, "Weight of the prior pulling the log focal length to its initial value.", ge=0)
     scalp_offsets: bool = _opt(True, "Fit static offsets along the normals on the model's scalp region (hair volume; needs "
                                      "FLAME_masks with a 'scalp' region).")

@@ -107,6 +107,8 @@ class FitProblem:
             length moves every head along its viewing ray instead of changing the images.
         times: (n_timesteps,) position of each timestep on the time axis in frames (None: consecutive);
             the smoothing weighs the difference of two neighbouring timesteps by 1 / gap².
+        steady_depth: with ``camera_relative``, pull every timestep's depth towards the timesteps' common
+            depth (a head turning in front of a camera that stays put).
     """
 
     cameras: list[FitCamera]
@@ -120,6 +122,7 @@ class FitProblem:
     landmark_offsets: bool = False
     camera_relative: bool = False
     times: np.ndarray | None = None
+    steady_depth: bool = False
 
     def subset(self, rows: np.ndarray) -> FitProblem:
         """The problem restricted to the timesteps ``rows`` (sorted, renumbered 0..len-1, their images
@@ -263,6 +266,8 @@ class Fitter:
         self.outline_next = 0
         self._rebuild_subset()
         self.z0 = 1.0  # reference depth of camera-relative head positions (set by init_rigid)
+        # common log depth of a chunk's sequence (the keyframes'), None: the mean of this fitter's timesteps
+        self.depth_anchor: torch.Tensor | None = None
         self.losses: dict[str, float] = {}
         self.timings: dict[str, float] = {}
         self.keyframes: list[int] = list(range(T))
@@ -551,6 +556,8 @@ class Fitter:
         loss = loss + c.w_focal * (P["log_focal"] ** 2).sum()
         if self.p.smooth:
             loss = loss + c.w_smooth * self.smoothness()
+        if self.p.steady_depth and self.p.camera_relative and c.w_steady_depth > 0:
+            loss = loss + c.w_steady_depth * self.steady_depth()
         if self.p.landmark_offsets:
             loss = loss + c.w_landmark_offset * (P["lmk_offset"] ** 2).sum(1).mean()
         if self.hair is not None:
@@ -560,6 +567,13 @@ class Fitter:
             diff = padded[self.hair_edges[:, 0]] - padded[self.hair_edges[:, 1]]
             loss = loss + c.w_offset_smooth * (diff ** 2).mean()
         return loss
+
+    def steady_depth(self) -> torch.Tensor:
+        """Mean robust deviation of the timesteps' log depths (the third camera-relative translation
+        parameter) from their common value: the mean over the timesteps, or ``depth_anchor`` (a chunk's)."""
+        logz = self.params["translation"][:, 2]
+        ref = logz.mean() if self.depth_anchor is None else self.depth_anchor
+        return charbonnier(logz - ref, self.cfg.steady_depth_scale).mean()
 
     def smoothness(self) -> torch.Tensor:
         """Sum over the per-timestep parameters of the mean squared difference of neighbouring timesteps,
@@ -781,6 +795,7 @@ class Fitter:
         for k, rows in enumerate(chunks):
             ch = self._child(rows, None)
             ch.z0 = self.z0
+            ch.depth_anchor = self.params["translation"][keys, 2].mean().detach().clone()
             with torch.no_grad():
                 for n in SHARED:
                     ch.params[n].copy_(self.params[n])

@@ -110,6 +110,13 @@ def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
     return mode == "face" or (mode == "auto" and not focal_fitted)
 
 
+def steady_depth_rule(enabled: bool, kind: str, n_timesteps: int) -> bool:
+    """Whether the head's distance from the camera is held steady over the frames: when asked for
+    (``TrackConfig.steady_depth``), for a video or a folder of several frames from one camera (a rig
+    places the head itself; one image has nothing to agree with)."""
+    return enabled and kind in ("video", "images") and n_timesteps >= 2
+
+
 def infer_regime(kind: str, n_timesteps: int) -> str:
     """The regime an input suggests: one image -> one-shot, a sequence -> sv-hr, a rig -> mv-sf / mv-mf."""
     if kind == "multiview":
@@ -348,6 +355,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     several_views = source.kind == "multiview" or len(obs.kept) >= 3
     lmk_offsets = cfg.landmark_offsets == "on" or (cfg.landmark_offsets == "auto" and several_views)
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
+    steady = steady_depth_rule(cfg.steady_depth, source.kind, len(obs.kept))
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
     inward = None
     face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
@@ -358,7 +366,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         inward = ~both
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
                          silhouette_exclude=exclude, silhouette_inward=inward, landmark_offsets=lmk_offsets,
-                         camera_relative=source.kind != "multiview")
+                         camera_relative=source.kind != "multiview", steady_depth=steady)
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
     fit = fitter.run()
     timings["fit"] = time.time() - t0

@@ -54,6 +54,7 @@ from .motion import (
     Frame,
     arc_cameras,
     around_cameras,
+    off_arc_cameras,
     monocular_camera,
     monocular_frames,
     multiview_frames,
@@ -207,6 +208,14 @@ class _Sequence:
     error_mean_mm: np.ndarray | None = None  # (T,) tracking error (fitted captures)
     error_max_mm: np.ndarray | None = None
     error_face_mm: np.ndarray | None = None  # (T,) mean over the face region
+    written: list[Frame] | None = None  # the parameters written (the tracker's fit for fitted captures)
+
+    def rows(self, idx: list[int]) -> "_Sequence":
+        """The timesteps ``idx`` of this sequence (truth, errors, written parameters)."""
+        def pick(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[idx]
+        return _Sequence(self.vertices[idx], pick(self.error_mean_mm), pick(self.error_max_mm), pick(self.error_face_mm),
+                         None if self.written is None else [self.written[i] for i in idx])
 
 
 def _tracked_params(subject: _Subject, frames: list[Frame], truth: np.ndarray, cfg: SynthConfig,
@@ -226,17 +235,23 @@ def _tracked_params(subject: _Subject, frames: list[Frame], truth: np.ndarray, c
 
 def _write_sequence(root: Path, subject: _Subject, frames: list[Frame], cameras: list[Camera],
                     splits: dict[str, list[tuple[int, int]]], cfg: SynthConfig, tick: Callable[[str], None],
-                    noise_rng: np.random.Generator | None = None, uncut: frozenset[int] = frozenset()) -> _Sequence:
+                    noise_rng: np.random.Generator | None = None, uncut: frozenset[int] = frozenset(),
+                    same_as: _Sequence | None = None) -> _Sequence:
     """Render and write images, masks, FLAME params and transforms; returns the ground truth
     (and, for tracked subjects, the tracking error of the written parameters). Cameras in ``uncut``
     (views around the head) are not cut at the neck line: seen from the side or the back that image
-    line would cut through the head, and the mesh itself ends at the neck base."""
+    line would cut through the head, and the mesh itself ends at the neck base. ``same_as``: these
+    frames are timesteps of a sequence already written, whose written parameters (and errors) they
+    keep (held-out views of training timesteps)."""
     posed = _pose(subject, frames)
-    seq = _Sequence(posed.vertices)
-    written = frames
-    if subject.tracked is not None:
+    seq = _Sequence(posed.vertices, written=frames)
+    if same_as is not None:
+        seq = replace(same_as, vertices=posed.vertices)
+    elif subject.tracked is not None:
         assert noise_rng is not None
-        written, seq.error_mean_mm, seq.error_max_mm, seq.error_face_mm = _tracked_params(subject, frames, posed.vertices, cfg, noise_rng)
+        seq.written, seq.error_mean_mm, seq.error_max_mm, seq.error_face_mm = _tracked_params(subject, frames, posed.vertices, cfg, noise_rng)
+    written = seq.written
+    assert written is not None
     for ti, f in enumerate(written):
         write_npz(root / "flame_param" / f"{ti:05d}.npz", _frame_npz(subject, f))
     by_index = {c.index: c for c in cameras}
@@ -392,7 +407,16 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
     novel_cams: list[Camera] = []
     around: list[Camera] = []
     novel: list[Frame] = []
-    if cfg.regime != "multiview":
+    if cfg.regime == "multiview" and cfg.novel_multiview:
+        novel_cams = off_arc_cameras(np.random.default_rng([cfg.seed, 3]), cfg.novel_views, cfg.n_cameras, cfg.width, cfg.height,
+                                     cfg.camera_distance, cfg.view_height_m, first_index=cfg.n_cameras)
+        if cfg.novel_around > 0:
+            around = around_cameras(np.random.default_rng([cfg.seed, 7]), cfg.novel_around, cfg.width, cfg.height,
+                                    cfg.camera_distance, cfg.view_height_m, first_index=cfg.n_cameras + len(novel_cams))
+        novel_cams = [shift_camera(c, -t_mean) for c in novel_cams]
+        around = [shift_camera(c, -t_mean) for c in around]
+        novel = [frames[0]]
+    elif cfg.regime != "multiview":
         novel_cams = arc_cameras(np.random.default_rng([cfg.seed, 3]), cfg.novel_views, cfg.width, cfg.height,
                                  cfg.camera_distance, cfg.view_height_m, yaw_span_deg=120.0, frontal=cfg.novel_views // 2)
         if cfg.novel_around > 0:
@@ -439,8 +463,11 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
             "val": [(0, c.index) for c in novel_cams + around],
             "test": [(t, c.index) for t in range(1, len(novel)) for c in novel_cams],
         }
+        if not nsplits["test"]:
+            del nsplits["test"]
+        mv = cfg.regime == "multiview"
         nseq = _write_sequence(nroot, subject, novel, novel_cams + around, nsplits, cfg, tick, np.random.default_rng([cfg.seed, 5]),
-                               uncut=frozenset(c.index for c in around))
+                               uncut=frozenset(c.index for c in around), same_as=seq.rows([0]) if mv else None)
         _write_meshes(nroot / "meshes", head, nseq.vertices)
         if subject.hair is not None:
             _write_hair(nroot / "hair", subject, nseq.vertices, canonical=False)
@@ -451,7 +478,20 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
             "cameras": len(novel_cams) + len(around),
             "timesteps": [{"timestep_index": i, "description": f.label} for i, f in enumerate(novel)],
         }
-        if around:
+        if mv:
+            info["novel"]["description"] = (
+                "held-out ground truth in the same VHAP layout and world frame: transforms_val.json = the first training "
+                "timestep (timestep_index 0 of the capture, its written FLAME parameters too) seen by cameras off the "
+                f"training arc (cameras {novel_cams[0].index}-{novel_cams[-1].index}: midway between two arc cameras, "
+                "22 deg above or 16 deg below it)" + (" and around the head" if around else "") + "; no held-out expressions")
+            info["novel"]["training_timestep"] = 0
+        if mv and around:
+            info["novel"]["view_groups"] = view_groups(novel_cams + around)
+            info["novel"]["view_group_definition"] = (
+                "azimuth of the camera about the head's vertical axis, 0 = facing the face: front up to 75 deg, "
+                "side 75-135 deg, back beyond 135 deg; the views around the head (cameras "
+                f"{around[0].index}-{around[-1].index}) are not cut at the neck line")
+        elif around:
             info["novel"]["description"] = (
                 "held-out ground truth in the same VHAP layout and world frame: transforms_val.json = neutral face "
                 "from the novel views (the arc in front and the views around the head), transforms_test.json = "

@@ -12,6 +12,9 @@ TRACKING_MODES = ("exact", "fitted")
 APPEARANCES = ("detailed", "smooth")
 NOVEL_AROUND_DEFAULT = 8
 """Held-out views all around the head that :func:`preset` gives detailed monocular and one-shot captures."""
+MULTIVIEW_AROUND_DEFAULT = 6
+"""Held-out views around the head that :func:`preset` gives detailed multiview captures (beside their
+``novel_views`` off-arc views)."""
 TRACKED_FIELDS = ("expr_keep", "corrective_scale", "crease_depth_mm", "specular", "pose_noise_deg", "trans_noise_mm",
                   "fit_iterations")
 """Fields that only matter for ``tracking="fitted"`` (left out of :meth:`SynthConfig.to_dict` for exact captures)."""
@@ -63,6 +66,12 @@ class SynthConfig:
             "smooth" — the smooth head of earlier versions (same seed ⇒ the same bytes as they wrote).
         novel_around: (monocular, oneshot) held-out views added all around the head (sides, back,
             above) to the ``novel_views`` arc in front; 0 = the arc only (earlier versions).
+            (multiview, with ``novel_multiview``) the views around the head added to its off-arc views.
+        novel_multiview: (multiview) also write held-out ground truth to gt/novel/: the first training
+            timestep, exactly as trained on (its written parameters too), seen by ``novel_views``
+            cameras off the training arc (between its cameras, above and below it) and the
+            ``novel_around`` views around the head; no held-out expressions (the test split has them).
+            False = no gt/novel/ (earlier versions).
     """
 
     regime: str = "multiview"
@@ -92,6 +101,7 @@ class SynthConfig:
     fit_iterations: int = 3
     appearance: str = "smooth"
     novel_around: int = 0
+    novel_multiview: bool = False
 
     def validate(self) -> "SynthConfig":
         """Raise ConfigError for impossible values; returns self."""
@@ -145,6 +155,8 @@ class SynthConfig:
             d.pop("appearance")
         if self.novel_around == 0:
             d.pop("novel_around")
+        if not self.novel_multiview:
+            d.pop("novel_multiview")
         return d
 
     @staticmethod
@@ -162,6 +174,16 @@ class SynthConfig:
         return replace(self, **kw).validate()
 
 
+def _boolean(text: str) -> bool:
+    """true/false (also yes/no, on/off, 1/0) -> bool; anything else raises ValueError."""
+    low = text.lower()
+    if low in ("true", "yes", "on", "1"):
+        return True
+    if low in ("false", "no", "off", "0"):
+        return False
+    raise ValueError(text)
+
+
 def parse_sets(items: list[str] | None) -> dict[str, Any]:
     """``["crease_depth_mm=3", "tracking=exact"]`` -> {"crease_depth_mm": 3.0, "tracking": "exact"},
     typed by the :class:`SynthConfig` field; unknown keys and bad values raise ConfigError."""
@@ -172,11 +194,11 @@ def parse_sets(items: list[str] | None) -> dict[str, Any]:
         key, val = key.strip(), val.strip()
         if not sep or key not in types:
             raise ConfigError(f"--set expects FIELD=VALUE with a synth config field ({', '.join(types)}), got '{item}'")
-        tp = {"int": int, "float": float, "str": str}[str(types[key])]
+        tp = {"int": int, "float": float, "str": str, "bool": _boolean}[str(types[key])]
         try:
             out[key] = tp(val)
         except ValueError:
-            raise ConfigError(f"--set {key}: '{val}' is not a valid {tp.__name__}") from None
+            raise ConfigError(f"--set {key}: '{val}' is not a valid {'bool (true or false)' if tp is _boolean else tp.__name__}") from None
     return out
 
 
@@ -227,7 +249,9 @@ _REGIME_DEFAULTS: dict[tuple[str, str], dict[str, int]] = {
 def preset(name: str, regime: str = "multiview", **overrides: Any) -> SynthConfig:
     """A named preset ("tiny", "small" or "default") for a regime, with optional field overrides
     (None ignored). Detailed monocular and one-shot captures get :data:`NOVEL_AROUND_DEFAULT`
-    held-out views around the head unless ``novel_around`` is given."""
+    held-out views around the head unless ``novel_around`` is given; detailed multiview captures
+    get held-out views of their first training timestep (``novel_multiview``, with
+    :data:`MULTIVIEW_AROUND_DEFAULT` views around the head) unless ``novel_multiview`` is given."""
     if name not in PRESETS:
         raise ConfigError(f"unknown synth preset '{name}' (choose from {', '.join(PRESETS)})")
     if regime not in REGIMES:
@@ -236,4 +260,7 @@ def preset(name: str, regime: str = "multiview", **overrides: Any) -> SynthConfi
     cfg = base.with_overrides(**overrides)
     if cfg.appearance == "detailed" and regime != "multiview" and overrides.get("novel_around") is None:
         cfg = replace(cfg, novel_around=NOVEL_AROUND_DEFAULT).validate()
+    if cfg.appearance == "detailed" and regime == "multiview" and overrides.get("novel_multiview") is None:
+        cfg = replace(cfg, novel_multiview=True,
+                      novel_around=MULTIVIEW_AROUND_DEFAULT if overrides.get("novel_around") is None else cfg.novel_around).validate()
     return cfg

@@ -158,6 +158,34 @@ def arc_cameras(rng: np.random.Generator, n: int, width: int, height: int, dista
     return cams
 
 
+def off_arc_cameras(rng: np.random.Generator, n: int, n_arc: int, width: int, height: int, distance: float,
+                    view_height: float, arc_span_deg: float = 130.0, first_index: int = 0) -> list[Camera]:
+    """``n`` held-out cameras for a capture whose ``n_arc`` cameras span ``arc_span_deg`` of yaw (the
+    :func:`arc_cameras` arc): yaws midway between two arc cameras, spread evenly over the arc, at
+    elevations 22° above and 16° below the arc in turn, so none sees the head as a training camera
+    does; same distance and framing, indices from ``first_index``."""
+    step = arc_span_deg / max(n_arc - 1, 1)
+    gaps = (np.arange(n_arc - 1) - (n_arc - 1) / 2 + 0.5) * step  # yaws midway between neighbours
+    pick = np.unique(np.linspace(0, len(gaps) - 1, n).round().astype(int)) if n <= len(gaps) else np.arange(len(gaps))
+    fl = height * distance / view_height
+    cams = []
+    for k, g in enumerate(gaps[pick]):
+        yaw = np.deg2rad(g)
+        elev = np.deg2rad(22.0 if k % 2 == 0 else -16.0)
+        eye = distance * np.array([np.sin(yaw) * np.cos(elev), np.sin(elev), np.cos(yaw) * np.cos(elev)])
+        target = np.array([0.0, -0.005, 0.0]) + rng.normal(0.0, 0.004, 3)
+        K = np.array(
+            [
+                [fl * rng.uniform(0.99, 1.01), 0.0, width / 2 + rng.uniform(-0.02, 0.02) * width],
+                [0.0, fl, height / 2 + rng.uniform(-0.02, 0.02) * height],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        i = first_index + k
+        cams.append(Camera(K, look_at(eye, target), width, height, i, f"{222200000 + 37 * i}"))
+    return cams
+
+
 def around_cameras(rng: np.random.Generator, n: int, width: int, height: int, distance: float, view_height: float,
                    first_index: int = 0) -> list[Camera]:
     """``n`` cameras around the sides and back of the head: azimuths evenly from 90° (the subject's
