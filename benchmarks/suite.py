@@ -21,7 +21,8 @@ Every stage runs through the real ``sage`` CLI in a subprocess, one workspace pe
 ``DIR/ws/<row>``; rows copy the finished stages they share with the SAGE row (``cp -a`` of the
 stage folders keeps their manifests, so the workspace accepts them as complete). A rerun skips
 every stage that is already complete with the same settings. Results go to
-``docs/benchmarks/suite_<size>.json`` (rows of an earlier run that were not rerun are kept) and
+``docs/benchmarks/suite_<size>.json`` (``suite_<size>_detailed.json`` for the detailed heads; rows of an
+earlier run that were not rerun are kept) and
 ``docs/results.md`` is regenerated from every ``suite_*.json``; both name no path of this machine
 (paths relative to ``--out``, written ``OUT`` in commands; the LPIPS weights by file name:
 :mod:`_suite.portable`).
@@ -76,15 +77,21 @@ DISCUSSION_FILE = "discussion.md"
 """Hand-written discussion of the measured results against the paper, appended to results.md."""
 
 
+def results_path(docs_dir: Path, size: str, head: str) -> Path:
+    """``docs_dir/benchmarks/suite_<size>.json`` for the smooth head (the file earlier versions wrote),
+    ``suite_<size>_<head>.json`` for another, so that a run on one head never replaces the other's."""
+    return docs_dir / "benchmarks" / (f"suite_{size}.json" if head == "smooth" else f"suite_{size}_{head}.json")
+
+
 def write_docs(doc: dict, docs_dir: Path) -> tuple[Path, Path]:
-    """Merge ``doc`` into ``docs_dir/benchmarks/suite_<size>.json`` and regenerate
+    """Merge ``doc`` into its results file (:func:`results_path`) and regenerate
     ``docs_dir/results.md`` from every ``suite_*.json`` there (and ``benchmarks/discussion.md``,
     the hand-written comparison with the paper, when present). Returns both paths."""
     from _suite.report import merge_results, render_document
 
     from sage_core.workspace import atomic_write_json, atomic_write_text
 
-    json_path = docs_dir / "benchmarks" / f"suite_{doc['size']}.json"
+    json_path = results_path(docs_dir, doc["size"], doc.get("head", "smooth"))
     merged = merge_results(_load(json_path), doc)
     atomic_write_json(json_path, merged)
     docs = [d for d in (_load(p) for p in sorted((docs_dir / "benchmarks").glob("suite_*.json"))) if d]
@@ -132,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     steps, needs = plan(settings, rows)
 
     docs_dir = args.docs if args.docs is not None else (out / "docs" if size.smoke else REPO / "docs")
-    json_path = docs_dir / "benchmarks" / f"suite_{size.name}.json"
+    json_path = results_path(docs_dir, size.name, settings.head)
     previous = _load(json_path) or {}
     same = (previous.get("size") == size.name and bool(previous.get("smoke")) == size.smoke
             and previous.get("head", "smooth") == settings.head and previous.get("subject_seeds", [args.seed]) == settings.subject_seeds)

@@ -330,6 +330,17 @@ def test_markdown_shows_the_head_the_subjects_and_the_back_views():
     assert "- Synthetic heads: smooth (`sage synth --appearance smooth`), 1 subject (capture seed 0)" in render_markdown(old)
     assert "### Per subject" not in render_markdown(old)
     assert merge_results(old, doc) is doc
+    assert "### Novel views of the training timestep" not in md  # no multiview row has novel views yet
+    doc["rows"]["sage"]["metrics"]["novel"] = {"overall": _m(24.0, 0.9, 0.05, 12), "view_groups": {
+        "front": {"overall": _m(25.14, 0.951, 0.0399, 6)}, "side": {"overall": _m(21.39, 0.889, 0.0802, 4)},
+        "back": {"overall": _m(24.36, 0.881, 0.0685, 2)}}}
+    md = render_markdown(doc)
+    assert md.startswith("## Size `tiny`, detailed heads")
+    header, rows = _table_rows(md, "### Novel views of the training timestep (multiview rows, detailed captures)")
+    col = {h: j for j, h in enumerate(header)}
+    assert list(rows) == ["sage"] and rows["sage"][col["Off-arc views PSNR"]] == "25.14" and rows["sage"][col["Back views PSNR"]] == "24.36"
+    full = render_document([doc, old])
+    assert full.index("## Size `tiny`\n") < full.index("## Size `tiny`, detailed heads")  # the smooth head first
 
 
 def test_smoke_results_are_labelled():
@@ -494,7 +505,9 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     args = ["--size", "tiny", "--smoke", "--out", str(out), "--rows", "no_phase2,ceiling", "--device", "cpu", "--docs", str(docs),
             "--subjects", "1"]
     assert suite.main(args) == 0
-    doc = json.loads((docs / "benchmarks" / "suite_tiny.json").read_text())
+    # detailed heads go to a file of their own, beside the smooth head's (suite_tiny.json)
+    assert suite.results_path(docs, "tiny", "smooth").name == "suite_tiny.json" and not (docs / "benchmarks" / "suite_tiny.json").exists()
+    doc = json.loads((docs / "benchmarks" / "suite_tiny_detailed.json").read_text())
     assert doc["smoke"] is True and set(doc["rows"]) == {"no_phase2", "ceiling"}
     c = doc["rows"]["ceiling"]
     assert c["errors"] == [] and set(c["metrics"]) == {"test"} and 15 < c["metrics"]["test"]["overall"]["psnr"] < 45
@@ -507,6 +520,9 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert r["metrics"]["test"]["overall"]["psnr"] == pytest.approx(r["subjects"][0]["metrics"]["test"]["overall"]["psnr"])
     assert r["metrics"]["val"]["overall"]["psnr"] > 5 and r["metrics"]["test"]["overall"]["psnr"] > 5
     assert r["metrics"]["test"]["frontal"]["count"] >= 1
+    # the detailed capture's held-out views of the training timestep score the trained row, not the ceiling
+    assert {"front", "side", "back"} <= set(r["metrics"]["novel"]["view_groups"]) and r["metrics"]["novel"]["overall"]["psnr"] > 5
+    assert "novel" not in c["metrics"]
     # LPIPS where sage finds the weights (as in CI), reported unavailable where it does not
     assert (r["metrics"]["val"]["overall"]["lpips"] is not None) == (LPIPS_WEIGHTS is not None)
     assert r["reenact"]["render_fps"] > 0 and r["peak_rss_mib"] > 100
@@ -524,7 +540,7 @@ def test_suite_smoke_run_writes_json_and_markdown_and_a_rerun_skips_finished_sta
     assert "Smoke test" in md and "sage phase1 " in md and "### Comparison with the paper" in md
     # a rerun skips every finished stage, keeps the measured memory and merges into the same document
     assert suite.main(args) == 0
-    doc2 = json.loads((docs / "benchmarks" / "suite_tiny.json").read_text())
+    doc2 = json.loads((docs / "benchmarks" / "suite_tiny_detailed.json").read_text())
     assert len(doc2["runs"]) == 2
     assert doc2["steps"]["sage:phase1"]["ran"] is False
     assert doc2["steps"]["sage:phase1"]["peak_rss_mib"] == doc["steps"]["sage:phase1"]["peak_rss_mib"]

@@ -3,23 +3,24 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Optional
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from .._common import (
-    require_workspace,
     ConfigOpt,
     DeviceOpt,
     ForceOpt,
     PresetOpt,
+    RenderBackendOpt,
     SeedOpt,
     SetOpt,
-    RenderBackendOpt,
     ThreadsOpt,
     VerboseOpt,
     cli_errors,
     parse_sets,
+    require_workspace,
+    resolve_stage_config,
     summary_panel,
 )
 from .._stage import StageDisplay
@@ -30,9 +31,9 @@ if TYPE_CHECKING:
 
 def phase1(
     ws: Annotated[Path, typer.Argument(help="Workspace folder (after `sage init-mesh`).")],
-    attributes: Annotated[Optional[str], typer.Option("--attributes", help="Surfel attributes: mlp (appearance and shape networks) or free (per-surfel).")] = None,
-    iterations: Annotated[Optional[int], typer.Option("--iterations", help="Optimisation steps.")] = None,
-    surfels: Annotated[Optional[int], typer.Option("--surfels", help="Number of surfels.")] = None,
+    attributes: Annotated[str | None, typer.Option("--attributes", help="Surfel attributes: mlp (appearance and shape networks) or free (per-surfel).")] = None,
+    iterations: Annotated[int | None, typer.Option("--iterations", help="Optimisation steps.")] = None,
+    surfels: Annotated[int | None, typer.Option("--surfels", help="Number of surfels.")] = None,
     preset: PresetOpt = "default",
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -48,12 +49,9 @@ def phase1(
 
         flags = {"attributes": attributes, "iterations": iterations, "surfels.count": surfels, "render_backend": render_backend, **parse_sets(set_)}
         require_workspace(ws, " (run `sage ingest` and `sage init-mesh` first)")
-        from sage_core.config import load_config_file, resolve_config
         from sage_core.stages import StageSettings, phase1_stage, workspace_regime
 
-        regime = workspace_regime(ws)
-        file_data = load_config_file(config) if config is not None else None
-        cfg = resolve_config("phase1", preset, file_data, flags, file_label=str(config) if config else "config file", regime=regime)
+        cfg = resolve_stage_config("phase1", preset, config, flags, regime=workspace_regime(ws))
         with StageDisplay(verbose, preset) as display:
             r = phase1_stage(ws, cfg, StageSettings(seed, device, force, threads), display)
         if not r.skipped:

@@ -132,6 +132,23 @@ def novel_frames(rng: np.random.Generator, n: int) -> list[Frame]:
     return frames
 
 
+def _orbit_camera(rng: np.random.Generator, yaw: float, elev: float, distance: float, fl: float, width: int, height: int,
+                  index: int) -> Camera:
+    """A camera ``distance`` from the head centre at azimuth ``yaw`` and elevation ``elev`` (radians),
+    aimed near the centre (a few mm of random aim), focal length about ``fl`` and a slightly
+    off-centre principal point, as in real calibrations."""
+    eye = distance * np.array([np.sin(yaw) * np.cos(elev), np.sin(elev), np.cos(yaw) * np.cos(elev)])
+    target = np.array([0.0, -0.005, 0.0]) + rng.normal(0.0, 0.004, 3)
+    K = np.array(
+        [
+            [fl * rng.uniform(0.99, 1.01), 0.0, width / 2 + rng.uniform(-0.02, 0.02) * width],
+            [0.0, fl, height / 2 + rng.uniform(-0.02, 0.02) * height],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    return Camera(K, look_at(eye, target), width, height, index, f"{222200000 + 37 * index}")
+
+
 def arc_cameras(rng: np.random.Generator, n: int, width: int, height: int, distance: float, view_height: float,
                 yaw_span_deg: float = 130.0, frontal: int | None = None) -> list[Camera]:
     """Cameras on an arc in front of the head (NeRSemble-like), index ``frontal`` (default 8 or n//2) at yaw 0.
@@ -145,16 +162,7 @@ def arc_cameras(rng: np.random.Generator, n: int, width: int, height: int, dista
     for i in range(n):
         yaw = np.deg2rad((i - f_idx) * step)
         elev = 0.0 if i == f_idx else np.deg2rad(10.0 if i % 2 == 0 else -6.0)
-        eye = distance * np.array([np.sin(yaw) * np.cos(elev), np.sin(elev), np.cos(yaw) * np.cos(elev)])
-        target = np.array([0.0, -0.005, 0.0]) + rng.normal(0.0, 0.004, 3)
-        K = np.array(
-            [
-                [fl * rng.uniform(0.99, 1.01), 0.0, width / 2 + rng.uniform(-0.02, 0.02) * width],
-                [0.0, fl, height / 2 + rng.uniform(-0.02, 0.02) * height],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        cams.append(Camera(K, look_at(eye, target), width, height, i, f"{222200000 + 37 * i}"))
+        cams.append(_orbit_camera(rng, yaw, elev, distance, fl, width, height, i))
     return cams
 
 
@@ -172,17 +180,7 @@ def off_arc_cameras(rng: np.random.Generator, n: int, n_arc: int, width: int, he
     for k, g in enumerate(gaps[pick]):
         yaw = np.deg2rad(g)
         elev = np.deg2rad(22.0 if k % 2 == 0 else -16.0)
-        eye = distance * np.array([np.sin(yaw) * np.cos(elev), np.sin(elev), np.cos(yaw) * np.cos(elev)])
-        target = np.array([0.0, -0.005, 0.0]) + rng.normal(0.0, 0.004, 3)
-        K = np.array(
-            [
-                [fl * rng.uniform(0.99, 1.01), 0.0, width / 2 + rng.uniform(-0.02, 0.02) * width],
-                [0.0, fl, height / 2 + rng.uniform(-0.02, 0.02) * height],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        i = first_index + k
-        cams.append(Camera(K, look_at(eye, target), width, height, i, f"{222200000 + 37 * i}"))
+        cams.append(_orbit_camera(rng, yaw, elev, distance, fl, width, height, first_index + k))
     return cams
 
 
@@ -196,17 +194,7 @@ def around_cameras(rng: np.random.Generator, n: int, width: int, height: int, di
     for k in range(n):
         yaw = np.deg2rad(90.0 + 180.0 * k / max(n - 1, 1))
         elev = np.deg2rad(30.0 if k % 2 else 5.0)
-        eye = distance * np.array([np.sin(yaw) * np.cos(elev), np.sin(elev), np.cos(yaw) * np.cos(elev)])
-        target = np.array([0.0, -0.005, 0.0]) + rng.normal(0.0, 0.004, 3)
-        K = np.array(
-            [
-                [fl * rng.uniform(0.99, 1.01), 0.0, width / 2 + rng.uniform(-0.02, 0.02) * width],
-                [0.0, fl, height / 2 + rng.uniform(-0.02, 0.02) * height],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        i = first_index + k
-        cams.append(Camera(K, look_at(eye, target), width, height, i, f"{222200000 + 37 * i}"))
+        cams.append(_orbit_camera(rng, yaw, elev, distance, fl, width, height, first_index + k))
     return cams
 
 
