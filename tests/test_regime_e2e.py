@@ -152,7 +152,8 @@ def test_one_shot_through_sage_run_evaluates_the_held_out_ground_truth_and_expor
 @pytest.mark.slow
 def test_every_regime_through_sage_batch_reports_held_out_metrics(regime_captures, tmp_path):
     """mv-sf, sv-hr and one-shot subjects (sv-hr and one-shot spelled as sage synth names them) all
-    finish; the summary carries each one's held-out metrics: val for mv-sf, test and gt/novel for
+    finish; the summary carries each one's held-out metrics: val and gt/novel (a detailed multiview
+    capture's views of its training timestep from new directions) for mv-sf, test and gt/novel for
     sv-hr, gt/novel for one-shot."""
     from sage_cli.commands.batch_cmd import batch
 
@@ -173,7 +174,7 @@ def test_every_regime_through_sage_batch_reports_held_out_metrics(regime_capture
     doc = json.loads((root / "batch_summary.json").read_text())
     s = {x["id"]: x for x in doc["subjects"]}
     assert all(x["status"] == "finished" for x in s.values()), {k: (x["status"], x["error"]) for k, x in s.items()}
-    assert math.isfinite(s["mv"]["metrics"]["val_psnr"]) and s["mv"]["metrics"]["novel_psnr"] is None
+    assert math.isfinite(s["mv"]["metrics"]["val_psnr"]) and math.isfinite(s["mv"]["metrics"]["novel_psnr"])
     assert math.isfinite(s["mono"]["metrics"]["test_psnr"]) and math.isfinite(s["mono"]["metrics"]["novel_psnr"])
     assert math.isfinite(s["one"]["metrics"]["novel_psnr"]) and s["one"]["metrics"]["val_psnr"] is None
     assert all((root / rid / "export" / "bundle").is_dir() for rid in s)
