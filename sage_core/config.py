@@ -818,6 +818,26 @@ def _field_types(cls: type) -> dict[str, Any]:
     return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
+TRUE_WORDS = ("true", "yes", "on", "1")
+FALSE_WORDS = ("false", "no", "off", "0")
+
+
+def parse_bool(value: Any) -> bool:
+    """A flag as configs and ``--set`` spell it: a bool, 0 / 1, or (any case, spaces around)
+    true/yes/on/1 and false/no/off/0. Anything else raises ValueError."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str):
+        s = value.strip().lower()
+        if s in TRUE_WORDS:
+            return True
+        if s in FALSE_WORDS:
+            return False
+    raise ValueError(f"not a true/false value: {value!r}")
+
+
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """Convert a file/flag value to the annotated type, or raise ConfigError naming the key."""
     origin = typing.get_origin(tp)
@@ -843,15 +863,10 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         inner = args[0] if args else Any
         return [(_coerce(v, inner, key) if inner is not Any else v) for v in value]
     if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "yes", "on", "1"):
-            return True
-        if isinstance(value, str) and value.lower() in ("false", "no", "off", "0"):
-            return False
-        if isinstance(value, int) and value in (0, 1):
-            return bool(value)
-        raise ConfigError(f"{key}: expected true/false, got {value!r}")
+        try:
+            return parse_bool(value)
+        except ValueError:
+            raise ConfigError(f"{key}: expected true/false, got {value!r}") from None
     if tp is int:
         return _coerce_int(value, key)
     if tp is float:

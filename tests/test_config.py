@@ -364,3 +364,22 @@ def test_regimes_take_the_synth_spellings_too(tmp_path):
     (tmp_path / "cap").mkdir()
     (tmp_path / "s.csv").write_text("id,capture,regime\na,cap,oneshot\nb,cap,monocular\n")
     assert [s.regime for s in load_subjects(tmp_path / "s.csv")] == ["one-shot", "sv-hr"]
+
+
+def test_one_flag_parser_for_stage_track_and_synth_configs():
+    """Stage configs, `sage track` and `sage synth` read true/false alike (one parser)."""
+    from sage_core.config import parse_bool
+    from sage_core.data.synthetic.config import parse_sets
+    from sage_core.track.config import resolve_track_config
+
+    assert [parse_bool(v) for v in (True, 1, " Yes ", "on", "TRUE")] == [True] * 5
+    assert [parse_bool(v) for v in (False, 0, "no", " off", "False")] == [False] * 5
+    for bad in ("maybe", 2, "", None):
+        with pytest.raises(ValueError):
+            parse_bool(bad)
+    assert resolve_track_config("default", None, {"steady_depth": "yes"}).steady_depth is True
+    assert parse_sets(["novel_multiview=off"]) == {"novel_multiview": False}
+    with pytest.raises(ConfigError, match="steady_depth"):
+        resolve_track_config("default", None, {"steady_depth": "maybe"})
+    with pytest.raises(ConfigError, match="true or false"):
+        parse_sets(["novel_multiview=maybe"])

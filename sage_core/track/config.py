@@ -8,6 +8,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..config import parse_bool
 from ..errors import ConfigError
 
 REGIMES: tuple[str, ...] = ("mv-sf", "mv-mf", "sv-hr", "one-shot")
@@ -140,14 +141,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         tp = next(a for a in typing.get_args(tp) if a is not type(None))
     try:
         if tp is bool:
-            if isinstance(value, bool):
-                return value
-            s = str(value).strip().lower()
-            if s in ("true", "yes", "on", "1"):
-                return True
-            if s in ("false", "no", "off", "0"):
-                return False
-            raise ValueError
+            return parse_bool(value)
         if tp is int:
             f = float(value)
             if isinstance(value, bool) or not f.is_integer():

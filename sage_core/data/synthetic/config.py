@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+from ...config import parse_bool
 from ...errors import ConfigError
 
 REGIMES = ("multiview", "monocular", "oneshot")
@@ -174,16 +175,6 @@ class SynthConfig:
         return replace(self, **kw).validate()
 
 
-def _boolean(text: str) -> bool:
-    """true/false (also yes/no, on/off, 1/0) -> bool; anything else raises ValueError."""
-    low = text.lower()
-    if low in ("true", "yes", "on", "1"):
-        return True
-    if low in ("false", "no", "off", "0"):
-        return False
-    raise ValueError(text)
-
-
 def parse_sets(items: list[str] | None) -> dict[str, Any]:
     """``["crease_depth_mm=3", "tracking=exact"]`` -> {"crease_depth_mm": 3.0, "tracking": "exact"},
     typed by the :class:`SynthConfig` field; unknown keys and bad values raise ConfigError."""
@@ -194,11 +185,11 @@ def parse_sets(items: list[str] | None) -> dict[str, Any]:
         key, val = key.strip(), val.strip()
         if not sep or key not in types:
             raise ConfigError(f"--set expects FIELD=VALUE with a synth config field ({', '.join(types)}), got '{item}'")
-        tp = {"int": int, "float": float, "str": str, "bool": _boolean}[str(types[key])]
+        tp = {"int": int, "float": float, "str": str, "bool": parse_bool}[str(types[key])]
         try:
             out[key] = tp(val)
         except ValueError:
-            raise ConfigError(f"--set {key}: '{val}' is not a valid {'bool (true or false)' if tp is _boolean else tp.__name__}") from None
+            raise ConfigError(f"--set {key}: '{val}' is not a valid {'bool (true or false)' if tp is parse_bool else tp.__name__}") from None
     return out
 
 
