@@ -15,7 +15,8 @@ from sage_core.errors import InputError
 from sage_core.flame import FlameModel, load_flame_model
 from sage_core.render.mesh_raster import rasterize_mesh
 from sage_core.track.config import resolve_track_config
-from sage_core.track.embedding import LandmarkEmbedding, calibrate_embedding, load_embedding, save_embedding
+from sage_core.track.embedding import (LandmarkEmbedding, PoseTable, calibrate_embedding, calibration_angles, load_embedding,
+                                       save_embedding)
 from sage_core.track.fitting import FitCamera, FitImage, FitProblem, Fitter
 from sage_core.track.flame_subset import FlameSubset
 from sage_core.track.losses import pixel_barycentrics, project, signed_distance
@@ -139,6 +140,105 @@ def test_embedding_file_round_trip_and_errors(tmp_path, head):
     np.savez(tmp_path / "keys.npz", faces=np.zeros(3))
     with pytest.raises(InputError, match="lacks key"):
         load_embedding(tmp_path / "keys.npz", model.n_faces)
+
+
+def _linear_table(K: int, a: float = 0.01, b: float = -0.02) -> PoseTable:
+    """A pose table whose offsets are (a · yaw, b · pitch) metres (radians), the same for every landmark."""
+    yaws, pitches = calibration_angles(30, 12, 5, 45, 24)
+    gy, gp = np.meshgrid(np.deg2rad(yaws), np.deg2rad(pitches))  # (P, Y)
+    off = np.stack([a * gy, b * gp], -1)[:, :, None, :].repeat(K, 2)
+    return PoseTable(yaws, pitches, off)
+
+
+def test_calibration_grid_and_pose_table_file(tmp_path, head):
+    """The grid continues the calibration's steps outwards; a pose table survives the file, and a
+    broken one is refused naming the file."""
+    model, _ = head
+    yaws, pitches = calibration_angles(30, 12, 5, 45, 24)
+    assert yaws.tolist() == [-45, -30, -15, 0, 15, 30, 45] and pitches.tolist() == [-24, -12, 0, 12, 24]
+    assert [a.tolist() for a in calibration_angles(30, 12, 3, 0, 0)] == [[-30, 0, 30], [-12, 0, 12]]
+    emb = LandmarkEmbedding(np.arange(40), np.arange(40) * 3, np.tile([0.2, 0.3, 0.5], (40, 1)), pose=_linear_table(40))
+    back = load_embedding(save_embedding(tmp_path / "e.npz", emb), model.n_faces)
+    assert np.allclose(back.pose.offsets, emb.pose.offsets) and np.array_equal(back.pose.yaws, emb.pose.yaws)
+    arrays = dict(np.load(tmp_path / "e.npz"))
+    np.savez(tmp_path / "short.npz", **{**arrays, "pose_offsets": arrays["pose_offsets"][:, :, :39]})
+    with pytest.raises(InputError, match="short.npz.*pose_offsets has shape"):
+        load_embedding(tmp_path / "short.npz", model.n_faces)
+    del arrays["pose_yaws"]
+    np.savez(tmp_path / "part.npz", **arrays)
+    with pytest.raises(InputError, match="needs all three"):
+        load_embedding(tmp_path / "part.npz", model.n_faces)
+
+
+def test_pose_table_follows_a_smooth_lean_and_ignores_jumps():
+    """Back-projections that slide with the pitch (3 cm per radian along the triangle's in-plane
+    perpendicular), one view missing and one detection jumped 4 cm away: the table is the lean
+    everywhere, the missing view included."""
+    from sage_core.track.embedding import _pose_table
+
+    v = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0]])  # triangle in z = 0: e1 = x, e2 = y
+    faces = np.array([[0, 1, 2]])
+    yaws, pitches = calibration_angles(30, 12, 5, 45, 24)
+    grid = [(pi, yi) for pi in range(len(pitches)) for yi in range(len(yaws))]
+    b = np.array([0.2, 0.3, 0.5])
+    p0 = b @ v
+    samples = [[]]
+    for vi, (pi, yi) in enumerate(grid):
+        if (pi, yi) == (4, 6):
+            continue  # not seen there
+        jump = np.array([0.04, 0.0, 0.0]) if (pi, yi) == (1, 1) else 0.0
+        samples[0].append((vi, 0, b, p0 + np.array([0.0, 0.03 * np.deg2rad(pitches[pi]), 0.0]) + jump))
+    table = _pose_table(samples, [0], [0], [b], v, faces, yaws, pitches, grid, limit=0.02)
+    want = 0.03 * np.deg2rad(pitches)[:, None].repeat(len(yaws), 1)
+    assert np.allclose(table.offsets[:, :, 0, 1], want, atol=1e-9) and np.allclose(table.offsets[:, :, 0, 0], 0.0, atol=1e-9)
+
+
+def test_fit_looks_the_pose_table_up_at_each_images_pose(head):
+    """A table linear in yaw and pitch, looked up for the head pitched 10° and turned 20°: the offsets
+    are the table's at the pose the camera sees (bilinear is exact for a plane), and they move the
+    landmarks in their triangles' planes by that much."""
+    fm, v, K, w2c, cam = _mesh_view(head)
+    rng = np.random.default_rng(1)
+    n = 30
+    emb = LandmarkEmbedding(np.arange(n), rng.choice(fm.faces.shape[0], n, replace=False), rng.dirichlet(np.ones(3), n),
+                            pose=_linear_table(n))
+    fit = Fitter(fm, emb, FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [], 1), resolve_track_config("tiny"))
+    with torch.no_grad():
+        fit.params["rotation"][0] = torch.tensor([np.deg2rad(10.0), np.deg2rad(20.0), 0.0], dtype=fit.dtype)
+        verts = fm(rotation=fit.params["rotation"].detach()).vertices
+        tri = verts[:, fit.tri]
+        centre = torch.as_tensor(cam.center, dtype=fit.dtype)[None]
+        off = fit.pose_offsets(torch.tensor([0]), tri, centre)
+        R = fit.params["rotation"][0]
+        from sage_core.track.fitting import axis_angle_to_matrix
+
+        face = (tri * fit.bary[:, :, None]).sum(-2).mean(1)[0]
+        d = axis_angle_to_matrix(R[None])[0].T @ (centre[0] - face)
+        d = d / d.norm()
+        yaw, pitch = float(torch.atan2(d[0], d[2])), float(torch.asin(d[1]))
+        assert abs(np.rad2deg(pitch)) > 5 and abs(np.rad2deg(yaw)) > 10
+        assert torch.allclose(off[0], torch.tensor([0.01 * yaw, -0.02 * pitch], dtype=off.dtype).expand(n, 2), atol=1e-9)
+        moved = fit.landmark_points(tri, off) - fit.landmark_points(tri, None)
+        assert torch.allclose(moved.norm(dim=-1), off.norm(dim=-1), atol=1e-9)
+    fixed = Fitter(fm, replace_pose(emb), FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [], 1),
+                   resolve_track_config("tiny"))
+    assert fixed.pose_offsets(torch.tensor([0]), tri, centre) is None
+
+
+def replace_pose(emb: LandmarkEmbedding) -> LandmarkEmbedding:
+    from dataclasses import replace
+
+    return replace(emb, pose=None)
+
+
+def test_landmark_pose_rule():
+    """auto: one camera that sees the head turn (a video, several frames); on and off as given."""
+    from sage_core.track.pipeline import landmark_pose_rule
+
+    assert landmark_pose_rule("auto", "video", 40) and landmark_pose_rule("auto", "images", 2)
+    assert not landmark_pose_rule("auto", "image", 1) and not landmark_pose_rule("auto", "multiview", 6)
+    assert not landmark_pose_rule("auto", "images", 1)
+    assert landmark_pose_rule("on", "multiview", 6) and not landmark_pose_rule("off", "video", 40)
 
 
 def test_fit_recovers_the_head_from_ideal_landmarks(head, one_thread):

@@ -62,6 +62,14 @@ class TrackConfig:
     calib_views: int = _opt(5, "Calibration: yaw steps (the views are yaw steps x 3 pitches).", ge=1, le=15)
     calib_size: int = _opt(320, "Calibration: rendered image size in pixels.", ge=128, le=1024)
     calib_jaw: float = _opt(0.0, "Calibration: jaw opening of the rendered head (radians), so the inner lips separate.", ge=0, le=0.5)
+    landmark_pose: str = _opt("auto", "Let the landmarks slide over the face with the head's pose relative to the camera, as the "
+                                      "detector's do (it leans towards a frontal face: uncorrected, a turned or pitched head is "
+                                      "fitted turned too little), from the calibrated embedding's pose table: on, off, or auto "
+                                      "(on for one camera that sees the head turn: a video or a folder of frames; a calibrated rig "
+                                      "holds the pose by itself and one photo showed no gain, docs/track.md).",
+                              choices=("auto", "on", "off"))
+    calib_pose_yaw_deg: float = _opt(45.0, "Calibration: the pose table's views continue the yaw steps out to this yaw (degrees).", ge=0, le=75)
+    calib_pose_pitch_deg: float = _opt(24.0, "Calibration: ... and the pitch steps out to this pitch (degrees).", ge=0, le=45)
     calib_spread: float = _opt(0.035, "Calibration: keep a landmark whose back-projections agree within this fraction of the head height.", gt=0)
     calib_min_views: float = _opt(0.6, "Calibration: keep a landmark seen on the surface in at least this fraction of the views.", gt=0, le=1)
     # -- fitting -------------------------------------------------------------------------------
@@ -129,7 +137,8 @@ class TrackConfig:
 PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "default": {},
     "tiny": {"calib_views": 3, "calib_size": 256, "rigid_steps": 60, "steps": 200, "refine_steps": 20, "refine_batch": 4,
-             "fit_height": 160, "max_height": 400, "keyframes": 12, "track_steps": 20},
+             "fit_height": 160, "max_height": 400, "keyframes": 12, "track_steps": 20,
+             "calib_pose_yaw_deg": 30.0, "calib_pose_pitch_deg": 12.0},
 }
 """What each preset changes against the dataclass defaults (tiny: tests, seconds per capture)."""
 

@@ -228,6 +228,10 @@ class Fitter:
         self.obs_c = torch.as_tensor([im.camera for im in lm], dtype=torch.long, device=self.device)
         self.tri = self.faces[torch.as_tensor(emb.faces, dtype=torch.long, device=self.device)]  # (K, 3)
         self.bary = self._t(emb.bary)
+        # the detector's pose bias: (P, Y, K, 2) offsets over a pitch × yaw grid (radians), or None
+        self.pose_table = None
+        if emb.pose is not None:
+            self.pose_table = (self._t(np.deg2rad(emb.pose.pitches)), self._t(np.deg2rad(emb.pose.yaws)), self._t(emb.pose.offsets))
         # scalp offsets
         self.hair = None if problem.hair is None else torch.as_tensor(problem.hair, dtype=torch.long, device=self.device)
         if self.hair is not None:
@@ -452,19 +456,54 @@ class Fitter:
 
     # -- terms -----------------------------------------------------------------------------------
 
-    def landmark_points(self, tri: torch.Tensor) -> torch.Tensor:
+    def landmark_points(self, tri: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
         """Landmark positions (..., K, 3) on posed embedding triangles (..., K, 3, 3): the barycentric
         point plus the landmark's shared offset in its triangle's plane (along the first edge and the
-        in-plane perpendicular; zero unless ``problem.landmark_offsets``)."""
+        in-plane perpendicular; zero unless ``problem.landmark_offsets``) plus ``extra`` (..., K, 2),
+        metres in the same frame (:meth:`pose_offsets`)."""
         pts = (tri * self.bary[:, :, None]).sum(-2)
-        if not self.p.landmark_offsets:
+        if not self.p.landmark_offsets and extra is None:
             return pts
         e1 = tri[..., 1, :] - tri[..., 0, :]
         e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         n = triangle_normals(tri)
         e2 = torch.cross(n, e1, dim=-1)
-        d = self.params["lmk_offset"] * OFFSET_UNIT
-        return pts + d[:, :1] * e1 + d[:, 1:] * e2
+        d = self.params["lmk_offset"] * OFFSET_UNIT if self.p.landmark_offsets else torch.zeros_like(pts[..., :2])
+        if extra is not None:
+            d = d + extra
+        return pts + d[..., :1] * e1 + d[..., 1:] * e2
+
+    def pose_offsets(self, rows: torch.Tensor, tri: torch.Tensor, centres: torch.Tensor) -> torch.Tensor | None:
+        """(N, K, 2) where the detector puts each landmark on the head of timestep ``rows`` (N,) seen from
+        cameras at ``centres`` (N, 3): the embedding's pose table, bilinear in the camera's yaw and
+        pitch seen from the face (the landmarks' centroid on the posed triangles ``tri`` (N, K, 3, 3); the
+        global rotation and the neck's; clamped to the table), without gradient. None without a table."""
+        if self.pose_table is None:
+            return None
+        pitches, yaws, table = self.pose_table
+        with torch.no_grad():
+            P = self.params
+            R = axis_angle_to_matrix(P["rotation"].detach()[rows]) @ axis_angle_to_matrix(P["neck_pose"].detach()[rows])
+            face = (tri.detach() * self.bary[:, :, None]).sum(-2).mean(1)
+            d = (R.transpose(1, 2) @ (centres - face)[..., None])[..., 0]
+            d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            yaw = torch.atan2(d[:, 0], d[:, 2])
+            pitch = torch.asin(d[:, 1].clamp(-1.0, 1.0))
+
+            def cell(grid: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                if grid.numel() == 1:
+                    return torch.zeros_like(x, dtype=torch.long), torch.zeros_like(x)
+                x = x.clamp(grid[0], grid[-1])
+                i = (torch.searchsorted(grid, x.contiguous()) - 1).clamp(0, grid.numel() - 2)
+                return i, (x - grid[i]) / (grid[i + 1] - grid[i])
+
+            pi, pw = cell(pitches, pitch)
+            yi, yw = cell(yaws, yaw)
+            p1 = (pi + 1).clamp_max(pitches.numel() - 1)
+            y1 = (yi + 1).clamp_max(yaws.numel() - 1)
+            pw, yw = pw[:, None, None], yw[:, None, None]
+            return ((1 - pw) * ((1 - yw) * table[pi, yi] + yw * table[pi, y1])
+                    + pw * ((1 - yw) * table[p1, yi] + yw * table[p1, y1]))
 
     def view_weight(self, pts: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
         """(N,) weight of each landmark image by how far the camera is from the face's front: 1 up to
@@ -483,13 +522,13 @@ class Fitter:
             return torch.zeros((), dtype=self.dtype, device=self.device), torch.zeros(0, dtype=self.dtype, device=self.device)
         K, w2c = self.cameras()
         tri = verts[:, self.sub_lookup[self.tri]]  # (T, K, 3, 3)
-        pts = self.landmark_points(tri)
-        pts_i = pts[self.obs_t]
         tri_i = tri[self.obs_t]
         Ki, Wi = K[self.obs_c], w2c[self.obs_c]
-        uv, _ = project(pts_i, Ki, Wi)
         with torch.no_grad():
             centres = self.camera_centres(Wi)
+        pts_i = self.landmark_points(tri_i, self.pose_offsets(self.obs_t, tri_i, centres))
+        uv, _ = project(pts_i, Ki, Wi)
+        with torch.no_grad():
             cos = facing(triangle_normals(tri_i), pts_i, centres)
             w = visibility_weight(cos) * self.view_weight(pts_i, centres)[:, None]
         err = (uv - self.obs).norm(dim=-1)  # (N, K) px
@@ -842,7 +881,8 @@ class Fitter:
             if self.obs.shape[0]:
                 verts = self.posed_subset()
                 tri = verts[:, self.sub_lookup[self.tri]]
-                pts = self.landmark_points(tri)[self.obs_t]
+                centres = self.camera_centres(w2c[self.obs_c])
+                pts = self.landmark_points(tri[self.obs_t], self.pose_offsets(self.obs_t, tri[self.obs_t], centres))
                 uv, _ = project(pts, K[self.obs_c], w2c[self.obs_c])
                 cos = facing(triangle_normals(tri[self.obs_t]), pts, self.camera_centres(w2c[self.obs_c]))
                 w = visibility_weight(cos) > 0.5

@@ -22,7 +22,7 @@ import os
 import shutil
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -115,6 +115,15 @@ def steady_depth_rule(enabled: bool, kind: str, n_timesteps: int) -> bool:
     (``TrackConfig.steady_depth``), for a video or a folder of several frames from one camera (a rig
     places the head itself; one image has nothing to agree with)."""
     return enabled and kind in ("video", "images") and n_timesteps >= 2
+
+
+def landmark_pose_rule(mode: str, kind: str, n_timesteps: int) -> bool:
+    """Whether the landmarks follow the detector's lean with the pose (``TrackConfig.landmark_pose``):
+    on / off as asked; auto: for a video or a folder of several frames from one camera. There the lean
+    turns every fitted frame back towards the camera by the same share (pitch by about 15 %), which
+    nothing else in one camera's view corrects; a calibrated rig's views hold the pose, and on one
+    photo the table did not lower the error (docs/track.md)."""
+    return mode == "on" or (mode == "auto" and kind in ("video", "images") and n_timesteps >= 2)
 
 
 def infer_regime(kind: str, n_timesteps: int) -> str:
@@ -338,8 +347,13 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
             neutral = flame(jaw_pose=torch.tensor([[cfg.calib_jaw, 0.0, 0.0]], device=flame.v_template.device)).vertices[0]
         emb, rep = calibrate_embedding(neutral.cpu(), flame.faces.cpu(), observer, size=cfg.calib_size,
                                        yaw_deg=cfg.calib_yaw_deg, pitch_deg=cfg.calib_pitch_deg, n_yaw=cfg.calib_views,
-                                       spread_frac=cfg.calib_spread, min_views_frac=cfg.calib_min_views, progress=progress)
+                                       spread_frac=cfg.calib_spread, min_views_frac=cfg.calib_min_views,
+                                       pose_yaw_deg=cfg.calib_pose_yaw_deg, pose_pitch_deg=cfg.calib_pose_pitch_deg,
+                                       pose_table=landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept)),
+                                       progress=progress)
         calibration = rep.to_dict()
+    if emb.pose is not None and not landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept)):
+        emb = replace(emb, pose=None)
     (root / "track").mkdir(exist_ok=True)
     save_embedding(root / "track" / "landmark_embedding.npz", emb)
     timings["embedding"] = time.time() - t0
@@ -428,11 +442,15 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     tiles = []
     lmk_ids = emb.landmark_ids
     with torch.no_grad():
-        pts_all = fitter.landmark_points(verts[:, faces_t[torch.as_tensor(emb.faces)]].to(flame.v_template.device)).cpu()
+        tri_all = verts[:, faces_t[torch.as_tensor(emb.faces)]].to(flame.v_template.device)
     for i in order:
         f, im = frames[int(i)], images[int(i)]
         img = np.asarray(_read_png(root / "images" / f"{f.name}.png"))
-        uv, _ = f.camera.project(pts_all[f.timestep].double().numpy())
+        with torch.no_grad():
+            tri = tri_all[f.timestep: f.timestep + 1]
+            centre = torch.as_tensor(f.camera.center, dtype=tri.dtype, device=tri.device)[None]
+            pts = fitter.landmark_points(tri, fitter.pose_offsets(torch.tensor([f.timestep], device=tri.device), tri, centre))[0]
+        uv, _ = f.camera.project(pts.cpu().double().numpy())
         det = im.landmarks[lmk_ids] if im.landmarks is not None else None
         tiles.append(overlay_tile(img, verts[f.timestep], faces_t, f.camera, det, uv))
     write_image(root / "track" / "contact_sheet.png", contact_sheet(tiles, columns=min(3, len(tiles))))
