@@ -4,6 +4,8 @@ fit that recovers pose, expression and identity from ideal landmarks."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -220,15 +222,9 @@ def test_fit_looks_the_pose_table_up_at_each_images_pose(head):
         assert torch.allclose(off[0], torch.tensor([0.01 * yaw, -0.02 * pitch], dtype=off.dtype).expand(n, 2), atol=1e-9)
         moved = fit.landmark_points(tri, off) - fit.landmark_points(tri, None)
         assert torch.allclose(moved.norm(dim=-1), off.norm(dim=-1), atol=1e-9)
-    fixed = Fitter(fm, replace_pose(emb), FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [], 1),
+    fixed = Fitter(fm, replace(emb, pose=None), FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [], 1),
                    resolve_track_config("tiny"))
     assert fixed.pose_offsets(torch.tensor([0]), tri, centre) is None
-
-
-def replace_pose(emb: LandmarkEmbedding) -> LandmarkEmbedding:
-    from dataclasses import replace
-
-    return replace(emb, pose=None)
 
 
 def test_landmark_pose_rule():
@@ -286,8 +282,16 @@ def test_calibrated_embedding_of_the_synthetic_head(head):
     fm = FlameModel(model)
     with torch.no_grad():
         v = fm().vertices[0]
-    emb, rep = calibrate_embedding(v, fm.faces, observer, size=256, n_yaw=3)
-    assert rep.views_with_face == rep.views == 9
+    emb, rep = calibrate_embedding(v, fm.faces, observer, size=256, n_yaw=3, pose_pitch_deg=24)
+    assert rep.views_with_face == rep.views == 9 and rep.pose_views == 15
+    # the pose table's extra views (pitch ±24) leave the embedding itself as the 9 views make it
+    fixed, rep_fixed = calibrate_embedding(v, fm.faces, observer, size=256, n_yaw=3, pose_table=False)
+    assert fixed.pose is None and rep_fixed.pose_views == 0
+    assert np.array_equal(fixed.faces, emb.faces) and np.array_equal(fixed.bary, emb.bary)
+    # the detector leans: its points move over the face between the frontal view and the pitched ones
+    off = emb.pose.offsets
+    assert off.shape == (5, 3, len(emb), 2) and np.all(np.isfinite(off))
+    assert np.abs(off[4, 1] - off[2, 1]).mean() > 1e-3 and np.abs(off[0, 1] - off[2, 1]).mean() > 1e-3
     assert rep.kept > 300 and rep.median_spread_mm < 6
     pts = emb.points(v, fm.faces).numpy()
     k = {int(i): n for n, i in enumerate(emb.landmark_ids)}

@@ -204,13 +204,15 @@ def calibration_cameras(vertices: np.ndarray, size: int, yaws: np.ndarray, pitch
 
 @dataclass
 class CalibrationReport:
-    """What the calibration saw: views rendered, views with a face, landmarks kept / dropped."""
+    """What the calibration saw: views rendered for the embedding, views with a face, landmarks kept /
+    dropped, and the views of the pose table (0: none)."""
 
     views: int
     views_with_face: int
     kept: int
     dropped: int
     median_spread_mm: float
+    pose_views: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -292,7 +294,7 @@ def calibrate_embedding(vertices: torch.Tensor, faces: torch.Tensor, observer: F
         spreads.append(spread)
         counts.append(len(s))
     report = CalibrationReport(int(sum(inner)) * len(lights), seen, len(ids), dropped,
-                               float(np.median(spreads) * 1000) if spreads else float("nan"))
+                               float(np.median(spreads) * 1000) if spreads else float("nan"), len(jobs) if pose_table else 0)
     if len(ids) < MIN_LANDMARKS:
         raise InputError("<FLAME model>", f"the landmark calibration kept {len(ids)} landmarks ({seen} of {sum(inner)} rendered "
                                           f"views showed a face); at least {MIN_LANDMARKS} are needed: pass a landmark embedding "

@@ -468,9 +468,9 @@ class Fitter:
         e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         n = triangle_normals(tri)
         e2 = torch.cross(n, e1, dim=-1)
-        d = self.params["lmk_offset"] * OFFSET_UNIT if self.p.landmark_offsets else torch.zeros_like(pts[..., :2])
+        d = self.params["lmk_offset"] * OFFSET_UNIT if self.p.landmark_offsets else None
         if extra is not None:
-            d = d + extra
+            d = extra if d is None else d + extra
         return pts + d[..., :1] * e1 + d[..., 1:] * e2
 
     def pose_offsets(self, rows: torch.Tensor, tri: torch.Tensor, centres: torch.Tensor) -> torch.Tensor | None:
@@ -880,11 +880,11 @@ class Fitter:
             rep_max = np.full(n_img, np.nan)
             if self.obs.shape[0]:
                 verts = self.posed_subset()
-                tri = verts[:, self.sub_lookup[self.tri]]
+                tri_i = verts[:, self.sub_lookup[self.tri]][self.obs_t]
                 centres = self.camera_centres(w2c[self.obs_c])
-                pts = self.landmark_points(tri[self.obs_t], self.pose_offsets(self.obs_t, tri[self.obs_t], centres))
+                pts = self.landmark_points(tri_i, self.pose_offsets(self.obs_t, tri_i, centres))
                 uv, _ = project(pts, K[self.obs_c], w2c[self.obs_c])
-                cos = facing(triangle_normals(tri[self.obs_t]), pts, self.camera_centres(w2c[self.obs_c]))
+                cos = facing(triangle_normals(tri_i), pts, centres)
                 w = visibility_weight(cos) > 0.5
                 err = (uv - self.obs).norm(dim=-1)
                 for n, i in enumerate(self.lm_images):

@@ -110,11 +110,16 @@ def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
     return mode == "face" or (mode == "auto" and not focal_fitted)
 
 
+def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
+    """A video or a folder of several frames: one uncalibrated camera that sees the head move."""
+    return kind in ("video", "images") and n_timesteps >= 2
+
+
 def steady_depth_rule(enabled: bool, kind: str, n_timesteps: int) -> bool:
     """Whether the head's distance from the camera is held steady over the frames: when asked for
     (``TrackConfig.steady_depth``), for a video or a folder of several frames from one camera (a rig
     places the head itself; one image has nothing to agree with)."""
-    return enabled and kind in ("video", "images") and n_timesteps >= 2
+    return enabled and _one_camera_sequence(kind, n_timesteps)
 
 
 def landmark_pose_rule(mode: str, kind: str, n_timesteps: int) -> bool:
@@ -123,7 +128,7 @@ def landmark_pose_rule(mode: str, kind: str, n_timesteps: int) -> bool:
     turns every fitted frame back towards the camera by the same share (pitch by about 15 %), which
     nothing else in one camera's view corrects; a calibrated rig's views hold the pose, and on one
     photo the table did not lower the error (docs/track.md)."""
-    return mode == "on" or (mode == "auto" and kind in ("video", "images") and n_timesteps >= 2)
+    return mode == "on" or (mode == "auto" and _one_camera_sequence(kind, n_timesteps))
 
 
 def infer_regime(kind: str, n_timesteps: int) -> str:
@@ -340,6 +345,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     # -- landmark embedding
     t0 = time.time()
     calibration = None
+    pose_on = landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept))
     if emb_given is not None:
         emb = emb_given
     else:
@@ -349,10 +355,10 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
                                        yaw_deg=cfg.calib_yaw_deg, pitch_deg=cfg.calib_pitch_deg, n_yaw=cfg.calib_views,
                                        spread_frac=cfg.calib_spread, min_views_frac=cfg.calib_min_views,
                                        pose_yaw_deg=cfg.calib_pose_yaw_deg, pose_pitch_deg=cfg.calib_pose_pitch_deg,
-                                       pose_table=landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept)),
+                                       pose_table=pose_on,
                                        progress=progress)
         calibration = rep.to_dict()
-    if emb.pose is not None and not landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept)):
+    if emb.pose is not None and not pose_on:
         emb = replace(emb, pose=None)
     (root / "track").mkdir(exist_ok=True)
     save_embedding(root / "track" / "landmark_embedding.npz", emb)
