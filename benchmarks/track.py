@@ -113,8 +113,13 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
                 "--seed", "0", "--quiet"]
         for kv in avatar_sets:
             args += ["--set", kv]
+        reused = (ws / "eval" / "phase2" / "test" / "metrics.json").is_file()
         wall, _ = _sage(args, threads)
         runs[name] = {"workspace": ws.name, "wall_s": round(wall, 1), "command": "sage " + " ".join(args)}
+        if reused:  # an earlier run of the same command trained it: its stages' own times
+            runs[name]["reused"] = True
+            runs[name]["wall_s"] = round(sum(json.loads(m.read_text()).get("wall_time_s") or 0.0
+                                             for m in ws.glob("*/manifest.json")), 1)
     own = _test_scores(work / runs["own"]["workspace"])
     trk = _test_scores(work / runs["tracked"]["workspace"], ids)
     common = sorted(set(own) & set(trk))
@@ -340,13 +345,19 @@ def markdown(doc: dict) -> str:
                       f"timestep and camera. Training: `sage run ... --preset {a0['avatar_preset']}"
                       + "".join(f" --set {kv}" for kv in a0["avatar_sets"]) + "`, seed 0; commands in `track.json` "
                       "(`avatars[].runs`).", "",
-                  "| regime | test images | own parameters: PSNR / SSIM / LPIPS | `sage track`'s: PSNR / SSIM / LPIPS | difference (dB) |",
-                  "|---|---:|---|---|---:|"]
+                  "| regime | test images | own parameters: PSNR / SSIM / LPIPS | `sage track`'s: PSNR / SSIM / LPIPS | difference (dB) "
+                  "| run (UTC) | training wall time, own / tracked (s) |",
+                  "|---|---:|---|---|---:|---|---|"]
         for a in doc["avatars"]:
             o, t = a["runs"]["own"]["common"], a["runs"]["tracked"]["common"]
+            walls = " / ".join(f"{a['runs'][k]['wall_s']:.0f}" + (" (reused)" if a["runs"][k].get("reused") else "")
+                               for k in ("own", "tracked"))
             lines.append(f"| {a['regime']} ({a['track_regime']}) | {a['common_images']} | {o['psnr']:.2f} / {o['ssim']:.4f} / "
                          f"{o.get('lpips', float('nan')):.4f} | {t['psnr']:.2f} / {t['ssim']:.4f} / {t.get('lpips', float('nan')):.4f} | "
-                         f"{a['psnr_difference_db']:+.2f} |")
+                         f"{a['psnr_difference_db']:+.2f} | {a.get('machine', {}).get('date_utc', '—')} | {walls} |")
+        lines += ["", "(reused): the avatar of an earlier run of the same command, whose workspace the benchmark found "
+                      "complete; its time is the sum of its stages' recorded times. A regime's row is replaced only when "
+                      "`--only-avatars` runs it again."]
     return "\n".join(lines) + "\n"
 
 
@@ -432,7 +443,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     if a.only_avatars:
         doc = json.loads((a.docs / "track.json").read_text())
-        doc["avatars"] = avatars
+        # regimes this run did not train keep their earlier comparison (with its own command and machine)
+        ran = {x["regime"] for x in avatars}
+        doc["avatars"] = [x for x in doc.get("avatars") or [] if x["regime"] not in ran] + avatars
         doc.pop("avatar", None)  # the earlier, not like-for-like comparison
         _write(a.docs, doc)
         return
