@@ -355,9 +355,10 @@ def markdown(doc: dict) -> str:
             lines.append(f"| {a['regime']} ({a['track_regime']}) | {a['common_images']} | {o['psnr']:.2f} / {o['ssim']:.4f} / "
                          f"{o.get('lpips', float('nan')):.4f} | {t['psnr']:.2f} / {t['ssim']:.4f} / {t.get('lpips', float('nan')):.4f} | "
                          f"{a['psnr_difference_db']:+.2f} | {a.get('machine', {}).get('date_utc', '—')} | {walls} |")
-        lines += ["", "(reused): the avatar of an earlier run of the same command, whose workspace the benchmark found "
-                      "complete; its time is the sum of its stages' recorded times. A regime's row is replaced only when "
-                      "`--only-avatars` runs it again."]
+        lines += ["", "A regime's row is replaced only when `--only-avatars` trains it again."]
+        if any(r.get("reused") for a in doc["avatars"] for r in a["runs"].values()):
+            lines[-1] += (" (reused): the avatar of an earlier run of the same command, whose workspace the benchmark "
+                          "found complete; its time is the sum of its stages' recorded times.")
     return "\n".join(lines) + "\n"
 
 

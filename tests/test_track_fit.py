@@ -21,7 +21,7 @@ from sage_core.track.embedding import (LandmarkEmbedding, PoseTable, calibrate_e
                                        save_embedding)
 from sage_core.track.fitting import FitCamera, FitImage, FitProblem, Fitter
 from sage_core.track.flame_subset import FlameSubset
-from sage_core.track.losses import pixel_barycentrics, project, signed_distance
+from sage_core.track.losses import pixel_barycentrics, project, signed_distance, triangle_plane_frame
 
 
 @pytest.fixture(scope="module")
@@ -482,3 +482,19 @@ def test_steady_depth_holds_a_noisy_sequence_together(head, one_thread):
         error[steady] = float(np.linalg.norm(s * got @ R.T + t - true, axis=-1).mean() * 1000)
     assert spread[True] < 0.3 * spread[False], spread
     assert error[True] <= error[False] * 1.05, error
+
+
+def test_triangle_plane_frame_is_the_landmark_offset_frame():
+    """e1 along the first edge, e2 in the plane and perpendicular, both unit: the frame the calibration's
+    pose table and the fitter's offsets share."""
+    g = torch.Generator().manual_seed(3)
+    tri = torch.randn(5, 3, 3, generator=g, dtype=torch.float64)
+    e1, e2 = triangle_plane_frame(tri)
+    edge = tri[:, 1] - tri[:, 0]
+    n = torch.cross(edge, tri[:, 2] - tri[:, 0], dim=-1)
+    assert torch.allclose(e1, edge / edge.norm(dim=-1, keepdim=True))
+    assert torch.allclose(e2.norm(dim=-1), torch.ones(5, dtype=torch.float64))
+    assert torch.allclose((e1 * e2).sum(-1), torch.zeros(5, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose((e2 * n).sum(-1), torch.zeros(5, dtype=torch.float64), atol=1e-10)
+    # right-handed with the normal: e1 × e2 points along n
+    assert bool(((torch.cross(e1, e2, dim=-1) * n).sum(-1) > 0).all())

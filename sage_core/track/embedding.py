@@ -38,6 +38,7 @@ from ..errors import InputError
 from ..npz import read_npz
 from .face_mesh import N_LANDMARKS
 from .faces import FaceObserver, FaceProblem
+from .losses import triangle_plane_frame
 from .shading import LIGHT, shade, vertex_normals
 
 FORMAT = "sage-landmark-embedding-v1"
@@ -316,14 +317,10 @@ def _pose_table(samples: list[list[tuple[int, int, np.ndarray, np.ndarray]]], id
     views for the quadratic a plane, then the mean of the views it was seen in (0 when none)."""
     P, Y, K = len(pitches), len(yaws), len(ids)
     off = np.full((P, Y, K, 2), np.nan)
-    for j, (k, f, b) in enumerate(zip(ids, fs, bs)):
-        tri = v[faces[f]]
-        p0 = b @ tri
-        e1 = tri[1] - tri[0]
-        e1 = e1 / max(np.linalg.norm(e1), 1e-12)
-        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
-        n = n / max(np.linalg.norm(n), 1e-12)
-        e2 = np.cross(n, e1)
+    tris = v[faces[np.asarray(fs, np.int64)]]  # (K, 3, 3)
+    e1s, e2s = (a.numpy() for a in triangle_plane_frame(torch.from_numpy(tris)))
+    for j, (k, b) in enumerate(zip(ids, bs)):
+        p0, e1, e2 = b @ tris[j], e1s[j], e2s[j]
         for vi, _, _, point in samples[k]:
             if np.linalg.norm(point - p0) > limit:
                 continue

@@ -45,7 +45,7 @@ from .config import TrackConfig
 from .embedding import LandmarkEmbedding
 from .flame_subset import FlameSubset, JointBasis
 from .losses import (charbonnier, facing, pixel_barycentrics, project, sample_map, signed_distance, triangle_normals,
-                     visibility_weight)
+                     triangle_plane_frame, visibility_weight)
 from .mesh_utils import edge_faces, edges
 
 Progress = Callable[..., None]
@@ -464,10 +464,7 @@ class Fitter:
         pts = (tri * self.bary[:, :, None]).sum(-2)
         if not self.p.landmark_offsets and extra is None:
             return pts
-        e1 = tri[..., 1, :] - tri[..., 0, :]
-        e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        n = triangle_normals(tri)
-        e2 = torch.cross(n, e1, dim=-1)
+        e1, e2 = triangle_plane_frame(tri)
         d = self.params["lmk_offset"] * OFFSET_UNIT if self.p.landmark_offsets else None
         if extra is not None:
             d = extra if d is None else d + extra

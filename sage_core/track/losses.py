@@ -28,6 +28,15 @@ def triangle_normals(points: torch.Tensor) -> torch.Tensor:
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-20)
 
 
+def triangle_plane_frame(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """In-plane axes of triangles (..., 3, 3): (e1, e2), each (..., 3), e1 the unit first edge and
+    e2 = normal × e1. The frame landmark offsets are measured in (calibration pose table, fitted
+    offsets)."""
+    e1 = points[..., 1, :] - points[..., 0, :]
+    e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return e1, torch.cross(triangle_normals(points), e1, dim=-1)
+
+
 def facing(normals: torch.Tensor, points: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
     """Cosine between normals (B, N, 3) and the directions from points (B, N, 3) to the camera
     centres (B, 3): > 0 on the side that faces the camera."""
