@@ -108,6 +108,36 @@ def test_video_frames_fps_and_corrupt_files(tmp_path):
         read_source(cut)
 
 
+def test_phone_video_with_display_rotation_comes_upright(tmp_path, caplog):
+    """A phone films portrait as a landscape stream with a display rotation: frames come as shown."""
+    import logging
+    import subprocess
+
+    import imageio_ffmpeg
+
+    from sage_core.export.video import VideoWriter
+
+    coded = np.zeros((32, 48, 3), np.float32)
+    coded[:, :, 0] = np.linspace(0, 1, 48)[None, :]  # red rises to the right
+    coded[:, :, 1] = np.linspace(0, 1, 32)[:, None]  # green rises downwards
+    landscape = tmp_path / "coded.mp4"
+    with VideoWriter(landscape, fps=10, width=48, height=32) as vw:
+        for _ in range(3):
+            vw.write(coded)
+    phone = tmp_path / "phone.mp4"
+    run = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-display_rotation", "90", "-i", str(landscape),
+                          "-c", "copy", str(phone)], capture_output=True)
+    if run.returncode != 0:
+        pytest.skip("this ffmpeg cannot set a display rotation")
+    with caplog.at_level(logging.WARNING):
+        src = read_source(phone)
+        (_, img), *_ = list(src.frames(0))
+    assert img.shape == (48, 32, 3)
+    # 90 degrees counter-clockwise: the coded image's right edge is now at the top
+    assert np.abs(img - np.rot90(coded, 1)).mean() < 0.05
+    assert not [r for r in caplog.records if r.name.startswith("imageio_ffmpeg")]
+
+
 def _rig(n: int = 3) -> list[Camera]:
     cams = []
     for i in range(n):

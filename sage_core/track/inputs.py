@@ -138,13 +138,23 @@ def _image_files(folder: Path) -> list[Path]:
 # -- video -----------------------------------------------------------------------------------------
 
 def _open_video(path: Path) -> tuple[Iterator, dict]:
+    """The frame generator and header of a video. ffmpeg applies a phone video's display rotation,
+    so ``meta["size"]`` is the upright (width, height) the frames come in (the reader's warning that
+    it differs from the coded size is silenced: upright is what is wanted)."""
+    import logging
+
     import imageio_ffmpeg
 
+    log = logging.getLogger("imageio_ffmpeg")
+    level = log.level
+    log.setLevel(logging.ERROR)
     try:
         gen = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
         meta = next(gen)
     except (OSError, RuntimeError, StopIteration, ValueError) as exc:
         raise InputError(path, f"cannot read the video ({_first_line(exc)})") from None
+    finally:
+        log.setLevel(level)
     size = meta.get("size") or (0, 0)
     if not size or min(size) <= 0:
         gen.close()
