@@ -41,8 +41,12 @@ def test_single_image_folder_and_sizes(tmp_path):
     with pytest.raises(InputError, match="input not found"):
         read_source(tmp_path / "missing.png")
     (tmp_path / "notes.txt").write_text("hello")
-    with pytest.raises(InputError, match="unknown input type"):
+    with pytest.raises(InputError, match="unknown input type") as e:
         read_source(tmp_path / "notes.txt")
+    assert "HEIF" not in str(e.value)
+    (tmp_path / "IMG_0001.HEIC").write_bytes(b"\x00\x00\x00\x18ftypheic")
+    with pytest.raises(InputError, match="export it as JPEG"):
+        read_source(tmp_path / "IMG_0001.HEIC")
     with pytest.raises(ConfigError, match="cameras file goes with a folder"):
         read_source(p, cameras=tmp_path / "transforms.json")
 

@@ -29,6 +29,8 @@ from .camera_files import CameraSet, read_cameras
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
+HEIF_SUFFIXES = (".heic", ".heif", ".avif")
+"""Photo formats the image reader has no codec for (named in the refusal, with what to do)."""
 KINDS = ("image", "images", "video", "multiview")
 
 
@@ -249,7 +251,8 @@ def read_source(path: str | Path, cameras: str | Path | None = None, fps: float 
         if suffix in IMAGE_SUFFIXES:
             w, h, focal = _header(p)
             return TrackSource("image", p, [SourceView(p.stem, 0, w, h, exif_focal=focal, files={p.stem: p})], [p.stem])
-        raise InputError(p, f"unknown input type '{suffix}' (images: {', '.join(IMAGE_SUFFIXES)}; videos: {', '.join(VIDEO_SUFFIXES)})")
+        hint = "; a phone's HEIF photo: export it as JPEG (the camera's focal length stays in its EXIF)" if suffix in HEIF_SUFFIXES else ""
+        raise InputError(p, f"unknown input type '{suffix}' (images: {', '.join(IMAGE_SUFFIXES)}; videos: {', '.join(VIDEO_SUFFIXES)}{hint})")
 
     files = _image_files(p)
     subdirs = sorted(d for d in p.iterdir() if d.is_dir() and not d.name.startswith(".") and _image_files(d))
