@@ -21,6 +21,12 @@ captures hold (matched by the capture's timestep and camera). The one-shot photo
 frames per second for ``--video-seconds``, ``--video-size``) as an MP4 and tracks it: the time of the
 issue's "20-second 30-fps head-turn video" target, and its vertex error against the rendered truth.
 
+``--only-backgrounds coffee,rocket,chelsea`` puts the one-shot photo's head (its own mask) over
+photographs that ship with scikit-image, tracks each with the masks' colour cut on and off
+(``mask_colour_cut``), and scores the written mask against the capture's (intersection over union,
+the share of the true mask added and missed) and the vertex error: the person segmentation and the
+colour cut meet a real background only there (the other inputs are matted on white and keyed).
+
 Results: ``DOCS/track.json`` (everything measured, the commands and the machine) and ``DOCS/track.md``
 (the tables). Captures, inputs and outputs stay in ``WORK`` (default ``bench-track/``) and are reused
 when they exist (delete the folder to start over).
@@ -32,11 +38,13 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import shlex
+import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's sage_core, whatever is installed
@@ -165,6 +173,66 @@ def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, th
     }
 
 
+BACKGROUNDS = ("coffee", "rocket", "chelsea")
+"""scikit-image photographs the background cases use (``skimage.data.<name>()``)."""
+
+
+def _mask_scores(tracked: Path, truth_mask: np.ndarray) -> dict:
+    """The written mask of a one-image capture against the truth's (in the input image's pixels):
+    intersection over union, and the truth's area added / missed, as shares of the truth's area."""
+    import cv2
+
+    from sage_core.data.imageio import read_image
+
+    report = json.loads((tracked / "track" / "report.json").read_text())
+    cam = report["camera"]["cameras"][0]
+    x0, y0, w, h = cam["crop"]
+    ow, oh = cam["output_size"]
+    pad = max(w, h)
+    big = np.zeros((truth_mask.shape[0] + 2 * pad, truth_mask.shape[1] + 2 * pad), np.float32)
+    big[pad:pad + truth_mask.shape[0], pad:pad + truth_mask.shape[1]] = truth_mask
+    truth = cv2.resize(big[pad + y0:pad + y0 + h, pad + x0:pad + x0 + w], (ow, oh), interpolation=cv2.INTER_AREA) > 0.5
+    mine = read_image(tracked / "fg_masks" / "00000_00.png")[..., 0] > 0.5
+    area = max(int(truth.sum()), 1)
+    return {"iou": round(float((mine & truth).sum() / max((mine | truth).sum(), 1)), 4),
+            "added": round(float((mine & ~truth).sum() / area), 4), "missed": round(float((~mine & truth).sum() / area), 4)}
+
+
+def background_cases(work: Path, synth_preset: str, track_preset: str, threads: int, names: list[str]) -> list[dict]:
+    """The one-shot head over each named scikit-image photograph, tracked with the colour cut off and on."""
+    import cv2
+    from skimage import data
+
+    from sage_core.data.imageio import read_image, write_image
+    from sage_core.track.truth import compare_to_truth
+
+    cap = _capture(work, "oneshot", synth_preset)
+    inp, _ = _input(work, "oneshot", synth_preset, cap)
+    head = read_image(inp)[..., :3]
+    alpha = read_image(cap / "fg_masks" / "00000_00.png")[..., :1]
+    out = []
+    for name in names:
+        photo = getattr(data, name)()[..., :3].astype(np.float32) / 255.0
+        bg = cv2.resize(photo, (head.shape[1], head.shape[0]), interpolation=cv2.INTER_AREA)
+        src = work / f"in_oneshot_{synth_preset}_on_{name}" / "00000.png"
+        if not src.is_file():
+            write_image(src, head * alpha + bg * (1.0 - alpha))
+        row = {"background": name, "synth_preset": synth_preset, "track_preset": track_preset}
+        for mode in ("off", "on"):
+            tracked = work / f"tracked_oneshot_{synth_preset}_on_{name}_cut_{mode}"
+            args = ["track", str(src), str(tracked), "--flame-model", str(cap / "model" / "synth_flame.pkl"), "--preset", track_preset,
+                    "--quiet", "--force", "--set", "train_ratio=1.0", "--set", f"mask_colour_cut={mode}"]
+            wall, _ = _sage(args, threads)
+            err = compare_to_truth(tracked, cap)
+            report = json.loads((tracked / "track" / "report.json").read_text())
+            row[f"cut_{mode}"] = {"mask": _mask_scores(tracked, alpha[..., 0]), "aligned_mm": err["aligned"]["mean_mm"],
+                                  "world_mm": err["world"]["mean_mm"], "reprojection_px": report["reprojection_px"]["mean"],
+                                  "masks": report["masks"], "wall_s": round(wall, 1), "timings_s": report["timings_s"],
+                                  "command": "sage " + " ".join(a if a != str(REPO) else "." for a in args)}
+        out.append(row)
+    return out
+
+
 def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], seed: int = 0,
                  sway_mm: float = 0.0) -> tuple[Path, dict]:
     """A head-turn MP4 of a synthetic head (exact model) and its truth: model file, per-frame FLAME
@@ -173,7 +241,12 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
     import numpy as np
     import torch
 
-    from sage_core.data.synthetic import make_subject, neck_line_mask, preset, render_head
+    from sage_core.data.synthetic import (
+        make_subject,
+        neck_line_mask,
+        preset,
+        render_head,
+    )
     from sage_core.data.synthetic.model_files import flame_model, write_model_files
     from sage_core.data.synthetic.motion import monocular_camera
     from sage_core.export.video import VideoWriter
@@ -359,6 +432,19 @@ def markdown(doc: dict) -> str:
         if any(r.get("reused") for a in doc["avatars"] for r in a["runs"].values()):
             lines[-1] += (" (reused): the avatar of an earlier run of the same command, whose workspace the benchmark "
                           "found complete; its time is the sum of its stages' recorded times.")
+    if doc.get("backgrounds"):
+        b0 = doc["backgrounds"]
+        lines += ["", "The one-shot photo's head over photographs from scikit-image (`--only-backgrounds`), tracked with the "
+                      "masks' colour cut off and on (`--set mask_colour_cut=off|on`; `auto` turns it on for such "
+                      "backgrounds): the written mask against the truth's (intersection over union; the truth's area "
+                      "added and missed) and the vertex error after alignment.", "",
+                  "| background | mask IoU, cut off / on | added, off / on | missed, off / on | aligned mm, off / on | landmark px |",
+                  "|---|---|---|---|---|---:|"]
+        for r in b0:
+            f, n = r["cut_off"], r["cut_on"]
+            lines.append(f"| `skimage.data.{r['background']}()` | {f['mask']['iou']:.3f} / {n['mask']['iou']:.3f} | "
+                         f"{f['mask']['added']:.1%} / {n['mask']['added']:.1%} | {f['mask']['missed']:.1%} / {n['mask']['missed']:.1%} | "
+                         f"{f['aligned_mm']:.2f} / {n['aligned_mm']:.2f} | {n['reprojection_px']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -415,6 +501,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--avatar-preset", default="tiny", choices=("tiny", "small", "default"))
     ap.add_argument("--avatar-set", action="append", default=[], metavar="KEY=VALUE",
                     help="a --set for both avatars' sage run (repeatable)")
+    ap.add_argument("--only-backgrounds", default=None, metavar="NAMES",
+                    help=f"run only the one-shot head over these scikit-image photographs (comma-separated, e.g. {','.join(BACKGROUNDS)}) "
+                         "and put them into DOCS/track.json beside the cases already there")
     ap.add_argument("--rescore", action="store_true",
                     help="recompute the errors of DOCS/track.json's tracked captures in WORK (no tracking; times kept)")
     a = ap.parse_args(argv)
@@ -440,6 +529,16 @@ def main(argv: list[str] | None = None) -> None:
             x["machine"] = machine
             x["benchmark_command"] = command
         doc["cases"] = [c for c in doc["cases"] if not c.get("known_focal")] + extra
+        _write(a.docs, doc)
+        return
+    if a.only_backgrounds:
+        doc = json.loads((a.docs / "track.json").read_text())
+        rows = background_cases(a.out, a.synth_preset, a.track_preset, a.threads, a.only_backgrounds.split(","))
+        for x in rows:
+            x["machine"] = machine
+            x["benchmark_command"] = command
+        ran = {x["background"] for x in rows}
+        doc["backgrounds"] = [x for x in doc.get("backgrounds") or [] if x["background"] not in ran] + rows
         _write(a.docs, doc)
         return
     if a.only_avatars:

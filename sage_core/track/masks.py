@@ -5,8 +5,10 @@
   on that colour replaces it inside a dilation of the segmentation (which alone tends to invent
   shoulders below a blanked neck).
 - :func:`refine_mask`: the final mask of a tracked image: every pixel the fitted mesh covers, plus the
-  person pixels near the mesh (hair around the head), times the neck-line mask from the fitted mesh
-  (VHAP's rule: keep what lies above the line through the neck's sides, blurred).
+  person pixels near the mesh (hair around the head) whose colour goes with the person rather than
+  the background around it (:func:`colour_cut`, on images without a uniform background), times the
+  neck-line mask from the fitted mesh (VHAP's rule: keep what lies above the line through the neck's
+  sides, blurred).
 """
 
 from __future__ import annotations
@@ -63,13 +65,65 @@ def neck_line_mask(vertices: np.ndarray, ids: tuple[int, int, int], camera: Came
     return neck_line_cut(vertices, ids, camera)
 
 
+COLOUR_CUT_SIZE = 320
+"""Longer side (pixels) the colour cut works at; larger images are cut at this size and the decision
+scaled back (the mask keeps its own edges)."""
+
+
+def colour_cut(image: np.ndarray, mask: np.ndarray, sure: np.ndarray, band: int, iterations: int = 3) -> np.ndarray:
+    """(H, W) bool: the pixels of ``mask > 0.5`` whose colour goes with the foreground.
+
+    A graph cut on colour models (OpenCV's GrabCut) decides the pixels the mask holds but ``sure`` (the
+    fitted mesh's coverage) does not: it models the foreground from the mask and the background from a
+    ``band``-pixel ring outside it, so a patch of background that the segmentation took for the person
+    (a gap between hair and collar, a wall beside the neck) goes back to the background. It only
+    removes: ``sure`` stays, and nothing outside the mask is added.
+    """
+    import cv2
+
+    fg = mask > 0.5
+    if not fg.any() or fg.all():
+        return fg
+    H, W = mask.shape
+    scale = COLOUR_CUT_SIZE / max(H, W)
+    if scale < 1.0:
+        size = (max(1, round(W * scale)), max(1, round(H * scale)))
+        small = colour_cut(cv2.resize(image[..., :3], size, interpolation=cv2.INTER_AREA),
+                           cv2.resize(mask, size, interpolation=cv2.INTER_AREA),
+                           cv2.resize(sure.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0,
+                           max(1, round(band * scale)), iterations)
+        return fg & ((cv2.resize(small.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0) | sure)
+    ring = cv2.dilate(fg.astype(np.uint8), np.ones((2 * band + 1, 2 * band + 1), np.uint8)) > 0
+    gc = np.full(mask.shape, cv2.GC_BGD, np.uint8)
+    gc[ring] = cv2.GC_PR_BGD
+    gc[fg] = cv2.GC_PR_FGD
+    gc[sure] = cv2.GC_FGD
+    if not (gc == cv2.GC_PR_BGD).any():
+        return fg
+    img8 = (np.clip(image[..., :3], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(img8, gc, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return fg
+    return fg & ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD))
+
+
+def wants_colour_cut(mode: str, image: np.ndarray) -> bool:
+    """Whether :func:`refine_mask` checks an image's person pixels by colour: ``mode`` on / off, or
+    auto: when the background is not one uniform colour (a keyed matte has no such patches)."""
+    return mode == "on" or (mode == "auto" and background_key(image) is None)
+
+
 def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray | None, face_height: float,
-                hair_reach: float = 0.35) -> np.ndarray:
+                hair_reach: float = 0.35, image: np.ndarray | None = None) -> np.ndarray:
     """The written foreground mask (H, W) float32 in [0, 1].
 
     person: person probability; mesh_coverage: (H, W) in [0, 1], the fitted mesh's coverage; neck: the
     neck-line mask or None; face_height: pixels; hair_reach: person pixels further than this many
-    face heights from the mesh are dropped (other people, furniture, long hair far off the head).
+    face heights from the mesh are dropped (other people, furniture, long hair far off the head);
+    image: (H, W, 3) in [0, 1], when given the person pixels off the mesh are checked by colour
+    (:func:`colour_cut`).
     """
     import cv2
     from scipy.ndimage import distance_transform_edt
@@ -81,6 +135,10 @@ def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray 
     else:
         near = np.ones_like(covered)
     m = np.maximum(person * near, mesh_coverage)
+    if image is not None and covered.any():
+        sure = cv2.erode(covered.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        keep = colour_cut(image, m, sure, band=max(3, round(0.1 * face_height)))
+        m = np.where(keep | sure, m, np.minimum(m, mesh_coverage))
     # close pinholes the segmentation leaves inside the head
     m = np.maximum(m, cv2.morphologyEx((m > 0.5).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(np.float32) * (m > 0.2))
     if neck is not None:

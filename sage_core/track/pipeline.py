@@ -279,7 +279,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     from .capture_writer import OutFrame, write_flame_params, write_transforms
     from .embedding import calibrate_embedding, save_embedding
     from .fitting import FitCamera, FitImage, FitProblem, Fitter
-    from .masks import neck_line_mask, person_probability, refine_mask
+    from .masks import neck_line_mask, person_probability, refine_mask, wants_colour_cut
     from .mesh_utils import boundary_loops, hair_region, neck_line_vertices, ring
     from .observe import MONOCULAR_W2C, crop_window, focal_for
     from .report import contact_sheet, overlay_tile
@@ -426,7 +426,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         person = np.load(raw / f"{f.name}.person.npy").astype(np.float32) / 255.0
         neck = neck_line_mask(v.double().numpy(), neck_ids, f.camera) if cfg.neck_line else None
         fh = im.face_height if im.landmarks is not None else float(np.sqrt(max(coverage.sum(), 1.0)))
-        mask = refine_mask(person, coverage, neck, fh)
+        mask = refine_mask(person, coverage, neck, fh, image=img if wants_colour_cut(cfg.mask_colour_cut, img) else None)
         matted = img * mask[..., None] + (1.0 - mask[..., None])
         write_image(root / "images" / f"{f.name}.png", matted)
         write_image(root / "fg_masks" / f"{f.name}.png", mask)
