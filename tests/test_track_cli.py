@@ -114,6 +114,7 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
         assert (out / name).is_file(), name
     report = json.loads((out / "track" / "report.json").read_text())
     assert report["regime"] == "one-shot" and report["calibration"]["kept"] > 200 and report["reprojection_px"]["mean"] < 3
+    assert report["masks"] == {"keyed": 1, "colour_cut": 0}  # matted on white: keyed, no colour cut
     err = compare_to_truth(out, oneshot)
     assert err["aligned"]["mean_mm"] < 4.0, err["aligned"]
     ws = tmp_path / "ws"

@@ -426,7 +426,9 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         person = np.load(raw / f"{f.name}.person.npy").astype(np.float32) / 255.0
         neck = neck_line_mask(v.double().numpy(), neck_ids, f.camera) if cfg.neck_line else None
         fh = im.face_height if im.landmarks is not None else float(np.sqrt(max(coverage.sum(), 1.0)))
-        mask = refine_mask(person, coverage, neck, fh, image=img if wants_colour_cut(cfg.mask_colour_cut, img) else None)
+        cut = wants_colour_cut(cfg.mask_colour_cut, img)
+        mask_kinds["colour_cut"] += int(cut)
+        mask = refine_mask(person, coverage, neck, fh, image=img if cut else None)
         matted = img * mask[..., None] + (1.0 - mask[..., None])
         write_image(root / "images" / f"{f.name}.png", matted)
         write_image(root / "fg_masks" / f"{f.name}.png", mask)
