@@ -7,6 +7,7 @@ import numpy as np
 from sage_core.track.masks import (
     background_key,
     colour_cut,
+    person_colour_cut,
     person_probability,
     refine_mask,
     wants_colour_cut,
@@ -85,3 +86,20 @@ def test_background_key_and_when_the_colour_cut_runs():
     assert how == "keyed" and prob[110:].max() < 0.5 and prob[s["face"]].min() > 0.9
     prob, how = person_probability(s["image"], seg)
     assert how == "segmented" and np.array_equal(prob, seg)
+
+
+def test_person_colour_cut_before_the_fit_keeps_the_face_and_hair():
+    """Before the fit no mesh exists: the landmarks' hull is the face the cut keeps."""
+    s = _scene()
+    person = (s["face"] | s["hair"] | s["patch"]).astype(np.float32)
+    ys, xs = np.nonzero(s["face"])
+    inner = (np.abs(xs - 50) < 15) & (np.abs(ys - 65) < 20)  # landmarks lie inside the face's outline
+    landmarks = np.stack([xs[inner], ys[inner]], 1).astype(np.float64)[::7]
+    out = person_colour_cut(s["image"], person, landmarks, face_height=60.0)
+    assert out.dtype == np.float32 and out.shape == person.shape
+    assert out[s["patch"]].mean() < 0.1
+    assert out[s["face"]].mean() > 0.99 and out[s["hair"]].mean() > 0.97
+    assert (out <= person).all()
+    # landmarks off the person (a bad detection): nothing to anchor on, the map is returned as it is
+    off = np.array([[2.0, 2.0], [6.0, 2.0], [4.0, 6.0]])
+    assert np.array_equal(person_colour_cut(s["image"], person, off, face_height=60.0), person)

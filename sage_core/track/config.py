@@ -127,9 +127,10 @@ class TrackConfig:
                                            "common depth up to this (1 %) cost quadratically, larger ones (the camera or "
                                            "the person really moved) only linearly.", gt=0)
     w_focal: float = _opt(0.001, "Weight of the prior pulling the log focal length to its initial value.", ge=0)
-    mask_colour_cut: str = _opt("auto", "Check the written masks' person pixels off the fitted mesh by colour (a graph cut on colour "
-                                        "models: background the segmentation took for the person goes back): on, off, or auto "
-                                        "(on when the image's background is not one uniform colour).", choices=("auto", "on", "off"))
+    mask_colour_cut: str = _opt("auto", "Check the person pixels by colour (a graph cut on colour models: background the "
+                                        "segmentation took for the person goes back), before the fit (the landmarks' hull kept) and "
+                                        "on the written mask (the fitted mesh kept): on, off, or auto (on when the image's "
+                                        "background is not one uniform colour).", choices=("auto", "on", "off"))
     scalp_offsets: bool = _opt(True, "Fit static offsets along the normals on the model's scalp region (hair volume; needs "
                                      "FLAME_masks with a 'scalp' region).")
     w_offset_smooth: float = _opt(20.0, "Weight of the smoothness of the scalp offsets (squared differences along mesh edges, centimetres).", ge=0)

@@ -6,7 +6,8 @@
   shoulders below a blanked neck).
 - :func:`refine_mask`: the final mask of a tracked image: every pixel the fitted mesh covers, plus the
   person pixels near the mesh (hair around the head) whose colour goes with the person rather than
-  the background around it (:func:`colour_cut`, on images without a uniform background), times the
+  the background around it (:func:`colour_cut`, on images without a uniform background; the fit's
+  person map was cut the same way around the detected face, :func:`person_colour_cut`), times the
   neck-line mask from the fitted mesh (VHAP's rule: keep what lies above the line through the neck's
   sides, blurred).
 """
@@ -107,6 +108,25 @@ def colour_cut(image: np.ndarray, mask: np.ndarray, sure: np.ndarray, band: int,
     except cv2.error:
         return fg
     return fg & ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD))
+
+
+def person_colour_cut(image: np.ndarray, person: np.ndarray, landmarks: np.ndarray, face_height: float) -> np.ndarray:
+    """The person probability (H, W) with the pixels :func:`colour_cut` hands back to the background set
+    to 0, the detected face (the landmarks' hull) fixed as the person: the silhouette the fit pulls the
+    mesh to then follows the head rather than a patch of background the segmentation kept.
+
+    image: (H, W, 3) in [0, 1]; landmarks: (K, 2) pixel positions in the same image; face_height: pixels.
+    """
+    import cv2
+
+    hull = cv2.convexHull(np.round(landmarks).astype(np.int32))
+    face = np.zeros(person.shape, np.uint8)
+    cv2.fillConvexPoly(face, hull, 1)
+    sure = (face > 0) & (person > 0.5)
+    if not sure.any():
+        return person
+    keep = colour_cut(image, person, sure, band=max(3, round(0.1 * face_height)))
+    return np.where(keep | sure, person, 0.0).astype(np.float32)
 
 
 def wants_colour_cut(mode: str, image: np.ndarray) -> bool:

@@ -279,7 +279,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     from .capture_writer import OutFrame, write_flame_params, write_transforms
     from .embedding import calibrate_embedding, save_embedding
     from .fitting import FitCamera, FitImage, FitProblem, Fitter
-    from .masks import neck_line_mask, person_probability, refine_mask, wants_colour_cut
+    from .masks import neck_line_mask, person_colour_cut, person_probability, refine_mask, wants_colour_cut
     from .mesh_utils import boundary_loops, hair_region, neck_line_vertices, ring
     from .observe import MONOCULAR_W2C, crop_window, focal_for
     from .report import contact_sheet, overlay_tile
@@ -326,15 +326,17 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
             of = OutFrame(ti, out_cams[vi].index, out_cams[vi].name, out_cams[vi], t, original[t])
             np.save(raw / f"{of.name}.npy", (np.clip(out_img, 0, 1) * 65535).astype(np.uint16))
             person, how = person_probability(out_img, seg(out_img))
+            face = obs.faces.get((vi, t))
+            lm = None if face is None else win.points(face.landmarks)
+            fh = float(face.face_height * win.out_h / win.h) if face is not None else 1.0
+            if lm is not None and how == "segmented" and wants_colour_cut(cfg.mask_colour_cut, out_img):
+                person = person_colour_cut(out_img, person, lm, fh)
             np.save(raw / f"{of.name}.person.npy", np.round(np.clip(person, 0, 1) * 255).astype(np.uint8))  # reused by the masks
             mask_kinds[how] += 1
             h = min(cfg.fit_height, out_img.shape[0])
             w = max(1, int(round(out_img.shape[1] * h / out_img.shape[0])))
             small = cv2.resize(out_img, (w, h), interpolation=cv2.INTER_AREA)
             small_p = cv2.resize(person, (w, h), interpolation=cv2.INTER_AREA)
-            face = obs.faces.get((vi, t))
-            lm = None if face is None else win.points(face.landmarks)
-            fh = float(face.face_height * win.out_h / win.h) if face is not None else 1.0
             images.append(FitImage(ti, vi, lm, fh, small.astype(np.float32), small_p.astype(np.float32)))
             frames.append(of)
             done += 1
