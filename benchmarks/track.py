@@ -180,18 +180,11 @@ BACKGROUNDS = ("coffee", "rocket", "chelsea")
 def _mask_scores(tracked: Path, truth_mask: np.ndarray) -> dict:
     """The written mask of a one-image capture against the truth's (in the input image's pixels):
     intersection over union, and the truth's area added / missed, as shares of the truth's area."""
-    import cv2
-
     from sage_core.data.imageio import read_image
+    from sage_core.track.observe import Window
 
-    report = json.loads((tracked / "track" / "report.json").read_text())
-    cam = report["camera"]["cameras"][0]
-    x0, y0, w, h = cam["crop"]
-    ow, oh = cam["output_size"]
-    pad = max(w, h)
-    big = np.zeros((truth_mask.shape[0] + 2 * pad, truth_mask.shape[1] + 2 * pad), np.float32)
-    big[pad:pad + truth_mask.shape[0], pad:pad + truth_mask.shape[1]] = truth_mask
-    truth = cv2.resize(big[pad + y0:pad + y0 + h, pad + x0:pad + x0 + w], (ow, oh), interpolation=cv2.INTER_AREA) > 0.5
+    cam = json.loads((tracked / "track" / "report.json").read_text())["camera"]["cameras"][0]
+    truth = Window(*cam["crop"], *cam["output_size"]).apply(truth_mask) > 0.5  # the crop sage track wrote
     mine = read_image(tracked / "fg_masks" / "00000_00.png")[..., 0] > 0.5
     area = max(int(truth.sum()), 1)
     return {"iou": round(float((mine & truth).sum() / max((mine | truth).sum(), 1)), 4),
@@ -433,18 +426,19 @@ def markdown(doc: dict) -> str:
             lines[-1] += (" (reused): the avatar of an earlier run of the same command, whose workspace the benchmark "
                           "found complete; its time is the sum of its stages' recorded times.")
     if doc.get("backgrounds"):
-        b0 = doc["backgrounds"]
         lines += ["", "The one-shot photo's head over photographs from scikit-image (`--only-backgrounds`), tracked with the "
                       "masks' colour cut off and on (`--set mask_colour_cut=off|on`; `auto` turns it on for such "
                       "backgrounds): the written mask against the truth's (intersection over union; the truth's area "
                       "added and missed) and the vertex error after alignment.", "",
-                  "| background | mask IoU, cut off / on | added, off / on | missed, off / on | aligned mm, off / on | landmark px |",
-                  "|---|---|---|---|---|---:|"]
-        for r in b0:
+                  "| background | mask IoU, cut off / on | added, off / on | missed, off / on | aligned mm, off / on "
+                  "| world mm, off / on | landmark px, off / on |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in doc["backgrounds"]:
             f, n = r["cut_off"], r["cut_on"]
             lines.append(f"| `skimage.data.{r['background']}()` | {f['mask']['iou']:.3f} / {n['mask']['iou']:.3f} | "
                          f"{f['mask']['added']:.1%} / {n['mask']['added']:.1%} | {f['mask']['missed']:.1%} / {n['mask']['missed']:.1%} | "
-                         f"{f['aligned_mm']:.2f} / {n['aligned_mm']:.2f} | {n['reprojection_px']:.2f} |")
+                         f"{f['aligned_mm']:.2f} / {n['aligned_mm']:.2f} | {f['world_mm']:.1f} / {n['world_mm']:.1f} | "
+                         f"{f['reprojection_px']:.2f} / {n['reprojection_px']:.2f} |")
     return "\n".join(lines) + "\n"
 
 

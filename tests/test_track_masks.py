@@ -73,19 +73,19 @@ def test_refine_mask_with_colour_only_removes_off_the_mesh():
 def test_background_key_and_when_the_colour_cut_runs():
     s = _scene()
     assert background_key(s["image"]) is None  # two colours: no key
-    assert wants_colour_cut("auto", s["image"]) and wants_colour_cut("on", s["image"]) and not wants_colour_cut("off", s["image"])
     white = np.ones((H, W, 3), np.float32)
     white[s["face"]] = np.array([0.8, 0.6, 0.5])
     key = background_key(white)
     assert key is not None and key[s["face"]].min() > 0.9 and key[~s["face"]].max() < 0.5
-    assert not wants_colour_cut("auto", white) and wants_colour_cut("on", white)
     seg = np.zeros((H, W), np.float32)
     seg[s["face"]] = 1.0
     seg[100:, :] = 1.0  # the segmentation invents shoulders below the head; the key far from it drops them
     prob, how = person_probability(white, seg)
     assert how == "keyed" and prob[110:].max() < 0.5 and prob[s["face"]].min() > 0.9
+    assert not wants_colour_cut("auto", how) and wants_colour_cut("on", how) and not wants_colour_cut("off", how)
     prob, how = person_probability(s["image"], seg)
     assert how == "segmented" and np.array_equal(prob, seg)
+    assert wants_colour_cut("auto", how) and wants_colour_cut("on", how) and not wants_colour_cut("off", how)
 
 
 def test_person_colour_cut_before_the_fit_keeps_the_face_and_hair():

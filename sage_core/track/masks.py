@@ -129,10 +129,11 @@ def person_colour_cut(image: np.ndarray, person: np.ndarray, landmarks: np.ndarr
     return np.where(keep | sure, person, 0.0).astype(np.float32)
 
 
-def wants_colour_cut(mode: str, image: np.ndarray) -> bool:
-    """Whether :func:`refine_mask` checks an image's person pixels by colour: ``mode`` on / off, or
-    auto: when the background is not one uniform colour (a keyed matte has no such patches)."""
-    return mode == "on" or (mode == "auto" and background_key(image) is None)
+def wants_colour_cut(mode: str, how: str) -> bool:
+    """Whether an image's person pixels are checked by colour (:func:`person_colour_cut`,
+    :func:`refine_mask`): ``mode`` on / off, or auto: when :func:`person_probability` found no uniform
+    background to key on (``how`` "segmented"; a keyed matte has no such patches)."""
+    return mode == "on" or (mode == "auto" and how == "segmented")
 
 
 def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray | None, face_height: float,

@@ -313,6 +313,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     raw = root / ".raw"  # cropped images until the fitted meshes refine their masks
     raw.mkdir()
     mask_kinds: Counter[str] = Counter()
+    colour_cut_frames: set[str] = set()  # images whose person pixels are checked by colour, before and after the fit
     total = sum(1 for vi in range(len(source.views)) for t in obs.kept if t in source.views[vi].files or source.kind == "video")
     done = 0
     t0 = time.time()
@@ -329,9 +330,12 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
             face = obs.faces.get((vi, t))
             lm = None if face is None else win.points(face.landmarks)
             fh = float(face.face_height * win.out_h / win.h) if face is not None else 1.0
-            if lm is not None and how == "segmented" and wants_colour_cut(cfg.mask_colour_cut, out_img):
+            cut = wants_colour_cut(cfg.mask_colour_cut, how)
+            if cut and lm is not None:
                 person = person_colour_cut(out_img, person, lm, fh)
             np.save(raw / f"{of.name}.person.npy", np.round(np.clip(person, 0, 1) * 255).astype(np.uint8))  # reused by the masks
+            if cut:
+                colour_cut_frames.add(of.name)
             mask_kinds[how] += 1
             h = min(cfg.fit_height, out_img.shape[0])
             w = max(1, int(round(out_img.shape[1] * h / out_img.shape[0])))
@@ -428,7 +432,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         person = np.load(raw / f"{f.name}.person.npy").astype(np.float32) / 255.0
         neck = neck_line_mask(v.double().numpy(), neck_ids, f.camera) if cfg.neck_line else None
         fh = im.face_height if im.landmarks is not None else float(np.sqrt(max(coverage.sum(), 1.0)))
-        cut = wants_colour_cut(cfg.mask_colour_cut, img)
+        cut = f.name in colour_cut_frames
         mask_kinds["colour_cut"] += int(cut)
         mask = refine_mask(person, coverage, neck, fh, image=img if cut else None)
         matted = img * mask[..., None] + (1.0 - mask[..., None])
