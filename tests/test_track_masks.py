@@ -103,3 +103,30 @@ def test_person_colour_cut_before_the_fit_keeps_the_face_and_hair():
     # landmarks off the person (a bad detection): nothing to anchor on, the map is returned as it is
     off = np.array([[2.0, 2.0], [6.0, 2.0], [4.0, 6.0]])
     assert np.array_equal(person_colour_cut(s["image"], person, off, face_height=60.0), person)
+
+
+def test_refine_mask_checks_mesh_pixels_the_person_map_left_out():
+    """A fitted mesh wider than the head (a jaw beside short hair) covers background: where the person
+    map has no person the colour decides; the mesh's pixels inside the person map stay."""
+    s = _scene()
+    person = (s["face"] | s["hair"]).astype(np.float32)
+    wide = s["face"] | s["patch"]  # the mesh reaches over the background patch
+    coverage = wide.astype(np.float32)
+    cut = refine_mask(person, coverage, None, face_height=100.0, image=s["image"])
+    assert cut[s["patch"]].mean() < 0.1
+    assert (cut[s["face"]] == 1.0).all() and cut[s["hair"]].mean() > 0.97
+    # a keyed matte (no colour check) keeps every pixel the mesh covers, as before
+    plain = refine_mask(person, coverage, None, face_height=100.0)
+    assert plain[s["patch"]].min() == 1.0
+    # mesh pixels the colour cut keeps stay even outside the person map (hair a segmentation missed)
+    missed = refine_mask(s["face"].astype(np.float32), (s["face"] | s["hair"]).astype(np.float32), None,
+                         face_height=100.0, image=s["image"])
+    assert missed[s["hair"]].mean() > 0.9
+    # deep inside the mesh a hole of the person map stays filled whatever its colour
+    y, x = np.mgrid[0:H, 0:W]
+    hole = (np.abs(x - 50) < 4) & (np.abs(y - 68) < 4)
+    img = s["image"].copy()
+    img[hole] = img[5, 5]
+    holed = refine_mask((s["face"] & ~hole).astype(np.float32), s["face"].astype(np.float32), None,
+                        face_height=100.0, image=img)
+    assert holed[hole].min() == 1.0

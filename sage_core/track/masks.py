@@ -5,9 +5,10 @@
   on that colour replaces it inside a dilation of the segmentation (which alone tends to invent
   shoulders below a blanked neck).
 - :func:`refine_mask`: the final mask of a tracked image: every pixel the fitted mesh covers, plus the
-  person pixels near the mesh (hair around the head) whose colour goes with the person rather than
-  the background around it (:func:`colour_cut`, on images without a uniform background; the fit's
-  person map was cut the same way around the detected face, :func:`person_colour_cut`), times the
+  person pixels near the mesh (hair around the head); on images without a uniform background the
+  pixels whose colour goes with the background around them go back to it (:func:`colour_cut`; the
+  fit's person map was cut the same way around the detected face, :func:`person_colour_cut`), mesh
+  pixels outside the person map included (a fitted jaw wider than the head), times the
   neck-line mask from the fitted mesh (VHAP's rule: keep what lies above the line through the neck's
   sides, blurred).
 """
@@ -136,6 +137,11 @@ def wants_colour_cut(mode: str, how: str) -> bool:
     return mode == "on" or (mode == "auto" and how == "segmented")
 
 
+MESH_EDGE_CHECK = 0.15
+"""Depth (face heights) from the fitted mesh's outline within which its pixels that the person map
+leaves out are checked by colour (:func:`refine_mask`); deeper ones are a hole in the segmentation."""
+
+
 def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray | None, face_height: float,
                 hair_reach: float = 0.35, image: np.ndarray | None = None) -> np.ndarray:
     """The written foreground mask (H, W) float32 in [0, 1].
@@ -143,8 +149,9 @@ def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray 
     person: person probability; mesh_coverage: (H, W) in [0, 1], the fitted mesh's coverage; neck: the
     neck-line mask or None; face_height: pixels; hair_reach: person pixels further than this many
     face heights from the mesh are dropped (other people, furniture, long hair far off the head);
-    image: (H, W, 3) in [0, 1], when given the person pixels off the mesh are checked by colour
-    (:func:`colour_cut`).
+    image: (H, W, 3) in [0, 1], when given the pixels are checked by colour (:func:`colour_cut`): the
+    person pixels off the mesh, and the mesh's pixels near its outline (:data:`MESH_EDGE_CHECK`) that
+    the person map leaves out (more than one pixel from it); the mesh's other pixels stay.
     """
     import cv2
     from scipy.ndimage import distance_transform_edt
@@ -157,9 +164,14 @@ def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray 
         near = np.ones_like(covered)
     m = np.maximum(person * near, mesh_coverage)
     if image is not None and covered.any():
-        sure = cv2.erode(covered.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        # the mesh's pixels are taken on trust where the person map also has the person, or deep inside
+        # the mesh (a hole in the segmentation); near the mesh's outline where it does not (a fitted jaw
+        # or ear wider than the head beside a short haircut) the colour decides
+        seen = cv2.dilate((person > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        trusted = seen | (distance_transform_edt(covered) > MESH_EDGE_CHECK * face_height)
+        sure = cv2.erode((covered & trusted).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         keep = colour_cut(image, m, sure, band=max(3, round(0.1 * face_height)))
-        m = np.where(keep | sure, m, np.minimum(m, mesh_coverage))
+        m = np.where(keep | sure, m, np.minimum(m, mesh_coverage * trusted))
     # close pinholes the segmentation leaves inside the head
     m = np.maximum(m, cv2.morphologyEx((m > 0.5).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(np.float32) * (m > 0.2))
     if neck is not None:
