@@ -7,8 +7,9 @@
 - :func:`refine_mask`: the final mask of a tracked image: every pixel the fitted mesh covers, plus the
   person pixels near the mesh (hair around the head); on images without a uniform background the
   pixels whose colour goes with the background around them go back to it (:func:`colour_cut`; the
-  fit's person map was cut the same way around the detected face, :func:`person_colour_cut`), mesh
-  pixels outside the person map included (a fitted jaw wider than the head), times the
+  fit's person map was cut the same way around the detected face, :func:`person_colour_cut`), the
+  mesh's pixels near its outline that the person map left out included (a fitted jaw wider than the
+  head), times the
   neck-line mask from the fitted mesh (VHAP's rule: keep what lies above the line through the neck's
   sides, blurred).
 """
