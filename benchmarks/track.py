@@ -231,7 +231,6 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
     """A head-turn MP4 of a synthetic head (exact model) and its truth: model file, per-frame FLAME
     parameters and the camera (VHAP monocular convention). ``sway_mm``: the head also drifts, up to
     this far towards and away from the camera and half as far sideways (slower than the turns)."""
-    import numpy as np
     import torch
 
     from sage_core.data.synthetic import (
@@ -279,7 +278,6 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
                sway_mm: float = 0.0, sets: list[str] | None = None) -> dict:
     """Render (or reuse) the head-turn video, track it (``sets``: extra ``--set KEY=VALUE`` of the tracking),
     and compare the meshes with the rendered truth."""
-    import numpy as np
     import torch
 
     from sage_core.data.capture import read_capture

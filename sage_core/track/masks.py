@@ -9,9 +9,8 @@
   pixels whose colour goes with the background around them go back to it (:func:`colour_cut`; the
   fit's person map was cut the same way around the detected face, :func:`person_colour_cut`), the
   mesh's pixels near its outline that the person map left out included (a fitted jaw wider than the
-  head), times the
-  neck-line mask from the fitted mesh (VHAP's rule: keep what lies above the line through the neck's
-  sides, blurred).
+  head), times the neck-line mask from the fitted mesh (VHAP's rule: keep what lies above the line
+  through the neck's sides, blurred).
 """
 
 from __future__ import annotations
@@ -73,6 +72,15 @@ COLOUR_CUT_SIZE = 320
 scaled back (the mask keeps its own edges)."""
 
 
+RING = 0.1
+"""Width of the background ring the colour cut models, in face heights (at least 3 pixels)."""
+
+
+def ring_band(face_height: float) -> int:
+    """The colour cut's background ring in pixels for a face ``face_height`` pixels high (:data:`RING`)."""
+    return max(3, round(RING * face_height))
+
+
 def colour_cut(image: np.ndarray, mask: np.ndarray, sure: np.ndarray, band: int, iterations: int = 3) -> np.ndarray:
     """(H, W) bool: the pixels of ``mask > 0.5`` whose colour goes with the foreground.
 
@@ -127,7 +135,7 @@ def person_colour_cut(image: np.ndarray, person: np.ndarray, landmarks: np.ndarr
     sure = (face > 0) & (person > 0.5)
     if not sure.any():
         return person
-    keep = colour_cut(image, person, sure, band=max(3, round(0.1 * face_height)))
+    keep = colour_cut(image, person, sure, band=ring_band(face_height))
     return np.where(keep | sure, person, 0.0).astype(np.float32)
 
 
@@ -171,7 +179,7 @@ def refine_mask(person: np.ndarray, mesh_coverage: np.ndarray, neck: np.ndarray 
         seen = cv2.dilate((person > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         trusted = seen | (distance_transform_edt(covered) > MESH_EDGE_CHECK * face_height)
         sure = cv2.erode((covered & trusted).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        keep = colour_cut(image, m, sure, band=max(3, round(0.1 * face_height)))
+        keep = colour_cut(image, m, sure, band=ring_band(face_height))
         m = np.where(keep | sure, m, np.minimum(m, mesh_coverage * trusted))
     # close pinholes the segmentation leaves inside the head
     m = np.maximum(m, cv2.morphologyEx((m > 0.5).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(np.float32) * (m > 0.2))
