@@ -37,9 +37,9 @@ probability, so the appearance term also holds the avatar to its own phase-1 ren
 
 Mouth-interior prior (``mouth.enabled``, SAGE's composited mouth prior): the surfels bound to
 mouth-interior and teeth triangles that no training view sees at rest (:meth:`Phase2Trainer.seen_faces`)
-get prior colours: with ``mouth.prior`` learned (the default) the pretrained prior's albedo at their
-canonical centre (:mod:`sage_core.avatar.mouth_prior`, :func:`learned_mouth_colors`); with table the
-fixed ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
+get prior colours: with ``mouth.prior`` learned the pretrained prior's albedo at their canonical
+centre (:mod:`sage_core.avatar.mouth_prior`, :func:`learned_mouth_colors`); with table (the default)
+the fixed ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
 jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`). They are stored in the avatar
 (:attr:`SurfelSet.color_prior`) and set before the first step; pixels on those triangles are left out
 of the appearance term.
