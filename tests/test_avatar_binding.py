@@ -437,3 +437,34 @@ def test_pose_and_rebind_on_cuda():
     n_cpu = S.rebind(V, F, method="torch")
     n_gpu = Sc.rebind(Vc, Fc, method="torch")
     assert n_cpu == n_gpu and torch.equal(Sc.binding.cpu(), S.binding)
+
+
+def test_opacity_offset_adds_to_the_network_logit_with_its_gradient():
+    """offset_opacities(a) = sigmoid(logit(a) + o), values and gradients (float64 against the logit
+    form), exact at a = 0 and a = 1; only attribute-network sets have one; state dicts carry it."""
+    n = 6
+    s = SurfelSet(torch.arange(n), torch.zeros(n, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.zeros(n, 2),
+                  attributes="mlp").double()
+    a = torch.tensor([0.0, 1e-3, 0.3, 0.5, 0.9, 1.0], dtype=torch.float64)
+    assert torch.equal(s.offset_opacities(a), a)  # none yet
+    s.enable_opacity_offset()
+    with torch.no_grad():
+        s.opacity_offset.copy_(torch.tensor([2.0, -1.0, 0.7, -3.0, 1.5, -2.0], dtype=torch.float64))
+    out = s.offset_opacities(a)
+    inner = slice(1, 5)
+    ref = torch.sigmoid(torch.logit(a[inner]) + s.opacity_offset.detach()[inner])
+    assert torch.allclose(out[inner], ref, atol=1e-12)
+    assert float(out[0]) == 0.0 and float(out[-1]) == 1.0
+    ai = a[inner].clone().requires_grad_(True)
+    (g_off, g_a) = torch.autograd.grad((s.offset_opacities(torch.cat([a[:1], ai, a[5:]]))[inner] * torch.arange(1.0, 5.0, dtype=torch.float64)).sum(),
+                                       [s.opacity_offset, ai])
+    o = s.opacity_offset.detach()[inner].clone().requires_grad_(True)
+    ai2 = a[inner].clone().requires_grad_(True)
+    (r_off, r_a) = torch.autograd.grad((torch.sigmoid(torch.logit(ai2) + o) * torch.arange(1.0, 5.0, dtype=torch.float64)).sum(), [o, ai2])
+    assert torch.allclose(g_off[inner], r_off, atol=1e-12) and torch.allclose(g_a, r_a, atol=1e-10)
+    back = SurfelSet.from_state_dict(s.state_dict())
+    assert torch.equal(back.opacity_offset, s.opacity_offset)
+    free = SurfelSet(torch.arange(n), torch.zeros(n, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.zeros(n, 2))
+    with pytest.raises(AttributeError):
+        free.enable_opacity_offset()
+    assert "opacity_offset" not in free.state_dict()

@@ -74,11 +74,13 @@ def test_steps_lower_the_loss(init_ws, mode, one_thread):
         assert np.isfinite(hist[-1][key]), key
 
 
-def test_resume_repeats_the_loss_curve(init_ws, one_thread):
+@pytest.mark.parametrize("offset_lr", [0.0, 0.05])
+def test_resume_repeats_the_loss_curve(init_ws, offset_lr, one_thread):
     n = 6
-    # rebinding and relocation both every 2 steps: their state (bindings, moved rows, optimiser rows) resumes too
+    # rebinding and relocation both every 2 steps: their state (bindings, moved rows, optimiser rows) resumes too,
+    # and so does the opacity offset when one is trained
     over = {"iterations": n, "rebind_every": 2, "relocate.enabled": True, "relocate.every": 2, "relocate.until": 1.0,
-            "relocate.floor": 1e9, "relocate.views": 2}
+            "relocate.floor": 1e9, "relocate.views": 2, "lr.opacity_offset": offset_lr}
     ref = _trainer(init_ws, "mlp", **over)
     straight = [ref.step() for _ in range(n)]
 
@@ -96,6 +98,11 @@ def test_resume_repeats_the_loss_curve(init_ws, one_thread):
             assert b[k] == pytest.approx(a[k], rel=1e-6, abs=1e-7), k
     assert torch.equal(ref.avatar.surfels.binding, second.avatar.surfels.binding)
     assert any(h.get("relocated", 0) > 0 for h in straight)
+    if offset_lr > 0:
+        assert torch.equal(ref.avatar.surfels.opacity_offset, second.avatar.surfels.opacity_offset)
+        assert float(ref.avatar.surfels.opacity_offset.detach().abs().max()) > 0
+    else:
+        assert ref.avatar.surfels.opacity_offset is None
 
 
 def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
@@ -282,3 +289,46 @@ def test_relocation_moves_idle_surfels_to_where_the_error_is(init_ws, one_thread
     assert float(dist.median()) < 0.01 and float(dist.max()) < 0.03
     out = tr.step()
     assert all(np.isfinite(v) for v in out.values())
+
+
+def test_opacity_offset_trains_in_phase1_only_and_is_saved(init_ws, tmp_path, one_thread):
+    """lr.opacity_offset > 0 gives the mlp surfels a per-surfel logit on the network's opacity: phase 1
+    trains it, relocation restarts the moved rows, the avatar file keeps it, phase 2's groups leave it
+    out; with the default rate 0 there is none."""
+    from sage_core.avatar.model import Avatar
+    from sage_core.train import relocate
+    from sage_core.train._groups import surfel_param_groups
+
+    assert _trainer(init_ws, "mlp", iterations=2).avatar.surfels.opacity_offset is None
+    tr = _trainer(init_ws, "mlp", iterations=4, **{"lr.opacity_offset": 0.05})
+    s = tr.avatar.surfels
+    assert [g["name"] for g in tr.optimizer.param_groups].count("opacity_offset") == 1
+    base = tr.avatar.posed(tr.avatar.frame_inputs(tr.frames[0].timestep), None).opacities.detach()
+    for _ in range(3):
+        tr.step()
+    off = s.opacity_offset.detach()
+    assert float(off.abs().max()) > 0.05  # Adam moves every touched logit by about the rate per step
+    ids = torch.tensor([1, 7, 11])
+    pts = tr.avatar.canonical_vertices[tr.avatar.faces[torch.tensor([10, 200, 700])]].mean(1)
+    relocate.move(tr, ids, pts, tr.avatar.R_c[torch.tensor([10, 200, 700])][..., 2])
+    assert torch.equal(s.opacity_offset.data[ids], torch.zeros(3))
+    assert all(float(v[ids].abs().sum()) == 0 for v in tr.optimizer.state[s.opacity_offset].values()
+               if isinstance(v, torch.Tensor) and v.dim() > 0)
+    # the offset acts on the posed opacities: without it they are the network's again
+    inputs = tr.avatar.frame_inputs(tr.frames[0].timestep)
+    with torch.no_grad():
+        with_off = tr.avatar.posed(inputs, None).opacities
+        saved = s.opacity_offset.data.clone()
+        s.opacity_offset.data.zero_()
+        without = tr.avatar.posed(inputs, None).opacities
+        s.opacity_offset.data.copy_(saved)
+    assert not torch.allclose(with_off, without)
+    assert without.shape == base.shape
+    path = tr.avatar.save(tmp_path / "avatar.pt")
+    back = Avatar.load(path)
+    assert torch.equal(back.surfels.opacity_offset.detach(), s.opacity_offset.detach())
+    with torch.no_grad():
+        assert torch.allclose(back.posed(inputs, None).opacities, with_off, atol=1e-6)
+    groups = surfel_param_groups(back, lr_position=0.0, lr_networks=0.0, lr_rotation=0.0, lr_scale=0.0, lr_color=0.0,
+                                 lr_opacity=0.0, lr_shape=1e-5)
+    assert "opacity_offset" not in [g["name"] for g in groups]

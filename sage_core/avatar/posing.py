@@ -302,6 +302,7 @@ def posed(
         if view_c is None:
             view_c = -cs.rotation[..., 2].detach()
         colors, opac = avatar.appearance(cs.means, view_c, n, feat, grid_features=cs.app_encoding)
+        opac = avatar.surfels.offset_opacities(opac)
     colors = avatar.surfels.blend_color_prior(colors)
     opac, scales = avatar.surfels.apply_unseen_floor(opac, scales)
     if avatar.surfels.wrinkle is not None:

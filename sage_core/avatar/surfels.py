@@ -19,7 +19,9 @@ State (per-surfel tensors have N index-aligned rows):
   all relative to the bound triangle's frame (docs/formats.md §6, surfel convention);
 * with ``attributes="free"``: ``sh_dc`` (N, 1, 3), ``sh_rest`` (N, (d+1)²−1, 3) (absent at degree
   0) and ``opacity`` (N,) logit. With ``attributes="mlp"`` colour and opacity come from networks
-  elsewhere and the set holds none.
+  elsewhere and the set holds none of them, only, once :meth:`SurfelSet.enable_opacity_offset` was
+  called (phase 1 with ``lr.opacity_offset`` > 0), ``opacity_offset`` (N,): a logit added to the
+  appearance network's opacity of each surfel (:meth:`SurfelSet.offset_opacities`).
 
 Binding and labels are buffers, so rebinding survives ``state_dict`` / ``load_state_dict``; use
 :meth:`SurfelSet.from_state_dict` when the number of surfels differs from the receiving set's.
@@ -38,7 +40,7 @@ from .init import REGION_HAIR, SurfelInit
 
 SH_C0 = 0.28209479177387814
 ATTRIBUTE_MODES = ("free", "mlp")
-_PARAMS = ("mu_loc", "q_loc", "s_loc", "sh_dc", "sh_rest", "opacity")
+_PARAMS = ("mu_loc", "q_loc", "s_loc", "sh_dc", "sh_rest", "opacity", "opacity_offset")
 _BUFFERS = ("binding", "region_id", "wrinkle", "color_prior", "unseen_floor")
 
 
@@ -62,6 +64,7 @@ class SurfelSet(nn.Module):
 
     binding: torch.Tensor
     region_id: torch.Tensor
+    opacity_offset: nn.Parameter | None
     face_region: torch.Tensor
     wrinkle: torch.Tensor | None
     color_prior: torch.Tensor | None
@@ -105,6 +108,7 @@ class SurfelSet(nn.Module):
         self.register_buffer("wrinkle", None)
         self.register_buffer("color_prior", None)
         self.register_buffer("unseen_floor", None)
+        self.register_parameter("opacity_offset", None)
         self.mu_loc = nn.Parameter(mu_loc.detach().clone())
         self.q_loc = nn.Parameter(q_loc.detach().to(device=device, dtype=dtype).clone())
         self.s_loc = nn.Parameter(s_loc.detach().to(device=device, dtype=dtype).clone())
@@ -138,6 +142,8 @@ class SurfelSet(nn.Module):
             state["binding"], state["mu_loc"], state["q_loc"], state["s_loc"], state["region_id"],
             state.get("face_region"), attributes="free" if free else "mlp", sh_degree=degree,
         )
+        if "opacity_offset" in state:
+            obj.enable_opacity_offset()
         if state.get("wrinkle") is not None:
             obj.set_wrinkle(state["wrinkle"])
         if state.get("color_prior") is not None:
@@ -183,6 +189,24 @@ class SurfelSet(nn.Module):
             return opacities, scales
         f = self.unseen_floor
         return torch.maximum(opacities, f[:, 0].to(opacities)), scales * f[:, 1:2].to(scales)
+
+    def enable_opacity_offset(self) -> None:
+        """Give an ``attributes="mlp"`` set its per-surfel opacity offset (N,), zero (no change) at
+        first; a no-op when it has one. The offset is a parameter: train it by adding it to an
+        optimizer (phase 1's ``opacity_offset`` group)."""
+        if self.attributes != "mlp":
+            raise AttributeError("only a surfel set with attribute networks (attributes='mlp') has an opacity offset")
+        if self.opacity_offset is None:
+            self.opacity_offset = nn.Parameter(torch.zeros(len(self), device=self.mu_loc.device, dtype=self.mu_loc.dtype))
+
+    def offset_opacities(self, opacities: torch.Tensor) -> torch.Tensor:
+        """opacities (N,) in [0, 1] (the appearance network's) with the opacity offset o (N,) added to
+        their logits: sigmoid(logit(a) + o) = a·e^o / (1 − a + a·e^o), which keeps a = 0 and a = 1
+        exact (the offset is clamped to ±30 so that e^o stays finite); unchanged without an offset."""
+        if self.opacity_offset is None:
+            return opacities
+        e = torch.exp(self.opacity_offset.to(opacities).clamp(-30.0, 30.0))
+        return opacities * e / (1.0 - opacities + opacities * e)
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:

@@ -318,6 +318,7 @@ _EXACT: dict[str, str] = {
     "state/surfels.region_id": "region label of each surfel (N,) (0 skin, see sage_core.flame.regions)",
     "state/surfels.face_region": "region label of each triangle (F,)",
     "state/surfels.opacity": "free mode: opacity logit (N,)",
+    "state/surfels.opacity_offset": "mlp mode, when trained: logit added to the appearance network's opacity (N,)",
     "state/surfels.sh_dc": "free mode: SH degree-0 colour coefficient (N,1,3)",
     "state/surfels.sh_rest": "free mode: higher SH colour coefficients (N,(d+1)^2-1,3)",
     "state/surfels.wrinkle": "wrinkle shading per surfel (N,2): amplitude and full compression",

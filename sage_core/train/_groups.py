@@ -20,6 +20,7 @@ def surfel_param_groups(
     lr_opacity: float,
     lr_shape: float | None = None,
     lr_app_grid: float | None = None,
+    lr_opacity_offset: float = 0.0,
 ) -> list[dict[str, Any]]:
     """Named Adam groups of the surfels and their attribute heads.
 
@@ -27,8 +28,9 @@ def surfel_param_groups(
     (``mlp``) the shape network; with free attributes the per-surfel rotation, scale, SH colour
     (the higher bands at 1/20 of the DC rate) and opacity. ``lr_shape`` (default ``lr_networks``)
     is the shape network's rate; ``lr_app_grid`` (default ``lr_networks``) the rate of the appearance
-    network's own hash table when it has one. Groups whose rate is 0 are left out (those parameters
-    stay fixed).
+    network's own hash table when it has one; ``lr_opacity_offset`` the rate of the per-surfel opacity
+    offset of attribute-network surfels that have one (:meth:`SurfelSet.enable_opacity_offset`).
+    Groups whose rate is 0 are left out (those parameters stay fixed).
     """
     groups: list[dict[str, Any]] = [
         {"name": "mu_loc", "params": [avatar.surfels.mu_loc], "lr": lr_position},
@@ -39,6 +41,8 @@ def surfel_param_groups(
                        "lr": lr_networks if lr_app_grid is None else lr_app_grid})
     if avatar.shape is not None:
         groups.append({"name": "shape", "params": list(avatar.shape.parameters()), "lr": lr_networks if lr_shape is None else lr_shape})
+        if avatar.surfels.opacity_offset is not None:
+            groups.append({"name": "opacity_offset", "params": [avatar.surfels.opacity_offset], "lr": lr_opacity_offset})
         return [g for g in groups if g["lr"] > 0]
     s = avatar.surfels
     groups += [

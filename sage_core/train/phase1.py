@@ -274,6 +274,8 @@ class Phase1Trainer:
         self._pseudo: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, RenderCamera]] = []
         self._mirror: Callable[[torch.Tensor], torch.Tensor] | None = None
         self.set_pseudo_views(pseudo_views or [], mirror_index)
+        if avatar.attributes == "mlp" and cfg.lr.opacity_offset > 0:
+            avatar.surfels.enable_opacity_offset()
         self.optimizer = adam(self._param_groups())
         self._not_mouth = avatar.surfels.region_id != REGION_MOUTH
         self.density: DensityControl | None = None
@@ -302,6 +304,7 @@ class Phase1Trainer:
             lr_color=lr.color,
             lr_opacity=lr.opacity,
             lr_app_grid=lr.app_grid,
+            lr_opacity_offset=lr.opacity_offset,
         )
         if self.exposure is not None:
             groups.append({"name": "exposure", "params": [self.exposure.log_gain], "lr": lr.exposure})

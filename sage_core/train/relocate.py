@@ -150,7 +150,8 @@ def move(trainer: Phase1Trainer, ids: torch.Tensor, points: torch.Tensor, normal
 
     Each is bound to its nearest canonical triangle; its size is the median distance to its
     4 nearest remaining surfels; free surfels take the nearest remaining surfel's colour and opacity
-    0.5. The optimiser state of the moved rows restarts."""
+    0.5, an opacity offset (attribute networks) restarts at 0. The optimiser state of the moved rows
+    restarts."""
     av = trainer.avatar
     s = av.surfels
     m = min(int(ids.numel()), int(points.shape[0]))
@@ -174,6 +175,9 @@ def move(trainer: Phase1Trainer, ids: torch.Tensor, points: torch.Tensor, normal
     if s.face_region.numel():
         s.region_id[ids] = s.face_region[face]
     rows = [s.mu_loc, s.q_loc, s.s_loc]
+    if s.opacity_offset is not None:
+        s.opacity_offset.data[ids] = 0.0
+        rows.append(s.opacity_offset)
     if s.attributes == "free":
         s.sh_dc.data[ids] = s.sh_dc.data[near[:, 0]]
         if hasattr(s, "sh_rest"):
