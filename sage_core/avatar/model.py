@@ -16,7 +16,9 @@ Attributes:
   from the shape network on the hash-grid level features at x_c. The network's symmetric matrix is
   added to the prior I − n_b·n_bᵀ (n_b the bound canonical triangle's normal), so that an untrained
   network yields surfels lying flat on their triangles; its size multiplier is relative to a fixed
-  per-surfel base (the initial in-plane scale). Centres stay per-surfel parameters (``mu_loc``).
+  per-surfel base (the initial in-plane scale). Centres stay per-surfel parameters (``mu_loc``),
+  and so does the optional opacity offset (a logit added to the network's opacity,
+  :meth:`SurfelSet.offset_opacities`; phase 1's ``lr.opacity_offset``).
 * ``attributes="free"`` (GaussianAvatars-style): per-surfel SH colour, opacity, ``q_loc`` and
   ``s_loc`` of the :class:`SurfelSet`. Unlike GaussianAvatars, the SH is evaluated with the
   canonical view direction (as in mlp mode), so a rigid head motion does not change the colours. The appearance network is still built: it colours the NeuS
