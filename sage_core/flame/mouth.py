@@ -15,8 +15,9 @@ y up, z forward, the face looking towards +z):
   slit (``teeth_upper``, joint 1) and one below it (``teeth_lower``, joint 2), facing forwards. The
   arcs follow the cavity's wall, so their middle is their deepest point (about half a lip width
   behind the front plane), where a jaw's dental arch has its incisors in front; an arch bulging
-  forwards was measured and not yet adopted (docs/results.md, "The rig's teeth arcs bulge the
-  wrong way");
+  forwards was measured and not adopted: its teeth surfels show through the lips' seam at rest and
+  take the lips' colour, and pale teeth do not land on the captures' two-pixel rows (docs/results.md,
+  "The rig's teeth arcs bulge the wrong way" and "Where the open mouth's surfels come from");
 - the tongue (``tongue=True``, with the cavity): a low dome (radii 0.3·w lateral and deep, 0.08·w
   high) on the cavity floor, its centre 0.42·w behind the front plane and 0.14·w below the slit,
   skinned one-hot to the jaw (``mouth_tongue``, so a part of the ``mouth_interior`` region).

@@ -36,8 +36,10 @@ With ``expressions.rest_fraction`` > 0 a step poses the training frame exactly a
 probability, so the appearance term also holds the avatar to its own phase-1 renders at rest.
 
 Mouth-interior prior (``mouth.enabled``, SAGE's composited mouth prior): the surfels bound to
-mouth-interior and teeth triangles that no training view sees at rest (:meth:`Phase2Trainer.seen_faces`)
-get prior colours: with ``mouth.prior`` learned the pretrained prior's albedo at their canonical
+mouth-interior and teeth triangles that the training views at rest do not see get prior colours
+(with ``mouth.visibility`` surfels, the default, those contributing under half a pixel of blending
+weight, :meth:`Phase2Trainer.surfel_view_weights`; with faces those on triangles no training pixel
+shows, :meth:`Phase2Trainer.seen_faces`): with ``mouth.prior`` learned the pretrained prior's albedo at their canonical
 centre (:mod:`sage_core.avatar.mouth_prior`, :func:`learned_mouth_colors`); with table (the default)
 the fixed ``mouth.cavity_color`` / ``mouth.teeth_color`` times their ambient visibility with the
 jaw opened to ``mouth.occlusion_jaw`` (:meth:`Phase2Trainer.prior_visibility`). They are stored in the avatar
