@@ -341,6 +341,18 @@ class RelocateConfig:
 
 
 @dataclass
+class RegistrationConfig:
+    """Phase 1: registration of a single training timestep's tracked pose to the reconstructed
+    surface (sage_core.train.registration), after the last step."""
+
+    mode: str = _f("auto", "Register the training timestep's tracked FLAME mesh to the SDF phase 1 reconstructed and re-anchor the avatar to it (its content moved by the opposite translation, the timestep's FLAME translation baked into the avatar, so the training views render as before): auto (for one multiview timestep, mv-sf, with the SDF terms on and no pose refinement), on (the same conditions, refused otherwise) or off. On the tracked tiny benchmark subject whose training timestep was 1.8 mm off it raised held-out PSNR by 0.35 dB; on the subject 0.8 mm off it moved it by -0.05 dB (docs/results.md).", choices=("auto", "on", "off"))
+    regions: str = _f("face,neck,left_ear,right_ear", "Comma-separated FLAME vertex regions whose canonical vertices are fitted to the SDF's zero level set (skin the images show; not the scalp, which hair covers).")
+    robust_scale: float = _f(0.008, "Robust scale of the fit (Cauchy weights), as a fraction of the SDF box's half extent (0.008: 1.5 mm for a 37 cm box): vertices much further from the surface, such as ears under hair, hardly count.", gt=0)
+    max_translation: float = _f(0.05, "Largest translation applied, as a fraction of the SDF box's half extent; a fit beyond it is reported and not applied.", gt=0)
+    iterations: int = _f(50, "Gauss-Newton steps of the fit at most.", ge=1)
+
+
+@dataclass
 class SmoothnessConfig:
     """Phase 1: where the SDF normal smoothness term (weight ``loss.smooth``) is measured."""
 
@@ -416,6 +428,7 @@ class Phase1Config:
     schedule: Phase1Schedule = _sub(Phase1Schedule, "Start steps and intervals.")
     neus: Phase1NeuSConfig = _sub(Phase1NeuSConfig, "NeuS rays of the SDF terms.")
     relocate: RelocateConfig = _sub(RelocateConfig, "Surfel relocation.")
+    registration: RegistrationConfig = _sub(RegistrationConfig, "Registration of the training timestep's pose.")
     smooth: SmoothnessConfig = _sub(SmoothnessConfig, "SDF normal smoothness samples.")
     symmetry: SymmetryConfig = _sub(SymmetryConfig, "Symmetry samples.")
     light_albedo: LightAlbedoConfig = _sub(LightAlbedoConfig, "Smooth-albedo light prior.")

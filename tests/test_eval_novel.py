@@ -213,3 +213,37 @@ def test_view_groups_of_the_capture_are_reported_separately(ws, tmp_path):
     index = json.loads((ws / "eval" / "results.json").read_text())
     assert set(index["phase1/novel"]["view_groups"]) == {"front", "back"}
     assert "back views" in res.output and "front views" in res.output
+
+
+def test_views_of_the_training_timestep_take_the_avatars_own_parameters(base_ws):
+    """A held-out view of the training timestep, whose parameters are that timestep's as ingested,
+    is posed with the avatar's parameters of it (which phase 1's registration may have moved);
+    held-out expressions keep the set's."""
+    import dataclasses
+
+    import numpy as np
+
+    from sage_core.avatar.model import Avatar
+    from sage_core.data.dataset import IngestedData
+    from sage_core.evaluate.novel import held_out_inputs, open_novel_set
+
+    data = IngestedData.open(base_ws / "data")
+    novel = open_novel_set(data)
+    av = Avatar.load(base_ws / "phase1" / "avatar.pt")
+    trained = {int(f.timestep) for f in data.train}
+    views = [f for f in novel.frames if f.subset == "views" and f.timestep in trained]
+    exprs = [f for f in novel.frames if f.subset == "expressions"]
+    assert views and exprs
+    row = av.params.row_of(views[0].timestep)
+    moved = av.params.translation.copy()
+    moved[row] += np.array([0.003, -0.002, 0.001], moved.dtype)
+    av.params = dataclasses.replace(av.params, translation=moved)
+    got = held_out_inputs(av, data, novel, views[0], trained)["translation"][0].numpy()
+    assert np.allclose(got, moved[row], atol=1e-7)
+    e = exprs[0]
+    got = held_out_inputs(av, data, novel, e, trained)["translation"][0].numpy()
+    assert np.allclose(got, novel.params.translation[e.row], atol=1e-7)
+    # a view whose parameters differ from the training timestep's is posed with its own
+    other = dataclasses.replace(novel, params=dataclasses.replace(novel.params, translation=novel.params.translation + 0.01))
+    got = held_out_inputs(av, data, other, views[0], trained)["translation"][0].numpy()
+    assert np.allclose(got, other.params.translation[views[0].row], atol=1e-7)

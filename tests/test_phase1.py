@@ -133,6 +133,14 @@ def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
 
     av = Avatar.load(out / "avatar.pt")
     assert av.attributes == "free" and len(av.surfels) == 1200
+    # one multiview timestep: phase 1 ends with the registration of its pose (applied, or why not)
+    data = IngestedData.open(ws / "data")
+    row = data.params.row_of(av.canonical_timestep)
+    moved = (av.params.translation[row] - data.params.translation[row]) * 1000.0
+    if met["registration"] == "applied":
+        assert np.allclose(moved, met["registration_world_translation_mm"], atol=1e-3)
+    else:
+        assert met["registration"].startswith("skipped") and np.allclose(moved, 0.0)
     res = CliRunner().invoke(app, args + ["--set", "checkpoint_every=4"])
     assert res.exit_code == 0 and "skipping" in res.output
     bad = CliRunner().invoke(app, ["phase1", str(ws), "--attributes", "nope", "--quiet"])

@@ -8,7 +8,9 @@ the ingest summary. Images are resized like the ingested ones (the ratio of an i
 image to its source image) and put on the dataset background.
 
 Every held-out frame is rendered with the avatar posed by the frame's FLAME parameters (the avatar
-keeps its own shape and static offset) and compared with the ground truth twice:
+keeps its own shape and static offset; a view of its training timestep with that timestep's
+parameters takes the avatar's own parameters of it, which phase 1's registration of the training
+pose may have moved: :func:`held_out_inputs`) and compared with the ground truth twice:
 
 * over the full image, exactly as the other splits (:mod:`.protocol`: PSNR, GA PSNR, SSIM, LPIPS);
 * over the visible region: the pixels whose FLAME surface the training view(s) saw. Training
@@ -419,6 +421,29 @@ def _with_frontal(report: EvalReport, camera: int) -> EvalReport:
     return report
 
 
+def held_out_inputs(avatar: Avatar, data: IngestedData, novel: NovelSet, frame: NovelFrame, trained: set[int]) -> dict[str, torch.Tensor]:
+    """FLAME kwargs of a held-out frame: row ``frame.row`` of the set's parameters with the avatar's
+    identity, except for a view of a training timestep (in ``trained``) whose parameters are that
+    timestep's as ingested: it takes the avatar's own parameters of the timestep, which differ when
+    phase 1 registered or refined the training pose (:mod:`sage_core.train.registration`), so the
+    view shows the training timestep as the avatar was fitted to it."""
+    t = int(frame.timestep)
+    if frame.subset == "views" and t in trained and _same_frame(novel.params, frame.row, data.params, data.params.row_of(t)):
+        return avatar.frame_inputs(t)
+    return avatar.params_inputs(novel.params, frame.row)
+
+
+def _same_frame(a: FlameParams, row_a: int, b: FlameParams, row_b: int, tol: float = 1e-6) -> bool:
+    """True when two parameter rows hold the same per-frame values (expression, poses, translation)."""
+    from ..avatar.posing import FLAME_KEYS
+
+    for k in FLAME_KEYS:
+        x, y = np.asarray(getattr(a, k)[row_a], np.float64), np.asarray(getattr(b, k)[row_b], np.float64)
+        if x.shape != y.shape or not np.allclose(x, y, rtol=0.0, atol=tol):
+            return False
+    return True
+
+
 @torch.no_grad()
 def evaluate_novel(
     render_fn: NovelRenderFn,
@@ -435,7 +460,8 @@ def evaluate_novel(
     """Render and score every held-out frame (see the module doc).
 
     render_fn: ``(camera, flame_inputs) -> (H, W, 3)``; the inputs come from
-    ``avatar.params_inputs(novel.params, frame.row)`` (the avatar's identity). With ``out_dir``:
+    :func:`held_out_inputs` (the set's parameters with the avatar's identity; the avatar's own
+    parameters for views of its training timestep). With ``out_dir``:
     writes ``metrics.json`` (atomically, last) and ``n_samples`` sample strips
     ``images/{subset}_{ti:05d}_{ci:02d}.png`` (GT | render | error).
     """
@@ -448,9 +474,10 @@ def evaluate_novel(
     coverage: list[float] = []
     written: list[Path] = []
     inputs: dict[int, dict[str, torch.Tensor]] = {}
+    trained = {int(f.timestep) for f in data.train}
     for i, fr in enumerate(frames):
         if fr.row not in inputs:
-            inputs[fr.row] = avatar.params_inputs(novel.params, fr.row)
+            inputs[fr.row] = held_out_inputs(avatar, data, novel, fr, trained)
         gt_np = load_novel_image(novel, fr)
         render = render_fn(fr.camera, inputs[fr.row])
         if not isinstance(render, torch.Tensor) or tuple(render.shape) != gt_np.shape:

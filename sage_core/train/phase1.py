@@ -49,6 +49,7 @@ the uninterrupted loss curve.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,7 +66,9 @@ from ..avatar.shading import shade_foreground
 from ..runtime import resolve_render_backend
 from ..config import Phase1Config
 from ..data.dataset import IngestedData, IngestedFrame
+from ..errors import InputError
 from ..flame.frames import surfel_frames
+from ..flame.regions import Regions
 from ..image_metrics import SSIMTarget, psnr, ssim, ssim_map, ssim_target
 from ..render import RenderCamera
 from ..render.volume import render_neus
@@ -382,6 +385,13 @@ class Phase1Trainer:
             self._inputs[timestep] = self.avatar.frame_inputs(timestep)
             self._rigid[timestep] = self.avatar.rigid_transform(self._inputs[timestep])
         return self._inputs[timestep]
+
+    def forget_poses(self) -> None:
+        """Drop the cached FLAME kwargs, rigid transforms and posed meshes (after the avatar's
+        parameters changed: the training timestep's registration)."""
+        self._inputs.clear()
+        self._rigid.clear()
+        self._meshes.clear()
 
     def rigid(self, timestep: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         """(R0, t) of a rigidly moved timestep, else None (cached; tracked parameters)."""
@@ -915,6 +925,35 @@ def one_shot_pseudo_views(data: IngestedData, avatar: Avatar, cfg: Phase1Config)
     return list(views), mirror_index
 
 
+def registration_decision(data: IngestedData, cfg: Phase1Config) -> tuple[bool, str]:
+    """Whether phase 1 ends with the registration of the training timestep
+    (:func:`sage_core.train.registration.registration_applies`); an impossible ``mode=on`` is an
+    InputError naming the data folder, raised before any training."""
+    from .registration import registration_applies
+
+    n_train = len({fr.timestep for fr in data.train})
+    try:
+        return registration_applies(cfg.registration.mode, data.regime, n_train, cfg.schedule.sdf_from < cfg.iterations, cfg.pose_refine)
+    except ValueError as e:
+        raise InputError(data.root, str(e)) from None
+
+
+def register_after_training(avatar: Avatar, init_dir: str | Path, cfg: Phase1Config, decision: tuple[bool, str]) -> dict[str, Any]:
+    """Register the training timestep's tracked pose to the reconstructed surface when ``decision``
+    (:func:`registration_decision`) says so (:mod:`sage_core.train.registration`); returns its
+    metrics (``registration``: "applied", "skipped: ..." or why it did not run)."""
+    from .registration import register_training_pose
+
+    run, why = decision
+    if not run:
+        return {"registration": why}
+    regions = None
+    reg_path = Path(init_dir) / "regions.json"
+    if reg_path.is_file():
+        regions = Regions.from_dict(json.loads(reg_path.read_text(encoding="utf-8")))
+    return register_training_pose(avatar, regions, cfg.registration)
+
+
 def _mesh_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
     import trimesh
 
@@ -946,6 +985,7 @@ def run_phase1(
     init_dir = Path(init_dir)
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
+    decision = registration_decision(data, cfg)
     avatar = build_avatar(data, init_dir, cfg, device, gen)
     if cfg.attributes == "free" and cfg.free.mouth_prior:
         from .mouth_start import seed_free_mouth_colors
@@ -970,6 +1010,8 @@ def run_phase1(
     last = dict(loop.last)
     train_time = loop.train_time_s
     steps_run = loop.steps_run
+    registration = register_after_training(avatar, init_dir, cfg, decision)
+    trainer.forget_poses()
 
     if progress is not None:
         progress(total, total, "evaluating")
@@ -1035,6 +1077,7 @@ def run_phase1(
         metrics["light_mean_irradiance"] = [float(x) for x in avatar.light.mean_irradiance().detach().cpu()]
     if trainer.pose is not None:
         metrics.update(trainer.pose.summary())
+    metrics.update(registration)
     if trainer.sym_plane is not None:
         metrics["symmetry_plane_normal"] = [float(x) for x in trainer.sym_plane.normal]
         metrics["symmetry_plane_offset_m"] = float(trainer.sym_plane.offset)
