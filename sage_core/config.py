@@ -340,13 +340,18 @@ class RelocateConfig:
     floor: float = _f(0.05, "A surfel contributing less alpha than this many pixels, summed over the scanned frames, may move.", ge=0, added=True)
 
 
+REGISTRATION_REGIONS: tuple[str, ...] = ("face", "neck", "left_ear", "right_ear", "ears", "forehead", "nose", "lips", "eye_region",
+                                         "left_eye_region", "right_eye_region", "boundary", "scalp", "skin")
+"""FLAME mask regions (and sage's derived ``ears`` and ``skin``) the registration may fit."""
+
+
 @dataclass
 class RegistrationConfig:
     """Phase 1: registration of a single training timestep's tracked pose to the reconstructed
     surface (sage_core.train.registration), after the last step."""
 
     mode: str = _f("auto", "Register the training timestep's tracked FLAME mesh to the SDF phase 1 reconstructed and re-anchor the avatar to it (its content moved by the opposite translation, the timestep's FLAME translation baked into the avatar, so the training views render as before): auto (for one multiview timestep, mv-sf, with the SDF terms on and no pose refinement), on (the same conditions, refused otherwise) or off. On the tracked tiny benchmark subject whose training timestep was 1.8 mm off it raised held-out PSNR by 0.35 dB; on the subject 0.8 mm off it moved it by -0.05 dB (docs/results.md).", choices=("auto", "on", "off"))
-    regions: str = _f("face,neck,left_ear,right_ear", "Comma-separated FLAME vertex regions whose canonical vertices are fitted to the SDF's zero level set (skin the images show; not the scalp, which hair covers).")
+    regions: list[str] = _f(["face", "neck", "left_ear", "right_ear"], "FLAME vertex regions (comma-separated on the command line) whose canonical vertices are fitted to the SDF's zero level set: skin the images show, not the scalp, which hair covers. Regions the model lacks are left out.", choices=REGISTRATION_REGIONS)
     robust_scale: float = _f(0.008, "Robust scale of the fit (Cauchy weights), as a fraction of the SDF box's half extent (0.008: 1.5 mm for a 37 cm box): vertices much further from the surface, such as ears under hair, hardly count.", gt=0)
     max_translation: float = _f(0.05, "Largest translation applied, as a fraction of the SDF box's half extent; a fit beyond it is reported and not applied.", gt=0)
     iterations: int = _f(50, "Gauss-Newton steps of the fit at most.", ge=1)
@@ -871,7 +876,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         raise ConfigError(f"{key}: cannot interpret {value!r} as {tp}")
     if origin in (list, tuple):
         if isinstance(value, str):
-            value = [v for v in value.split(",") if v.strip()]
+            value = [v.strip() for v in value.split(",") if v.strip()]
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{key}: expected a list, got {value!r}")
         inner = args[0] if args else Any
@@ -1081,9 +1086,9 @@ def _check_value(value: Any, meta: Any, key: str) -> None:
     if value is None:
         return
     allowed = allowed_text(meta)
-    if "choices" in meta and value not in meta["choices"]:
-        raise ConfigError(f"{key} = {value!r} is not allowed (allowed: {allowed})")
     items = value if isinstance(value, (list, tuple)) else [value]
+    if "choices" in meta and any(x not in meta["choices"] for x in items):
+        raise ConfigError(f"{key} = {value!r} is not allowed (allowed: {allowed})")
     if "length" in meta and isinstance(value, (list, tuple)) and len(value) != meta["length"]:
         raise ConfigError(f"{key} = {value!r} has {len(value)} value(s) (allowed: {allowed})")
     for x in items:

@@ -150,12 +150,15 @@ def test_register_training_pose_finds_a_known_shift_and_keeps_the_training_view(
     p = av.params
     third = register_training_pose(av, regions, dataclasses.replace(cfg, max_translation=0.05))
     assert third["registration"].startswith("skipped") and av.params is p
-    none = register_training_pose(av, regions, dataclasses.replace(cfg, regions="no_such_region"))
+    none = register_training_pose(av, regions, dataclasses.replace(cfg, regions=["no_such_region"]))
     assert none["registration"].startswith("skipped: the model has none")
 
 
 def test_phase1_config_has_the_registration_section():
-    cfg = resolve_config("phase1", "tiny", None, {"registration.mode": "off", "registration.regions": "face"})
-    assert cfg.registration.mode == "off" and cfg.registration.regions == "face"
+    cfg = resolve_config("phase1", "tiny", None, {"registration.mode": "off", "registration.regions": "face, neck"})
+    assert cfg.registration.mode == "off" and cfg.registration.regions == ["face", "neck"]
+    assert resolve_config("phase1", "tiny").registration.regions == ["face", "neck", "left_ear", "right_ear"]
     with pytest.raises(Exception, match="registration.mode"):
         resolve_config("phase1", "tiny", None, {"registration.mode": "sometimes"})
+    with pytest.raises(Exception, match="registration.regions"):
+        resolve_config("phase1", "tiny", None, {"registration.regions": "face,elbow"})

@@ -136,7 +136,7 @@ def register_training_pose(avatar: Avatar, regions: Regions | None, cfg: Registr
     (canonical and world), the mean |SDF| of the points before and after (mm), the regions used."""
     from ..avatar.canonical_shift import shift_canonical
 
-    names = [n.strip() for n in cfg.regions.split(",") if n.strip()]
+    names = list(cfg.regions)
     pts, used = region_points(avatar, regions, names)
     out: dict[str, Any] = {"registration_regions": used}
     if len(pts) < 3:
