@@ -38,8 +38,21 @@ def test_estimate_translation_recovers_a_known_offset_despite_outliers():
     fit = estimate_translation(_sphere(shift, 0.1), pts, scale=0.0015)
     assert torch.allclose(fit.translation, shift, atol=2e-5)
     assert fit.residual_after < fit.residual_before
+    assert abs(fit.offset) < 2e-5
     plain = estimate_translation(_sphere(shift, 0.1), pts, scale=1.0)  # no robust weights: the outliers pull it off
     assert (plain.translation - shift).norm() > 10 * (fit.translation - shift).norm()
+
+
+def test_a_uniformly_fuller_surface_is_an_offset_not_a_translation():
+    g = torch.Generator().manual_seed(1)
+    u = torch.randn(600, 3, generator=g, dtype=torch.float64)
+    u = u / u.norm(dim=1, keepdim=True)
+    pts = 0.1 * u[u[:, 2] > -0.3]  # mostly forward-facing points, like a face and neck
+    shift = torch.tensor([0.0005, 0.001, -0.0008], dtype=torch.float64)
+    fit = estimate_translation(_sphere(shift, 0.1007), pts, scale=0.0015)  # 0.7 mm fuller than the mesh
+    assert torch.allclose(fit.translation, shift, atol=1e-6)
+    assert fit.offset == pytest.approx(-0.0007, abs=1e-6)  # the points sit 0.7 mm inside it
+    assert fit.residual_after < 1e-6
 
 
 def test_estimate_translation_refuses_an_undetermined_fit():
@@ -47,8 +60,8 @@ def test_estimate_translation_refuses_an_undetermined_fit():
     pts = torch.rand(50, 3, dtype=torch.float64)
     with pytest.raises(ValueError, match="undetermined"):
         estimate_translation(plane, pts, scale=0.01)
-    with pytest.raises(ValueError, match="at least 3"):
-        estimate_translation(plane, pts[:2], scale=0.01)
+    with pytest.raises(ValueError, match="at least 4"):
+        estimate_translation(plane, pts[:3], scale=0.01)
 
 
 def test_registration_rules():
