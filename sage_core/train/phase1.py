@@ -40,6 +40,11 @@ Single-camera regimes (SV-HR, one-shot; paper §5) add, through the config (regi
 
 Canonical rays come from a :class:`~sage_core.train.canonical_warp.CanonicalWarp` (``canonical_warp``).
 
+After the last step, one multiview training timestep (mv-sf) is registered to the surface the SDF
+reconstructed (``registration``; :mod:`sage_core.train.registration`): the avatar's canonical
+content moves by the opposite of the tracked mesh's fitted offset and the timestep's translation is
+baked into the avatar's parameters, so the training views render as before.
+
 The objective is the table :data:`PHASE1_TERMS` (each term's weight in the config's ``loss`` section,
 its first step in ``schedule``), run by :func:`sage_core.train.losses.add_terms`.
 
