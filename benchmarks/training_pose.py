@@ -2,7 +2,7 @@
 error causes, on a ``sage synth`` capture (whose true meshes are known).
 
 Usage:
-    python benchmarks/training_pose.py bound CAPTURE WS [--rigid-fixed] [--lpips WEIGHTS] [--out FILE.json]
+    python benchmarks/training_pose.py bound CAPTURE WS [--rigid-fixed | --registered STAGE] [--lpips WEIGHTS] [--out FILE.json]
     python benchmarks/training_pose.py oracle CAPTURE WS
     python benchmarks/training_pose.py registration CAPTURE WS [--stage phase1]
 
@@ -15,7 +15,9 @@ renderer, like the tracking ceiling (:mod:`sage_core.evaluate.ceiling`) draws th
 tracked mesh. Scored on WS's test split under the evaluation protocol. The ceiling adds only each
 test frame's tracking error; the bound adds the training timestep's too. ``--rigid-fixed`` first
 moves the tracked training mesh by the rigid transform that best aligns it with the truth's (what
-a perfect registration of that timestep would do) and reports that transform.
+a perfect registration of that timestep would do) and reports that transform; ``--registered
+STAGE`` binds to the training mesh posed with the parameters of WS's avatar of that stage instead
+(phase 1's registration of the timestep, :mod:`sage_core.train.registration`).
 
 ``oracle``: rewrites the canonical timestep's global rotation and translation in
 ``WS/data/flame_params.npz`` (a copy's: the workspace's data are changed) by fitting the written
@@ -84,7 +86,7 @@ def _rotation_deg(r: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def bound(capture: Path, ws: Path, rigid_fixed: bool, lpips_weights: str | None) -> dict[str, Any]:
+def bound(capture: Path, ws: Path, rigid_fixed: bool, lpips_weights: str | None, registered: str | None = None) -> dict[str, Any]:
     import torch
 
     from sage_core.data.dataset import IngestedData
@@ -100,6 +102,13 @@ def bound(capture: Path, ws: Path, rigid_fixed: bool, lpips_weights: str | None)
     true0 = _truth_mesh(capture, t0)
     report: dict[str, Any] = {"capture": str(capture.name), "timestep": t0,
                               "training_error_mm": float(np.linalg.norm(true0 - tracked0, axis=1).mean() * 1000.0)}  # fmt: skip
+    if registered is not None:
+        from sage_core.avatar.model import Avatar
+
+        with torch.no_grad():
+            params = Avatar.load(ws / registered / "avatar.pt").params
+        tracked0, _ = truth.pose(_params(params, t0))
+        report["registered_error_mm"] = float(np.linalg.norm(true0 - tracked0, axis=1).mean() * 1000.0)
     if rigid_fixed:
         r, t = _kabsch(tracked0, true0)
         tracked0 = tracked0 @ r.T + t
@@ -192,7 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     b = sub.add_parser("bound", help="the one-timestep bound on the test split")
     b.add_argument("capture", type=Path)
     b.add_argument("ws", type=Path)
-    b.add_argument("--rigid-fixed", action="store_true", help="remove the training timestep's rigid error first")
+    g = b.add_mutually_exclusive_group()
+    g.add_argument("--rigid-fixed", action="store_true", help="remove the training timestep's rigid error first")
+    g.add_argument("--registered", choices=("phase1", "phase2"), default=None, help="bind to the training mesh as the avatar of this stage registered it")
     b.add_argument("--lpips", default=None, help="LPIPS AlexNet v0.1 weights (default: where sage finds them)")
     b.add_argument("--out", type=Path, default=None)
     o = sub.add_parser("oracle", help="rewrite the training timestep's global pose from the truth (changes WS/data)")
@@ -204,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--stage", default="phase1", choices=("phase1", "phase2"))
     args = ap.parse_args(argv)
     if args.cmd == "bound":
-        result = bound(args.capture, args.ws, args.rigid_fixed, args.lpips)
+        result = bound(args.capture, args.ws, args.rigid_fixed, args.lpips, args.registered)
     elif args.cmd == "oracle":
         result = oracle(args.capture, args.ws)
     else:

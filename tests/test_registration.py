@@ -163,8 +163,23 @@ def test_register_training_pose_finds_a_known_shift_and_keeps_the_training_view(
     p = av.params
     third = register_training_pose(av, regions, dataclasses.replace(cfg, max_translation=0.05))
     assert third["registration"].startswith("skipped") and av.params is p
+    small = register_training_pose(av, regions, cfg, pixel=0.1)  # 30 mm under half a 100 mm pixel
+    assert small["registration"].startswith("skipped: the fit moved the mesh") and "min_pixels" in small["registration"]
+    assert av.params is p and small["registration_pixel_mm"] == pytest.approx(100.0)
     none = register_training_pose(av, regions, dataclasses.replace(cfg, regions=["no_such_region"]))
     assert none["registration"].startswith("skipped: the model has none")
+
+
+def test_pixel_footprint_is_distance_over_focal_length():
+    from sage_core.data.cameras import Camera
+    from sage_core.train.registration import pixel_footprint
+
+    def cam(z: float, f: float) -> Camera:
+        w2c = np.eye(4)
+        w2c[2, 3] = z
+        return Camera(K=np.array([[f, 0, 64.0], [0, f, 93.0], [0, 0, 1]]), w2c=w2c, width=128, height=186)
+
+    assert pixel_footprint([cam(1.0, 500.0), cam(2.0, 500.0), cam(1.0, 250.0)], np.zeros(3)) == pytest.approx(1.0 / 250.0)
 
 
 def test_phase1_config_has_the_registration_section():

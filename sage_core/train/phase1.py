@@ -943,11 +943,11 @@ def registration_decision(data: IngestedData, cfg: Phase1Config) -> tuple[bool, 
         raise InputError(data.root, str(e)) from None
 
 
-def register_after_training(avatar: Avatar, init_dir: str | Path, cfg: Phase1Config, decision: tuple[bool, str]) -> dict[str, Any]:
+def register_after_training(avatar: Avatar, data: IngestedData, init_dir: str | Path, cfg: Phase1Config, decision: tuple[bool, str]) -> dict[str, Any]:
     """Register the training timestep's tracked pose to the reconstructed surface when ``decision``
     (:func:`registration_decision`) says so (:mod:`sage_core.train.registration`); returns its
     metrics (``registration``: "applied", "skipped: ..." or why it did not run)."""
-    from .registration import register_training_pose
+    from .registration import pixel_footprint, register_training_pose
 
     run, why = decision
     if not run:
@@ -956,7 +956,14 @@ def register_after_training(avatar: Avatar, init_dir: str | Path, cfg: Phase1Con
     reg_path = Path(init_dir) / "regions.json"
     if reg_path.is_file():
         regions = Regions.from_dict(json.loads(reg_path.read_text(encoding="utf-8")))
-    return register_training_pose(avatar, regions, cfg.registration)
+    t0 = avatar.canonical_timestep
+    cams = [fr.camera for fr in data.train if fr.timestep == t0]
+    rig = avatar.rigid_transform(avatar.frame_inputs(t0))
+    center = avatar.canonical_vertices.detach().mean(0)
+    if rig is not None:
+        center = (center - avatar.root_joint) @ rig[0].T + avatar.root_joint + rig[1]
+    pixel = pixel_footprint(cams, center.detach().cpu().double().numpy()) if cams else None
+    return register_training_pose(avatar, regions, cfg.registration, pixel)
 
 
 def _mesh_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
@@ -1015,7 +1022,7 @@ def run_phase1(
     last = dict(loop.last)
     train_time = loop.train_time_s
     steps_run = loop.steps_run
-    registration = register_after_training(avatar, init_dir, cfg, decision)
+    registration = register_after_training(avatar, data, init_dir, cfg, decision)
     trainer.forget_poses()
 
     if progress is not None:
