@@ -128,7 +128,7 @@ def test_register_training_pose_finds_a_known_shift_and_keeps_the_training_view(
     # head reconstructed without error
     verts = av.canonical_vertices.detach().clone()
     mesh = trimesh.Trimesh(verts.numpy(), av.faces.cpu().numpy(), process=False)
-    normals = torch.as_tensor(np.asarray(mesh.vertex_normals), dtype=verts.dtype)
+    normals = torch.as_tensor(np.array(mesh.vertex_normals), dtype=verts.dtype)
     box0 = av.sdf.encoding.bbox_min.detach().clone()
 
     def tangent_planes(x: torch.Tensor) -> torch.Tensor:
