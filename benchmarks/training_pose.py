@@ -39,10 +39,11 @@ from typing import Any
 
 import numpy as np
 
-FRAME_KEYS: tuple[str, ...] = ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
-
 
 def _params(params: Any, t: int) -> dict[str, np.ndarray]:
+    """The per-frame FLAME parameters of timestep ``t`` as the tracking ceiling poses them."""
+    from sage_core.data.synthetic.ceiling import FLAME_KEYS as FRAME_KEYS
+
     row = params.row_of(t)
     return {k: np.asarray(getattr(params, k)[row], np.float64) for k in FRAME_KEYS}
 

@@ -62,3 +62,15 @@ def load_phase1_renderer(ws: Path) -> tuple[Any, Any, Any]:
     data = IngestedData.open(ws / "data")
     loaded = load_stage_avatar(Workspace(ws), "phase1", data)
     return data, loaded, AvatarRenderer(loaded.avatar, loaded.render)
+
+
+def load_benchmark(name: str) -> Any:
+    """The module of ``benchmarks/<name>.py`` (the scripts are not a package)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

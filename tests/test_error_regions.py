@@ -3,23 +3,14 @@ JSON and panels are written, and the LPIPS areas partition the image."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
-
-from helpers import LPIPS_SKIP_REASON, LPIPS_WEIGHTS
-
-REPO = Path(__file__).resolve().parents[1]
+from helpers import LPIPS_SKIP_REASON, LPIPS_WEIGHTS, load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("error_regions", REPO / "benchmarks" / "error_regions.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("error_regions")
 
 
 def test_error_split_adds_up(cmd_avatar_ws, tmp_path, one_thread, capsys):

@@ -4,23 +4,17 @@ oracle changes nothing, and the registration report reads the avatar's parameter
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-REPO = Path(__file__).resolve().parents[1]
+from helpers import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("training_pose", REPO / "benchmarks" / "training_pose.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("training_pose")
 
 
 def test_bound_oracle_and_registration_on_an_exact_capture(tiny_capture, tiny_avatar_ws, tmp_path, one_thread):
