@@ -348,7 +348,7 @@ REGISTRATION_REGIONS: tuple[str, ...] = ("face", "neck", "left_ear", "right_ear"
 @dataclass
 class RegistrationConfig:
     """Phase 1: registration of a single training timestep's tracked pose to the reconstructed
-    surface (sage_core.train.registration), after the last step."""
+    surface (sage_core.train.registration), after the last step (and in earlier rounds)."""
 
     mode: str = _f("auto", "Register the training timestep's tracked FLAME mesh to the SDF phase 1 reconstructed and re-anchor the avatar to it (its content moved by the opposite translation, the timestep's FLAME translation baked into the avatar, so the training views render as before): auto (for one multiview timestep, mv-sf, with the SDF terms on and no pose refinement), on (the same conditions, refused otherwise) or off. On the tracked tiny benchmark subject whose training timestep was 1.8 mm off it raised held-out PSNR by 0.35 dB; on the subject 0.8 mm off it moved it by -0.05 dB (docs/results.md).", choices=("auto", "on", "off"))
     regions: list[str] = _f(["face", "neck", "left_ear", "right_ear"], "FLAME vertex regions (comma-separated on the command line) whose canonical vertices are fitted to the SDF's zero level set: skin the images show, not the scalp, which hair covers. Regions the model lacks are left out.", choices=REGISTRATION_REGIONS)
@@ -356,6 +356,7 @@ class RegistrationConfig:
     min_pixels: float = _f(0.5, "Smallest translation applied, in pixels of the training views at the head (the median over their cameras of distance over focal length): a shift the images resolve less well than this is within the reconstruction's own error. On the tiny benchmark subject whose training mesh was 0.8 mm off (0.35 px), applying the fitted 0.56 mm lowered held-out PSNR by 0.13 dB; on the one 1.8 mm off (0.8 px) the fit gained (docs/results.md).", ge=0)
     max_translation: float = _f(0.05, "Largest translation applied, as a fraction of the SDF box's half extent; a fit beyond it is reported and not applied.", gt=0)
     iterations: int = _f(50, "Gauss-Newton steps of the fit at most.", ge=1)
+    rounds: int = _f(2, "Fits in all: 1 fits once after the last step; n > 1 also fits n - 1 times while the SDF trains (evenly spaced between schedule.sdf_from and the polish), so the rest of phase 1 (rebinding, relocation, the priors that hold content near the mesh) works on the re-anchored mesh. A round applies when its own fit reaches min_pixels; once one has, the later rounds refine it whatever their size.", ge=1, le=16)
 
 
 @dataclass

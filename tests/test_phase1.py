@@ -105,6 +105,46 @@ def test_resume_repeats_the_loss_curve(init_ws, offset_lr, one_thread):
         assert ref.avatar.surfels.opacity_offset is None
 
 
+def test_resume_after_a_registration_round_keeps_the_registered_pose(init_ws, one_thread):
+    from sage_core.train.phase1 import registration_decision, registration_rounds
+
+    n = 6
+    over = {"iterations": n, "registration.mode": "on", "registration.rounds": 2, "registration.min_pixels": 0.0,
+            "registration.max_translation": 1.0}
+
+    def trainer() -> Phase1Trainer:
+        tr = _trainer(init_ws, "mlp", **over)
+        tr.registration = registration_rounds(tr.avatar, tr.data, init_ws / "init", tr.cfg, registration_decision(tr.data, tr.cfg))
+        return tr
+
+    ref = trainer()
+    assert ref.registration is not None and ref.registration.steps == [3]
+    row = ref.data.params.row_of(ref.avatar.canonical_timestep)
+    straight = []
+    for _ in range(n):
+        straight.append(ref.step())
+        if ref.registration.due(ref.step_count):
+            met = ref.register(ref.step_count)
+    assert met["registration"] == "applied" and met["registration_step"] == 3
+    assert not np.allclose(ref.avatar.params.translation[row], ref.data.params.translation[row])
+
+    first = trainer()
+    part = [first.step() for _ in range(n // 2)]
+    first.register(n // 2)
+    buf = io.BytesIO()
+    torch.save(first.state_dict(), buf)
+    del first
+    second = trainer()
+    buf.seek(0)
+    second.load_state_dict(torch.load(buf, weights_only=False))
+    assert np.array_equal(second.avatar.params.translation, ref.avatar.params.translation)
+    part += [second.step() for _ in range(n - n // 2)]
+    for a, b in zip(straight, part):
+        for k in a:
+            assert b[k] == pytest.approx(a[k], rel=1e-6, abs=1e-7), k
+    assert second.registration is not None and second.registration.state_dict() == ref.registration.state_dict()
+
+
 def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
     ws = tmp_path / "ws"
     shutil.copytree(init_ws, ws)
@@ -137,8 +177,11 @@ def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
     data = IngestedData.open(ws / "data")
     row = data.params.row_of(av.canonical_timestep)
     moved = (av.params.translation[row] - data.params.translation[row]) * 1000.0
+    # (two rounds by default: after step 4 of 8, while the SDF trains, and after the last)
+    assert [r["registration_step"] for r in met["registration_rounds"]] == [4, 8]
+    assert np.allclose(moved, met["registration_applied_world_mm"], atol=1e-3)
     if met["registration"] == "applied":
-        assert np.allclose(moved, met["registration_world_translation_mm"], atol=1e-3)
+        assert met["registration_applied_mm"] > 0
     else:
         assert met["registration"].startswith("skipped") and np.allclose(moved, 0.0)
     res = CliRunner().invoke(app, args + ["--set", "checkpoint_every=4"])

@@ -119,13 +119,12 @@ def test_shift_canonical_with_the_moved_translation_renders_the_training_view_un
     assert torch.allclose(shifted, (R0 @ delta).expand_as(shifted), atol=1e-6)
 
 
-def test_register_training_pose_finds_a_known_shift_and_keeps_the_training_view(tiny_avatar_ws, one_thread):
-    data = IngestedData.open(tiny_avatar_ws / "data")
-    av = Avatar.load(tiny_avatar_ws / "phase1" / "avatar.pt")
-    regions = Regions.from_dict(json.loads((tiny_avatar_ws / "init" / "regions.json").read_text()))
-    # an SDF whose zero level set holds the canonical mesh's vertices exactly (the signed distance
-    # to the tangent plane of the nearest vertex), moved with the SDF's box like the network: a
-    # head reconstructed without error
+def _exact_head(ws):
+    """The workspace's phase-1 avatar with an SDF whose zero level set holds the canonical mesh's
+    vertices exactly (the signed distance to the tangent plane of the nearest vertex), moved with
+    the SDF's box like the network: a head reconstructed without error; and the model's regions."""
+    av = Avatar.load(ws / "phase1" / "avatar.pt")
+    regions = Regions.from_dict(json.loads((ws / "init" / "regions.json").read_text()))
     verts = av.canonical_vertices.detach().clone()
     mesh = trimesh.Trimesh(verts.numpy(), av.faces.cpu().numpy(), process=False)
     normals = torch.as_tensor(np.array(mesh.vertex_normals), dtype=verts.dtype)
@@ -137,6 +136,62 @@ def test_register_training_pose_finds_a_known_shift_and_keeps_the_training_view(
         return ((y - verts[j]) * normals[j]).sum(-1)
 
     av.sdf.sdf = tangent_planes
+    return av, regions
+
+
+def test_round_steps_are_spread_over_the_sdf_span():
+    from sage_core.train.registration import round_steps
+
+    assert round_steps(1, 0, 1200) == []
+    assert round_steps(2, 0, 1200) == [600]
+    assert round_steps(3, 300, 1200) == [600, 900]
+    assert round_steps(4, 0, 2) == [1]  # duplicates and steps outside the span dropped
+
+
+def test_rounds_refine_an_applied_registration_and_restore_the_translation(tiny_avatar_ws, one_thread):
+    from sage_core.train.registration import RegistrationRounds, head_pixel
+
+    data = IngestedData.open(tiny_avatar_ws / "data")
+    av, regions = _exact_head(tiny_avatar_ws)
+    t0 = av.canonical_timestep
+    cams = [fr.camera for fr in data.train if fr.timestep == t0]
+    pixel = head_pixel(av, cams)
+    assert pixel is not None and 1e-4 < pixel < 1e-2
+    assert head_pixel(av, []) is None
+    cfg = dataclasses.replace(RegistrationConfig(), rounds=3)
+    rounds = RegistrationRounds(av, regions, cams, cfg, [5, 10])
+    assert rounds.due(5) and not rounds.due(6)
+    row = data.params.row_of(t0)
+    unit = torch.tensor([0.6, 0.0, -0.8])
+    shift_canonical(av, 0.3 * pixel * unit)  # under half a pixel alone: not applied
+    first = rounds.fit(av, 5)
+    assert first["registration"].startswith("skipped: the fit moved the mesh") and np.allclose(av.params.translation[row], data.params.translation[row])
+    shift_canonical(av, 0.4 * pixel * unit)  # now 0.7 px off: applied
+    second = rounds.fit(av, 10)
+    assert second["registration"] == "applied"
+    assert np.allclose(rounds.applied, (0.7 * pixel * unit).numpy(), atol=1e-6)
+    shift_canonical(av, 0.2 * pixel * unit)  # under half a pixel, but after an applied round: refines it
+    third = rounds.fit(av, 15)
+    assert third["registration"] == "applied"
+    assert np.allclose(rounds.applied, (0.9 * pixel * unit).numpy(), atol=1e-6)
+    summary = rounds.summary()
+    assert summary["registration"] == "applied" and len(summary["registration_rounds"]) == 3
+    assert summary["registration_applied_mm"] == pytest.approx(0.9 * pixel * 1000.0, rel=1e-3)
+    R0, _ = av.rigid_transform(av.frame_inputs(t0))
+    moved = av.params.translation[row] - data.params.translation[row]
+    assert np.allclose(moved, (R0 @ (0.9 * pixel * unit)).numpy(), atol=1e-6)
+    assert np.allclose(moved * 1000.0, summary["registration_applied_world_mm"], atol=1e-3)
+    # restored on a fresh avatar (a resumed run: its content comes from the checkpoint)
+    fresh = Avatar.load(tiny_avatar_ws / "phase1" / "avatar.pt")
+    again = RegistrationRounds(fresh, regions, cams, cfg, [5, 10])
+    again.load_state_dict(rounds.state_dict(), fresh)
+    assert np.array_equal(fresh.params.translation, av.params.translation)
+    assert again.summary() == summary
+
+
+def test_register_training_pose_finds_a_known_shift_and_keeps_the_training_view(tiny_avatar_ws, one_thread):
+    data = IngestedData.open(tiny_avatar_ws / "data")
+    av, regions = _exact_head(tiny_avatar_ws)
     cfg = RegistrationConfig()
     first = register_training_pose(av, regions, cfg)
     assert first["registration"] == "applied" and first["registration_regions"] == ["face", "neck", "left_ear", "right_ear"]
@@ -186,6 +241,9 @@ def test_phase1_config_has_the_registration_section():
     cfg = resolve_config("phase1", "tiny", None, {"registration.mode": "off", "registration.regions": "face, neck"})
     assert cfg.registration.mode == "off" and cfg.registration.regions == ["face", "neck"]
     assert resolve_config("phase1", "tiny").registration.regions == ["face", "neck", "left_ear", "right_ear"]
+    assert resolve_config("phase1", "small").registration.rounds == 2
+    with pytest.raises(Exception, match="registration.rounds"):
+        resolve_config("phase1", "tiny", None, {"registration.rounds": 0})
     with pytest.raises(Exception, match="registration.mode"):
         resolve_config("phase1", "tiny", None, {"registration.mode": "sometimes"})
     with pytest.raises(Exception, match="registration.regions"):

@@ -43,7 +43,8 @@ Canonical rays come from a :class:`~sage_core.train.canonical_warp.CanonicalWarp
 After the last step, one multiview training timestep (mv-sf) is registered to the surface the SDF
 reconstructed (``registration``; :mod:`sage_core.train.registration`): the avatar's canonical
 content moves by the opposite of the tracked mesh's fitted offset and the timestep's translation is
-baked into the avatar's parameters, so the training views render as before.
+baked into the avatar's parameters, so the training views render as before
+(``registration.rounds`` > 1: also at steps while the SDF trains; the rounds are trainer state).
 
 The objective is the table :data:`PHASE1_TERMS` (each term's weight in the config's ``loss`` section,
 its first step in ``schedule``), run by :func:`sage_core.train.losses.add_terms`.
@@ -85,6 +86,7 @@ from .densify import DensityControl, DensifySchedule, scene_extent
 from .canonical_warp import CanonicalWarp, make_warp
 from .exposure import ExposureGain
 from .light_prior import SmoothAlbedoLight
+from .registration import RegistrationRounds
 from .symmetry import MirrorPlane, color_symmetry_loss, plane_from_pairs, sdf_symmetry_loss
 from .warp import pixel_rays
 
@@ -295,6 +297,8 @@ class Phase1Trainer:
                 self.position_lr_scale = self.density.extent
         # per-surfel visibility of the step's view: the density statistics and GA's local terms use it
         self._statistics = self.density is not None or cfg.loss.local_position > 0 or cfg.loss.local_scale > 0
+        self.registration: RegistrationRounds | None = None
+        """The training timestep's registration, when the run makes one (its state is the trainer's)."""
 
     # ------------------------------------------------------------------ setup
     def _param_groups(self) -> list[dict[str, Any]]:
@@ -390,6 +394,14 @@ class Phase1Trainer:
             self._inputs[timestep] = self.avatar.frame_inputs(timestep)
             self._rigid[timestep] = self.avatar.rigid_transform(self._inputs[timestep])
         return self._inputs[timestep]
+
+    def register(self, step: int) -> dict[str, Any]:
+        """One round of the training timestep's registration (:attr:`registration`), after
+        ``step``; drops the cached poses. Returns the round's metrics."""
+        assert self.registration is not None
+        out = self.registration.fit(self.avatar, step)
+        self.forget_poses()
+        return out
 
     def forget_poses(self) -> None:
         """Drop the cached FLAME kwargs, rigid transforms and posed meshes (after the avatar's
@@ -593,6 +605,8 @@ class Phase1Trainer:
             st["density"] = self.density.state_dict()
         if self.light_albedo is not None:
             st["light_albedo"] = self.light_albedo.state_dict()
+        if self.registration is not None:
+            st["registration"] = self.registration.state_dict()
         return st
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -614,7 +628,9 @@ class Phase1Trainer:
         set_rng_state(state["rng"])
         self.step_count = int(state["step"])
         self._not_mouth = self.avatar.surfels.region_id != REGION_MOUTH
-        self._meshes.clear()
+        if self.registration is not None and "registration" in state:
+            self.registration.load_state_dict(state["registration"], self.avatar)
+        self.forget_poses()
 
     def _resize_surfels(self, saved: dict[str, torch.Tensor]) -> None:
         """Reshape the surfel set (and the optimizer over it) to a saved avatar state with another
@@ -943,27 +959,23 @@ def registration_decision(data: IngestedData, cfg: Phase1Config) -> tuple[bool, 
         raise InputError(data.root, str(e)) from None
 
 
-def register_after_training(avatar: Avatar, data: IngestedData, init_dir: str | Path, cfg: Phase1Config, decision: tuple[bool, str]) -> dict[str, Any]:
-    """Register the training timestep's tracked pose to the reconstructed surface when ``decision``
-    (:func:`registration_decision`) says so (:mod:`sage_core.train.registration`); returns its
-    metrics (``registration``: "applied", "skipped: ..." or why it did not run)."""
-    from .registration import pixel_footprint, register_training_pose
+def registration_rounds(avatar: Avatar, data: IngestedData, init_dir: str | Path, cfg: Phase1Config, decision: tuple[bool, str]) -> RegistrationRounds | None:
+    """The registration of this run when ``decision`` (:func:`registration_decision`) says it runs
+    (:class:`sage_core.train.registration.RegistrationRounds`: ``cfg.registration.rounds`` fits, all
+    but the last evenly spaced over the SDF-trained steps before the polish), else None."""
+    from .registration import RegistrationRounds, round_steps
 
-    run, why = decision
-    if not run:
-        return {"registration": why}
+    if not decision[0]:
+        return None
     regions = None
     reg_path = Path(init_dir) / "regions.json"
     if reg_path.is_file():
         regions = Regions.from_dict(json.loads(reg_path.read_text(encoding="utf-8")))
     t0 = avatar.canonical_timestep
     cams = [fr.camera for fr in data.train if fr.timestep == t0]
-    rig = avatar.rigid_transform(avatar.frame_inputs(t0))
-    center = avatar.canonical_vertices.detach().mean(0)
-    if rig is not None:
-        center = (center - avatar.root_joint) @ rig[0].T + avatar.root_joint + rig[1]
-    pixel = pixel_footprint(cams, center.detach().cpu().double().numpy()) if cams else None
-    return register_training_pose(avatar, regions, cfg.registration, pixel)
+    polish_from = cfg.iterations - round(cfg.schedule.polish_fraction * cfg.iterations)
+    steps = round_steps(cfg.registration.rounds, cfg.schedule.sdf_from, polish_from)
+    return RegistrationRounds(avatar, regions, cams, cfg.registration, steps)
 
 
 def _mesh_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
@@ -1005,11 +1017,14 @@ def run_phase1(
         seed_free_mouth_colors(avatar, init_dir)
     views, mirror_index = one_shot_pseudo_views(data, avatar, cfg)
     trainer = Phase1Trainer(avatar, data, cfg, device, gen, pseudo_views=views, mirror_index=mirror_index)
+    trainer.registration = registration_rounds(avatar, data, init_dir, cfg, decision)
     total = cfg.iterations
     val_psnr = float("nan")
 
     def evaluate_now(step: int, _out: Any) -> None:
         nonlocal val_psnr
+        if trainer.registration is not None and trainer.registration.due(step) and step < total:
+            trainer.register(step)
         if cfg.schedule.eval_every > 0 and step % cfg.schedule.eval_every == 0 and step < total:
             val_psnr = trainer.evaluate("val", max_frames=4)["psnr"]
 
@@ -1022,8 +1037,11 @@ def run_phase1(
     last = dict(loop.last)
     train_time = loop.train_time_s
     steps_run = loop.steps_run
-    registration = register_after_training(avatar, data, init_dir, cfg, decision)
-    trainer.forget_poses()
+    if trainer.registration is not None:
+        trainer.register(total)
+        registration = trainer.registration.summary()
+    else:
+        registration = {"registration": decision[1]}
 
     if progress is not None:
         progress(total, total, "evaluating")
