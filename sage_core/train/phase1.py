@@ -1021,7 +1021,9 @@ def run_phase1(
     total = cfg.iterations
     val_psnr = float("nan")
 
-    def evaluate_now(step: int, _out: Any) -> None:
+    def after_step(step: int, _out: Any) -> None:
+        """A registration round when one is due, then the periodic val evaluation (both before the
+        step's checkpoint, so a resumed run has them)."""
         nonlocal val_psnr
         if trainer.registration is not None and trainer.registration.due(step) and step < total:
             trainer.register(step)
@@ -1033,7 +1035,7 @@ def run_phase1(
 
     loop = run_steps(trainer, total, label="phase 1", progress=progress, checkpoint_dir=checkpoint_dir,
                      checkpoint_every=cfg.schedule.checkpoint_every, state_key="trainer", map_location=device,
-                     stats=step_stats, on_step=evaluate_now)  # fmt: skip
+                     stats=step_stats, on_step=after_step)  # fmt: skip
     last = dict(loop.last)
     train_time = loop.train_time_s
     steps_run = loop.steps_run

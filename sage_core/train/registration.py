@@ -262,8 +262,9 @@ class RegistrationRounds:
     The applied translation (canonical and world) and each round's metrics are trainer state
     (:meth:`state_dict`): a run resumed after a round has the avatar's content from the checkpoint
     and its FLAME translation from here.
-    avatar: the trained avatar; regions: the model's vertex regions; cameras: the canonical
-    timestep's training cameras; cfg: the section; steps: the in-training rounds' steps.
+    avatar: the avatar about to be trained (its parameters give the timestep's tracked
+    translation); regions: the model's vertex regions; cameras: the canonical timestep's training
+    cameras; cfg: the section; steps: the in-training rounds' steps (:func:`round_steps`).
     """
 
     def __init__(self, avatar: Avatar, regions: Regions | None, cameras: list[Camera], cfg: RegistrationConfig, steps: list[int]) -> None:
