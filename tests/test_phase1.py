@@ -155,6 +155,7 @@ def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
     for k, v in _SMALL.items():
         if k != "n_surfels":
             args += ["--set", f"{k}={v}"]
+    args += ["--set", "registration.rounds=2"]
     res = CliRunner().invoke(app, args + ["--set", "checkpoint_every=4"])
     assert res.exit_code == 0, res.output
     out = ws / "phase1"
@@ -177,7 +178,7 @@ def test_command_writes_outputs_and_manifest(init_ws, tmp_path, one_thread):
     data = IngestedData.open(ws / "data")
     row = data.params.row_of(av.canonical_timestep)
     moved = (av.params.translation[row] - data.params.translation[row]) * 1000.0
-    # (two rounds by default: after step 4 of 8, while the SDF trains, and after the last)
+    # (two rounds: after step 4 of 8, while the SDF trains, and after the last)
     assert [r["registration_step"] for r in met["registration_rounds"]] == [4, 8]
     assert np.allclose(moved, met["registration_applied_world_mm"], atol=1e-3)
     if met["registration"] == "applied":

@@ -241,7 +241,7 @@ def test_phase1_config_has_the_registration_section():
     cfg = resolve_config("phase1", "tiny", None, {"registration.mode": "off", "registration.regions": "face, neck"})
     assert cfg.registration.mode == "off" and cfg.registration.regions == ["face", "neck"]
     assert resolve_config("phase1", "tiny").registration.regions == ["face", "neck", "left_ear", "right_ear"]
-    assert resolve_config("phase1", "small").registration.rounds == 2
+    assert resolve_config("phase1", "small").registration.rounds == 1
     with pytest.raises(Exception, match="registration.rounds"):
         resolve_config("phase1", "tiny", None, {"registration.rounds": 0})
     with pytest.raises(Exception, match="registration.mode"):
