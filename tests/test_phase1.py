@@ -114,7 +114,7 @@ def test_resume_after_a_registration_round_keeps_the_registered_pose(init_ws, on
 
     def trainer() -> Phase1Trainer:
         tr = _trainer(init_ws, "mlp", **over)
-        tr.registration = registration_rounds(tr.avatar, tr.data, init_ws / "init", tr.cfg, registration_decision(tr.data, tr.cfg))
+        tr.registration = registration_rounds(tr, init_ws / "init", registration_decision(tr.data, tr.cfg))
         return tr
 
     ref = trainer()

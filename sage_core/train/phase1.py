@@ -959,22 +959,22 @@ def registration_decision(data: IngestedData, cfg: Phase1Config) -> tuple[bool, 
         raise InputError(data.root, str(e)) from None
 
 
-def registration_rounds(avatar: Avatar, data: IngestedData, init_dir: str | Path, cfg: Phase1Config, decision: tuple[bool, str]) -> RegistrationRounds | None:
-    """The registration of this run when ``decision`` (:func:`registration_decision`) says it runs
-    (:class:`sage_core.train.registration.RegistrationRounds`: ``cfg.registration.rounds`` fits, all
-    but the last evenly spaced over the SDF-trained steps before the polish), else None."""
-    from .registration import RegistrationRounds, round_steps
+def registration_rounds(trainer: Phase1Trainer, init_dir: str | Path, decision: tuple[bool, str]) -> RegistrationRounds | None:
+    """The registration of the trainer's run when ``decision`` (:func:`registration_decision`) says
+    it runs (:class:`sage_core.train.registration.RegistrationRounds`: ``registration.rounds`` fits,
+    all but the last evenly spaced over the SDF-trained steps before the polish), else None."""
+    from .registration import round_steps
 
     if not decision[0]:
         return None
+    avatar, cfg = trainer.avatar, trainer.cfg
     regions = None
     reg_path = Path(init_dir) / "regions.json"
     if reg_path.is_file():
         regions = Regions.from_dict(json.loads(reg_path.read_text(encoding="utf-8")))
     t0 = avatar.canonical_timestep
-    cams = [fr.camera for fr in data.train if fr.timestep == t0]
-    polish_from = cfg.iterations - round(cfg.schedule.polish_fraction * cfg.iterations)
-    steps = round_steps(cfg.registration.rounds, cfg.schedule.sdf_from, polish_from)
+    cams = [fr.camera for fr in trainer.data.train if fr.timestep == t0]
+    steps = round_steps(cfg.registration.rounds, cfg.schedule.sdf_from, trainer.polish_from)
     return RegistrationRounds(avatar, regions, cams, cfg.registration, steps)
 
 
@@ -1017,7 +1017,7 @@ def run_phase1(
         seed_free_mouth_colors(avatar, init_dir)
     views, mirror_index = one_shot_pseudo_views(data, avatar, cfg)
     trainer = Phase1Trainer(avatar, data, cfg, device, gen, pseudo_views=views, mirror_index=mirror_index)
-    trainer.registration = registration_rounds(avatar, data, init_dir, cfg, decision)
+    trainer.registration = registration_rounds(trainer, init_dir, decision)
     total = cfg.iterations
     val_psnr = float("nan")
 

@@ -231,12 +231,14 @@ def register_training_pose(
 def head_pixel(avatar: Avatar, cameras: list[Camera]) -> float | None:
     """The size of one pixel of ``cameras`` at the canonical timestep's posed head centre
     (:func:`pixel_footprint`), None without cameras."""
+    from ..geometry.rigid import canonical_to_world
+
     if not cameras:
         return None
     center = avatar.canonical_vertices.detach().mean(0)
     rig = avatar.rigid_transform(avatar.frame_inputs(avatar.canonical_timestep))
     if rig is not None:
-        center = (center - avatar.root_joint) @ rig[0].T + avatar.root_joint + rig[1]
+        center = canonical_to_world(center, rig[0], rig[1], avatar.root_joint)
     return pixel_footprint(cameras, center.detach().cpu().double().numpy())
 
 
@@ -264,14 +266,14 @@ class RegistrationRounds:
     and its FLAME translation from here.
     avatar: the avatar about to be trained (its parameters give the timestep's tracked
     translation); regions: the model's vertex regions; cameras: the canonical timestep's training
-    cameras; cfg: the section; steps: the in-training rounds' steps (:func:`round_steps`).
+    cameras; cfg: the section; steps: the in-training rounds' steps, ascending (:func:`round_steps`).
     """
 
     def __init__(self, avatar: Avatar, regions: Regions | None, cameras: list[Camera], cfg: RegistrationConfig, steps: list[int]) -> None:
         self.regions = regions
         self.cameras = cameras
         self.cfg = cfg
-        self.steps = sorted(set(steps))
+        self.steps = steps
         self.row = avatar.params.row_of(avatar.canonical_timestep)
         self.base = np.asarray(avatar.params.translation[self.row], np.float64).copy()
         self.applied = np.zeros(3)
@@ -284,11 +286,15 @@ class RegistrationRounds:
         """Whether an in-training round runs after ``step``."""
         return step in self.steps
 
+    @property
+    def any_applied(self) -> bool:
+        """Whether a round so far was applied."""
+        return any(r["registration"] == "applied" for r in self.rounds)
+
     def fit(self, avatar: Avatar, step: int) -> dict[str, Any]:
         """One round: fit, apply when the rules allow (:func:`register_training_pose`), record it.
         The caller drops its cached poses afterwards."""
-        refining = any(r["registration"] == "applied" for r in self.rounds)
-        out = register_training_pose(avatar, self.regions, self.cfg, head_pixel(avatar, self.cameras), refining)
+        out = register_training_pose(avatar, self.regions, self.cfg, head_pixel(avatar, self.cameras), refining=self.any_applied)
         out["registration_step"] = int(step)
         if out["registration"] == "applied":
             self.applied += np.asarray(out["registration_translation_mm"]) / 1000.0
@@ -306,12 +312,10 @@ class RegistrationRounds:
     def summary(self) -> dict[str, Any]:
         """Phase-1 metrics: the last round's (``registration*``), the applied total
         (``registration_applied_mm``, canonical norm) and, with several rounds, every round's
-        metrics (``registration_rounds``)."""
-        if not self.rounds:
-            return {"registration": "no round ran"}
+        metrics (``registration_rounds``). Needs at least one round."""
         out = dict(self.rounds[-1])
         out.pop("registration_step", None)
-        if any(r["registration"] == "applied" for r in self.rounds):
+        if self.any_applied:
             out["registration"] = "applied"
         out["registration_applied_mm"] = float(np.linalg.norm(self.applied)) * 1000.0
         out["registration_applied_world_mm"] = [float(v) * 1000.0 for v in self.world]
