@@ -2,7 +2,7 @@
 
 Usage:
     python benchmarks/error_regions.py WS:STAGE[:LABEL] [WS:STAGE[:LABEL] | ceiling:CAPTURE ...]
-        [--split test|val] [--cams 2,8,12] [--panels DIR] [--scale 3] [--out FILE.json]
+        [--split train|test|val] [--cams 2,8,12] [--panels DIR] [--scale 3] [--out FILE.json]
         [--lpips WEIGHTS] [--timesteps 2,4] [--min-jaw 0.1]
 
 Every avatar renders every frame of the split as ``sage eval`` renders it (the stage's render
@@ -65,7 +65,7 @@ LPIPS_AREAS = ("band", "mouth", "rest", "outside")
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python benchmarks/error_regions.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("items", nargs="+", help="WS:STAGE[:LABEL] (stage phase1 or phase2), or ceiling:CAPTURE")
-    ap.add_argument("--split", default="test", choices=("test", "val"), help="split of the ingested data")
+    ap.add_argument("--split", default="test", choices=("train", "test", "val"), help="role of the ingested frames (train: the views the avatar was fitted to)")
     ap.add_argument("--cams", default="2,8,12", help="camera indices of the panels")
     ap.add_argument("--panels", type=Path, default=None, help="folder for GT | renders | errors panels")
     ap.add_argument("--scale", type=int, default=3, help="panel upscaling")

@@ -1,5 +1,6 @@
 """benchmarks/error_regions.py: the per-image error split adds up, two copies of one avatar agree, the
-JSON and panels are written, and the LPIPS areas partition the image."""
+JSON and panels are written, the train split scores the training frames, and the LPIPS areas
+partition the image."""
 
 from __future__ import annotations
 
@@ -32,6 +33,21 @@ def test_error_split_adds_up(cmd_avatar_ws, tmp_path, one_thread, capsys):
     assert len(panels) == len({r["timestep"] for r in a})
     assert "| a |" in capsys.readouterr().out
     assert er.main(["no-stage-given"]) == 2
+
+
+def test_train_split_scores_the_fitted_views(cmd_avatar_ws, tmp_path, one_thread):
+    from sage_core.data.dataset import IngestedData
+    from sage_core.workspace import Workspace
+
+    er = _module()
+    out = tmp_path / "train.json"
+    assert er.main([f"{cmd_avatar_ws}:phase1", "--split", "train", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["split"] == "train"
+    (recs,) = doc["images"].values()
+    data = IngestedData.open(Workspace(cmd_avatar_ws).stage_dir("ingest"))
+    train = data.role("train")
+    assert train and [(r["timestep"], r["camera"]) for r in recs] == [(f.timestep, f.camera_index) for f in train]
 
 
 def test_ceiling_item_renders_the_capture_truth(cmd_avatar_ws, tiny_capture, tmp_path, one_thread):
