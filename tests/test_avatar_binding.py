@@ -454,7 +454,7 @@ def test_opacity_offset_adds_to_the_network_logit_with_its_gradient():
     inner = slice(1, 5)
     ref = torch.sigmoid(torch.logit(a[inner]) + s.opacity_offset.detach()[inner])
     assert torch.allclose(out[inner], ref, atol=1e-12)
-    assert float(out[0]) == 0.0 and float(out[-1]) == 1.0
+    assert float(out[0].detach()) == 0.0 and float(out[-1].detach()) == 1.0
     ai = a[inner].clone().requires_grad_(True)
     (g_off, g_a) = torch.autograd.grad((s.offset_opacities(torch.cat([a[:1], ai, a[5:]]))[inner] * torch.arange(1.0, 5.0, dtype=torch.float64)).sum(),
                                        [s.opacity_offset, ai])
