@@ -117,6 +117,30 @@ def test_mask_losses_match_their_formulas():
     mk = torch.tensor([[0.0, 1.0], [0.0, 1.0]])
     assert torch.isclose(alpha_mask_loss(a, mk), torch.tensor(0.7 / 4))
     assert float(alpha_mask_loss(mk, mk)) == 0.0
+    # a weight leaves pixels out of the sum but not out of the count
+    w = torch.tensor([[1.0, 1.0], [1.0, 0.0]])
+    assert torch.isclose(alpha_mask_loss(a, mk, w), torch.tensor(0.2 / 4))
+
+
+def test_mask_edge_band_straddles_the_edge_and_follows_the_regime():
+    from sage_core.config import resolve_config
+    from sage_core.train.phase1 import mask_edge_keep
+
+    mask = torch.zeros(12, 12)
+    mask[3:9, 3:9] = 1.0  # a 6 x 6 foreground square
+    assert torch.equal(mask_edge_keep(mask, 0), torch.ones(12, 12))
+    keep = mask_edge_keep(mask, 1)
+    band = keep == 0
+    # one pixel either side of the edge: rows/cols 2..9 minus the untouched core 4..7
+    ref = torch.zeros(12, 12, dtype=torch.bool)
+    ref[2:10, 2:10] = True
+    ref[4:8, 4:8] = False
+    assert torch.equal(band, ref)
+    assert int((mask_edge_keep(mask, 2) == 0).sum()) == 10 * 10 - 2 * 2
+    # one photo trusts the mask's edge less; a clip or a rig keeps every pixel
+    assert resolve_config("phase1", "tiny", regime="one-shot").mask_band == 1
+    assert resolve_config("phase1", "tiny", regime="sv-hr").mask_band == 0
+    assert resolve_config("phase1", "tiny", regime="mv-sf").mask_band == 0
 
 
 # ---- the loss-term table ---------------------------------------------------------------------------

@@ -218,6 +218,23 @@ def test_background_band_rays_and_mask_terms(init_ws, one_thread):
     assert {"neus_mask", "mask"} <= seen
 
 
+def test_mask_band_leaves_the_masks_edge_out_of_the_mask_terms(init_ws, one_thread):
+    from sage_core.train.phase1 import mask_edge_keep
+
+    losses = {}
+    for band in (0, 1):
+        tr = _trainer(init_ws, "mlp", iterations=4, w_neus_mask=0.1, w_mask=0.1, mask_band=band)
+        out = tr.step()
+        losses[band] = (out["mask"], out["neus_mask"])
+        if band:
+            (fi, keep), = tr._mask_keep.items()
+            _, mask, _ = tr._frame(fi)
+            assert torch.equal(keep, mask_edge_keep(mask, 1)) and 0 < int((keep == 0).sum()) < keep.numel()
+    # the same first render, its outline's disagreement with the mask no longer counted
+    assert losses[1][0] < losses[0][0]
+    assert np.isfinite(losses[1][1]) and losses[1][1] >= 0
+
+
 def test_polish_fraction_trains_on_the_photometric_loss_alone(init_ws, one_thread):
     tr = _trainer(init_ws, "mlp", iterations=6, polish_fraction=0.5, w_mask=0.1)
     assert tr.polish_from == 3

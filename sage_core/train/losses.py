@@ -200,9 +200,11 @@ def mask_bce_loss(opacity: torch.Tensor, mask: torch.Tensor, eps: float = 1e-3) 
     return F.binary_cross_entropy(o, mask.to(o.dtype))
 
 
-def alpha_mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean |alpha − mask| of a rendered alpha against the foreground mask. (H, W) each."""
-    return (alpha.reshape(mask.shape) - mask).abs().mean()
+def alpha_mask_loss(alpha: torch.Tensor, mask: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean |alpha − mask| of a rendered alpha against the foreground mask, (H, W) each; with a
+    per-pixel weight (H, W) the mean of weight·|alpha − mask| over all pixels."""
+    d = (alpha.reshape(mask.shape) - mask).abs()
+    return d.mean() if weight is None else (d * weight).mean()
 
 
 def local_position_loss(mu_loc: torch.Tensor, threshold: float = 1.0) -> torch.Tensor:

@@ -217,6 +217,16 @@ def near_mask(mask: torch.Tensor, radius: int) -> torch.Tensor:
     return m[0, 0] > 0
 
 
+def mask_edge_keep(mask: torch.Tensor, band: int) -> torch.Tensor:
+    """(H, W) float 0 on the pixels within Chebyshev distance ``band`` of the other side of the
+    foreground mask's edge (mask (H, W) > 0.5 against the rest: a band 2·band pixels wide straddling
+    the edge), 1 elsewhere; all ones for band 0. The weights of the mask terms (``mask_band``)."""
+    if band <= 0:
+        return torch.ones_like(mask, dtype=torch.float32)
+    fg = mask > 0.5
+    return (~(near_mask(fg, band) & near_mask(~fg, band))).to(torch.float32)
+
+
 def weighted_rgb_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
     """(1 − w)·mean(ω·|pred − gt|) + w·mean(ω·(1 − SSIM map)); pred, gt: (H, W, 3), weight ω: (H, W)."""
     om = weight[..., None]
@@ -260,6 +270,7 @@ class Phase1Trainer:
         if not self.frames:
             raise ValueError("no training frames")
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._mask_keep: dict[int, torch.Tensor] = {}
         self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._ssim_targets: dict[int, SSIMTarget] = {}
         self._ssim_target_bytes = 0
@@ -713,6 +724,17 @@ class Phase1Step:
         """Whether the step trains on a training frame that has a foreground mask."""
         return self.frame is not None and self.trainer.frames[self.frame].mask is not None
 
+    @property
+    def mask_keep(self) -> torch.Tensor:
+        """(H, W) weights of the mask terms on this view: 0 in the band of ``mask_band`` pixels about
+        the mask's edge, 1 elsewhere (:func:`mask_edge_keep`; cached per training frame)."""
+        tr = self.trainer
+        if self.frame is None:
+            return mask_edge_keep(self.mask, int(tr.cfg.mask_band))
+        if self.frame not in tr._mask_keep:
+            tr._mask_keep[self.frame] = mask_edge_keep(self.mask, int(tr.cfg.mask_band))
+        return tr._mask_keep[self.frame]
+
     def visible_rows(self, x: torch.Tensor) -> torch.Tensor:
         """The rows of a per-surfel tensor x (N, ...) that the rasterizer kept for this view (all rows
         when the render has no visibility), as GaussianAvatars' local terms average over them."""
@@ -823,7 +845,15 @@ def _neus_rgb(s: Phase1Step) -> torch.Tensor | None:
 
 def _neus_mask(s: Phase1Step) -> torch.Tensor | None:
     r = s.neus()
-    return None if r is None else L.mask_bce_loss(r.out.weights_sum[r.ok], s.mask.reshape(-1)[r.pix][r.ok])
+    if r is None:
+        return None
+    opacity, target = r.out.weights_sum[r.ok], s.mask.reshape(-1)[r.pix][r.ok]
+    if s.trainer.cfg.mask_band > 0:  # rays in the band about the mask's edge left out
+        keep = s.mask_keep.reshape(-1)[r.pix][r.ok] > 0.5
+        if not bool(keep.any()):
+            return None
+        opacity, target = opacity[keep], target[keep]
+    return L.mask_bce_loss(opacity, target)
 
 
 def _depth(s: Phase1Step) -> torch.Tensor | None:
@@ -889,7 +919,8 @@ def _light_albedo(s: Phase1Step) -> torch.Tensor:
 PHASE1_TERMS: tuple[L.LossTerm[Phase1Step], ...] = (
     L.LossTerm("rgb", None, _rgb, when=lambda s: s.real),
     L.LossTerm("pseudo_rgb", lambda s: s.view_weight, _pseudo_rgb, when=lambda s: not s.real),
-    L.LossTerm("mask", "mask", lambda s: L.alpha_mask_loss(s.render.alpha, s.mask), polish=False, when=lambda s: s.has_mask),
+    L.LossTerm("mask", "mask", lambda s: L.alpha_mask_loss(s.render.alpha, s.mask, s.mask_keep if s.trainer.cfg.mask_band > 0 else None),
+               polish=False, when=lambda s: s.has_mask),
     L.LossTerm("normal_consistency", "normal_consistency", lambda s: L.normal_consistency_loss(s.render.normal_world, s.render.surf_normal_world),
                start="normal_consistency_from", polish=False),
     L.LossTerm("distortion", "distortion", lambda s: L.distortion_loss(s.render.distortion), start="distortion_from", polish=False),
