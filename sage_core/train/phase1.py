@@ -55,6 +55,7 @@ the uninterrupted loss curve.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass
@@ -270,7 +271,6 @@ class Phase1Trainer:
         if not self.frames:
             raise ValueError("no training frames")
         self._cache: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
-        self._mask_keep: dict[int, torch.Tensor] = {}
         self._pixels: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._ssim_targets: dict[int, SSIMTarget] = {}
         self._ssim_target_bytes = 0
@@ -724,16 +724,13 @@ class Phase1Step:
         """Whether the step trains on a training frame that has a foreground mask."""
         return self.frame is not None and self.trainer.frames[self.frame].mask is not None
 
-    @property
-    def mask_keep(self) -> torch.Tensor:
+    @functools.cached_property
+    def mask_keep(self) -> torch.Tensor | None:
         """(H, W) weights of the mask terms on this view: 0 in the band of ``mask_band`` pixels about
-        the mask's edge, 1 elsewhere (:func:`mask_edge_keep`; cached per training frame)."""
-        tr = self.trainer
-        if self.frame is None:
-            return mask_edge_keep(self.mask, int(tr.cfg.mask_band))
-        if self.frame not in tr._mask_keep:
-            tr._mask_keep[self.frame] = mask_edge_keep(self.mask, int(tr.cfg.mask_band))
-        return tr._mask_keep[self.frame]
+        the mask's edge, 1 elsewhere (:func:`mask_edge_keep`); None when ``mask_band`` is 0 (every
+        pixel counts). Computed once per step, for both mask terms."""
+        band = int(self.trainer.cfg.mask_band)
+        return mask_edge_keep(self.mask, band) if band > 0 else None
 
     def visible_rows(self, x: torch.Tensor) -> torch.Tensor:
         """The rows of a per-surfel tensor x (N, ...) that the rasterizer kept for this view (all rows
@@ -848,7 +845,7 @@ def _neus_mask(s: Phase1Step) -> torch.Tensor | None:
     if r is None:
         return None
     opacity, target = r.out.weights_sum[r.ok], s.mask.reshape(-1)[r.pix][r.ok]
-    if s.trainer.cfg.mask_band > 0:  # rays in the band about the mask's edge left out
+    if s.mask_keep is not None:  # rays in the band about the mask's edge left out
         keep = s.mask_keep.reshape(-1)[r.pix][r.ok] > 0.5
         if not bool(keep.any()):
             return None
@@ -919,8 +916,7 @@ def _light_albedo(s: Phase1Step) -> torch.Tensor:
 PHASE1_TERMS: tuple[L.LossTerm[Phase1Step], ...] = (
     L.LossTerm("rgb", None, _rgb, when=lambda s: s.real),
     L.LossTerm("pseudo_rgb", lambda s: s.view_weight, _pseudo_rgb, when=lambda s: not s.real),
-    L.LossTerm("mask", "mask", lambda s: L.alpha_mask_loss(s.render.alpha, s.mask, s.mask_keep if s.trainer.cfg.mask_band > 0 else None),
-               polish=False, when=lambda s: s.has_mask),
+    L.LossTerm("mask", "mask", lambda s: L.alpha_mask_loss(s.render.alpha, s.mask, s.mask_keep), polish=False, when=lambda s: s.has_mask),
     L.LossTerm("normal_consistency", "normal_consistency", lambda s: L.normal_consistency_loss(s.render.normal_world, s.render.surf_normal_world),
                start="normal_consistency_from", polish=False),
     L.LossTerm("distortion", "distortion", lambda s: L.distortion_loss(s.render.distortion), start="distortion_from", polish=False),
