@@ -255,9 +255,17 @@ def test_every_legacy_flat_key_is_accepted_and_sets_its_field(stage):
     cls = STAGE_CONFIGS[stage]
     aliases = legacy_aliases(cls)
     flat = canonical_form(cls())
-    # top-level fields added later stay out of the canonical form at their default
-    added = {f.name for f in dataclasses.fields(cls) if f.metadata.get("added")}
-    top = set(aliases) | {n for n, _, _ in describe(cls) if "." not in n and n not in added}
+    # fields added later stay out of the canonical form at their default: the top-level ones and
+    # those with a flat name (a section whose other fields have flat names gives its new ones one too)
+    def is_added(name: str) -> bool:
+        obj: object = cls()
+        *sections, last = name.split(".")
+        for sec in sections:
+            obj = getattr(obj, sec)
+        return bool({f.name: f for f in dataclasses.fields(obj)}[last].metadata.get("added"))
+
+    added = {n for n, _, _ in describe(cls) if is_added(n)}
+    top = {a for a, n in aliases.items() if n not in added} | {n for n, _, _ in describe(cls) if "." not in n and n not in added}
     # sections given fields after the nesting (phase 1's relocate) appear under their own name
     later = {n.split(".")[0] for n, _, _ in describe(cls) if "." in n and n not in aliases.values()}
     assert top <= set(flat) and set(flat) - top <= later, set(flat) - top
@@ -386,3 +394,21 @@ def test_one_flag_parser_for_stage_track_and_synth_configs():
         resolve_track_config("default", None, {"steady_depth": "maybe"})
     with pytest.raises(ConfigError, match="true or false"):
         parse_sets(["novel_multiview=maybe"])
+
+
+def test_every_regimes_stage_configs_hash_and_the_single_camera_ones_cover_the_unseen_neck():
+    """Each regime's defaults hash (a field added to a section with flat names takes its own flat
+    name, never clashing with the section's) and set what the regime needs."""
+    from sage_core.config import REGIMES, canonical_form
+
+    hashes = {}
+    for regime in REGIMES:
+        for stage in ("phase1", "phase2"):
+            cfg = resolve_config(stage, "tiny", regime=regime)
+            hashes[(regime, stage)] = config_hash(cfg)
+            assert from_dict(type(cfg), canonical_form(cfg)) == cfg
+        p2 = resolve_config("phase2", "tiny", regime=regime)
+        single = regime in ("sv-hr", "one-shot")
+        assert p2.unseen_fill.enabled == p2.unseen_fill.cover_neck == single
+        assert canonical_form(p2).get("unseen_fill_cover_neck", False) == single
+    assert hashes[("one-shot", "phase2")] != hashes[("mv-sf", "phase2")]

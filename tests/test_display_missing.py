@@ -112,3 +112,18 @@ def test_benchmark_tables_treat_nan_as_missing():
     assert cells[3] == "30.00" and cells[5] == "24.00"
     assert cells[6] == f"+0.16 / {MISSING}"  # Δ val: ours is missing (SAGE's val PSNR is NaN)
     assert cells[7] == "-1.92 / -1.00" and cells[8] == "yes"
+
+
+def test_phase1_panel_of_a_one_shot_workspace_says_it_has_no_test_or_val_frames(monkeypatch, tmp_path):
+    from types import SimpleNamespace
+
+    from sage_cli.commands import phase1 as p1
+
+    con = Console(width=140, record=True, file=io.StringIO())
+    monkeypatch.setattr(_common, "console", con)
+    m = {"attributes": "mlp", "n_surfels": 6000, "val_psnr": NAN, "val_ssim": NAN, "val_images": 0, "train_psnr": 22.28,
+         "train_ssim": 0.9487, "test_psnr": NAN, "test_ssim": NAN, "test_images": 0, "regime": "one-shot", "chamfer_m": 0.001,
+         "chamfer_rel": 0.003, "normal_error_deg": 9.5, "iterations_per_s": 5.0}  # fmt: skip
+    p1.show(SimpleNamespace(manifest={"metrics": m, "wall_time_s": 276.1}), tmp_path)
+    text = con.export_text()
+    assert "no test frames" in text and "no val frames" in text and "22.28 dB" in text and "nan" not in text.lower()

@@ -836,6 +836,27 @@ def test_unseen_fill_continues_each_groups_seen_surfels_and_keeps_the_back_cover
     torch.testing.assert_close(after.opacities[seen], ref.opacities[seen])
     torch.testing.assert_close(after.scales[seen], ref.scales[seen])
     assert bool((after.opacities[res.filled & hair] >= floor[res.filled & hair, 0] - 1e-6).all())
+    # the neck is covered only with cover_neck (the single-camera regimes' default), and no surfel's
+    # disc grows past the mesh's open boundary (the neck's cut)
+    neck = res.filled & (region == REGION_NECK)
+    assert bool(neck.any()) and bool((floor[neck, 1] == 1).all()) and "opacity_floor" not in res.per_group[str(REGION_NECK)]
+    tr3 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_hair=True,
+                   **{"unseen_fill.cover_neck": True})
+    res3, floor3 = tr3.unseen_fill_result, tr3.avatar.surfels.unseen_floor
+    assert torch.equal(res3.filled, res.filled)
+    src_op = ref.opacities[seen & (region == REGION_NECK) & ~taken]
+    assert res3.per_group[str(REGION_NECK)]["opacity_floor"] == pytest.approx(float(src_op.median()), rel=1e-5)
+    assert bool((floor3[neck, 0] >= float(src_op.median()) - 1e-6).all())
+    from sage_core.geometry.topology import boundary_edges, distance_to_segments
+
+    canon = tr3.avatar.canonical_state()
+    v = tr3.avatar.canonical_vertices.detach().double().numpy()
+    e = boundary_edges(tr3.avatar.faces.numpy())
+    assert len(e) > 0
+    d_edge = torch.as_tensor(distance_to_segments(canon.means.detach().double().numpy(), v[e[:, 0]], v[e[:, 1]]))
+    geo = canon.scales.detach().double().prod(-1).sqrt()
+    grown = res3.filled & (floor3[:, 1] > 1)
+    assert bool((geo[grown] * floor3[grown, 1].double() <= d_edge[grown] / 3.0 + 1e-9).all())
 
 
 def test_correction_radius_defaults_by_attributes(phase1_avatar_path):

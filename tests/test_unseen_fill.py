@@ -197,3 +197,52 @@ def test_skin_coloured_hair_seen_only_at_grazing_angles_is_refilled() -> None:
     assert torch.equal(res.colors[kept], c[kept]) and not bool(res.filled[kept].any())
     assert res.per_group[str(REGION_HAIR)]["grazing_skin_refilled"] == float(blotch.sum())
 
+
+
+def test_cover_grows_unseen_surfels_but_not_past_the_meshs_open_edge() -> None:
+    """A flat sheet (z = 0, x and y in [0, 1]) whose edge x = 1 is open: its strip x < 0.2 is seen,
+    the rest is not and has small surfels. They grow to cover the gaps, except near the open edge at x = 1,
+    where a disc of three standard deviations may reach the edge but not beyond it."""
+    from sage_core.geometry.topology import boundary_edges, distance_to_segments
+
+    g = torch.Generator().manual_seed(0)
+    n = 3000
+    x = torch.cat([torch.rand(n, 2, generator=g, dtype=torch.float64), torch.zeros(n, 1, dtype=torch.float64)], 1)
+    seen = x[:, 0] < 0.2
+    w = torch.where(seen, torch.full((n,), 3.0, dtype=torch.float64), torch.zeros(n, dtype=torch.float64))
+    r = torch.full((n,), REGION_HAIR)
+    c = torch.where(seen[:, None], HAIR, SKIN)
+    op = torch.where(seen, torch.full((n,), 0.9), torch.full((n,), 0.3))
+    scales = torch.full((n, 2), 0.002)
+    # the open edge x = 1 as segments of a mesh: a strip of two triangles per step along y
+    ys = np.linspace(0.0, 1.0, 11)
+    verts = np.array([[xx, y, 0.0] for y in ys for xx in (0.9, 1.0)])
+    faces = np.array([[2 * i, 2 * i + 1, 2 * i + 3] for i in range(10)] + [[2 * i, 2 * i + 3, 2 * i + 2] for i in range(10)])
+    e = boundary_edges(faces)
+    edge_x1 = np.all(verts[e][:, :, 0] == 1.0, axis=1)
+    assert edge_x1.sum() == 10 and len(e) == 22  # ten along x = 1, ten along x = 0.9, the two ends
+    segs = (verts[e[edge_x1, 0]], verts[e[edge_x1, 1]])
+    kw = dict(groups=((REGION_HAIR,),), cover_regions=(REGION_HAIR,), seen_ratio=10.0)
+    free = fill_unseen(x, c, w, r, op, scales, **kw)
+    capped = fill_unseen(x, c, w, r, op, scales, boundary=segs, **kw)
+    assert torch.equal(free.filled, capped.filled) and torch.equal(free.opacity, capped.opacity)
+    d = torch.as_tensor(distance_to_segments(x.numpy(), *segs))
+    far = free.filled & (d > 0.1)
+    near = free.filled & (d < 0.005)
+    assert bool(far.any()) and bool(near.any())
+    torch.testing.assert_close(capped.scale_gain[far], free.scale_gain[far])
+    assert bool((free.scale_gain[near] > 1.5).all())
+    assert bool((capped.scale_gain[near] < free.scale_gain[near]).all())
+    grown = capped.scale_gain > 1
+    assert bool((0.002 * capped.scale_gain[grown] <= d[grown] / 3.0 + 1e-9).all())
+
+
+def test_distance_to_segments_is_exact_and_boundary_edges_of_a_closed_mesh_are_none() -> None:
+    from sage_core.geometry.topology import boundary_edges, distance_to_segments, edges
+
+    tet = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    assert boundary_edges(tet).shape == (0, 2) and len(edges(tet)) == 6
+    a = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    b = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 1.0]])
+    p = np.array([[0.5, 1.0, 0.0], [-2.0, 0.0, 0.0], [0.0, 2.0, 0.5], [3.0, 0.0, 4.0]])
+    np.testing.assert_allclose(distance_to_segments(p, a, b, chunk=3), [1.0, 2.0, 0.0, np.hypot(2.0, 4.0)])

@@ -65,7 +65,7 @@ def show(r: StageResult, ws: Path) -> None:
     out = ws / "phase1"
     extra = []
     if "test_psnr" in m:
-        extra.append(("test PSNR / SSIM", f"{m['test_psnr']:.2f} dB / {m['test_ssim']:.4f}"))
+        extra.append(("test PSNR / SSIM", f"{m['test_psnr']:.2f} dB / {m['test_ssim']:.4f}" if m.get("test_images", 1) else "no test frames"))
     if "exposure_gain_min" in m:
         extra.append(("exposure gains", f"{m['exposure_gain_min']:.3f} .. {m['exposure_gain_max']:.3f}"))
     if "pseudo_views" in m:

@@ -40,13 +40,14 @@ import torch
 
 from ..flame import FlameModel, FlameParams
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from ..geometry.topology import edges
 from ..render.mesh_raster import rasterize_mesh
 from .config import TrackConfig
 from .embedding import LandmarkEmbedding
 from .flame_subset import FlameSubset, JointBasis
 from .losses import (charbonnier, facing, pixel_barycentrics, project, sample_map, signed_distance, triangle_normals,
                      triangle_plane_frame, visibility_weight)
-from .mesh_utils import edge_faces, edges
+from .mesh_utils import edge_faces
 
 Progress = Callable[..., None]
 TRANS_UNIT = 0.1  # metres per unit of the translation parameter

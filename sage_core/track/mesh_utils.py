@@ -1,4 +1,4 @@
-"""Topology helpers for the fit: edges, the neck opening, vertex rings, the scalp region."""
+"""Topology helpers for the fit: the neck opening, vertex rings, the scalp region, faces across an edge."""
 
 from __future__ import annotations
 
@@ -6,19 +6,12 @@ from collections import defaultdict
 
 import numpy as np
 
-
-def edges(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) unique undirected edges (sorted pairs) of a face table (F, 3)."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
+from ..geometry.topology import boundary_edges, edges
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     """Vertex loops of the open boundaries (edges used by one face), largest first."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    key = np.sort(e, axis=1)
-    uniq, counts = np.unique(key, axis=0, return_counts=True)
-    border = uniq[counts == 1]
+    border = boundary_edges(faces)
     adj: dict[int, list[int]] = defaultdict(list)
     for a, b in border:
         adj[int(a)].append(int(b))

@@ -91,6 +91,7 @@ from ..errors import InputError
 from ..flame.frames import surfel_frames
 from ..geometry.knn import nearest_indices
 from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from ..geometry.topology import boundary_edges
 from ..render import RenderCamera, rasterize_surfels
 from ..render.mesh_raster import rasterize_mesh
 from ..render.volume import render_neus
@@ -415,7 +416,8 @@ class Phase2Trainer:
         continuation over its group's surfel graph (``k`` neighbours) of the albedos of the group's
         seen surfels (eyes, face, neck, mouth each alone; the hair with the rest of the scalp, its
         skin-coloured sources left out, and those of them seen only at grazing angles filled too). Sets :attr:`unseen_fill_result` (with the opacity floor and
-        scale gain of ``unseen_fill.cover``).
+        scale gain of ``unseen_fill.cover`` for the hair group, and the neck with ``unseen_fill.cover_neck``;
+        the scales grow no further than the canonical mesh's open boundary allows).
         Returns ((N,) bool surfels filled, (M, 3) their colours)."""
         from .unseen_fill import fill_unseen
 
@@ -427,12 +429,15 @@ class Phase2Trainer:
         facing = getattr(self, "view_facing", None)
         if facing is not None and tuple(facing.shape) != tuple(weights.shape):
             facing = None
+        edge = boundary_edges(av.faces.detach().cpu().numpy())
+        verts = av.canonical_vertices.detach().double().cpu().numpy()
         res = fill_unseen(
             canon.means, p.colors, weights.to(av.device), s.region_id, p.opacities if c.cover else None,
             canon.scales if c.cover else None, facing,
             groups=unseen_fill_groups(c.hair), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
-            cover_regions=(REGION_HAIR, REGION_OTHER), taken=taken,
+            cover_regions=(REGION_HAIR, REGION_OTHER) + ((REGION_NECK,) if c.cover_neck else ()), taken=taken,
             seen_min=SEEN_MIN_WEIGHT, source_min=c.source_min, neighbours=int(k), grazing_cos=c.grazing_cos,
+            boundary=(verts[edge[:, 0]], verts[edge[:, 1]]),
         )  # fmt: skip
         self.unseen_fill_result = res
         return res.filled, res.colors[res.filled]

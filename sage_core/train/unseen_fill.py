@@ -34,8 +34,10 @@ what was seen, region by region (docs/method.md, "The unseen back and sides"):
    scales are multiplied by the gain that makes their geometric mean at least 0.75 times the
    distance to its 4th nearest surfel of the group (at most 4x): the Gaussians of neighbours then
    overlap well above half opacity (on the tiny one-shot avatar the inside of the face made 6 % of
-   the back views' pixels before, 0.1 % after). Both are stored in the surfel set
-   (:meth:`SurfelSet.set_unseen_floor`).
+   the back views' pixels before, 0.1 % after). A surfel near the mesh's open boundary (the cut
+   at the bottom of the neck) grows no further than the disc of three standard deviations reaching
+   that boundary (``boundary``), so the cover never stands out of the surface's edge. Both are
+   stored in the surfel set (:meth:`SurfelSet.set_unseen_floor`).
 
 Inputs are per-surfel tensors (N surfels): canonical centres (N, 3), albedo colours (N, 3), view
 weights (N,), region labels (N,) (:data:`sage_core.avatar.init.REGION_NAMES`), opacities (N,),
@@ -51,6 +53,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+
+from ..geometry.topology import distance_to_segments
 
 __all__ = ["FillResult", "fill_unseen", "harmonic_fill", "knn_graph", "skin_like_sources"]
 
@@ -197,6 +201,8 @@ def fill_unseen(
     cover_ratio: float = 0.75,
     seen_ratio: float = 0.15,
     max_gain: float = 4.0,
+    boundary: tuple[np.ndarray, np.ndarray] | None = None,
+    boundary_ratio: float = 1.0 / 3.0,
 ) -> FillResult:
     """Colours (and opacities) of the unseen surfels of ``groups``, continued from their group's sources.
 
@@ -218,7 +224,10 @@ def fill_unseen(
     cover_neighbours, cover_ratio, seen_ratio, max_gain: the scale gain of a filled
     surfel makes its geometric mean scale at least ``cover_ratio`` times the distance to its
     ``cover_neighbours``-th nearest surfel of the group, but not beyond ``seen_ratio`` times its
-    distance to the nearest seen surfel, and at most ``max_gain``. Seen surfels are returned unchanged.
+    distance to the nearest seen surfel, and at most ``max_gain``; boundary: the segments (two (B, 3)
+    arrays of end points, in the space of ``points``) of the mesh's open boundary, which caps that
+    geometric mean at ``boundary_ratio`` times the distance to the nearest segment (None or B = 0:
+    no cap). Seen surfels are returned unchanged.
     """
     dev = colors.device
     x = points.detach().double().cpu().numpy()
@@ -300,6 +309,8 @@ def fill_unseen(
             if kept.any():  # near the seen surface the seen surfels cover: grow only away from it
                 d_seen, _ = cKDTree(x[kept]).query(x[nodes[t]], k=1)
                 want = np.minimum(want, float(seen_ratio) * d_seen)
+            if boundary is not None and len(boundary[0]):  # the disc ends where the surface does
+                want = np.minimum(want, float(boundary_ratio) * distance_to_segments(x[nodes[t]], boundary[0], boundary[1]))
             geo = np.sqrt(np.maximum(sg[nodes[t], 0] * sg[nodes[t], 1], 1e-30))
             gain[nodes[t]] = np.clip(want / geo, 1.0, float(max_gain))
             s["scale_gain_median"] = float(np.median(gain[nodes[t]]))
