@@ -46,10 +46,11 @@ def parse_item(item: str) -> tuple[Path, str, str]:
     return ws, stage, label
 
 
-def orbit_renders(ws: Path, stage: str, angles: list[float], want_color: bool) -> list[dict[str, Any]]:
-    """Per angle: ``share`` (H, W, 3) the face's and the mouth's share of the colour and the
-    accumulated opacity, and with ``want_color`` ``color`` (H, W, 3) the render on white and
-    ``regions`` (H, W, 3) the surfels in their region colours."""
+def orbit_renders(ws: Path, stage: str, angles: list[float], panel_angles: list[float]) -> dict[float, dict[str, Any]]:
+    """Angle -> renders, for every angle of ``angles`` and ``panel_angles``: ``share`` (H, W, 3) the
+    face's and the mouth's share of the colour and the accumulated opacity, and at the panel angles
+    ``color`` (H, W, 3) the render on white and ``regions`` (H, W, 3) the surfels in their region
+    colours."""
     import torch
 
     from sage_core.avatar.init import REGION_EYES, REGION_FACE, REGION_MOUTH
@@ -75,8 +76,8 @@ def orbit_renders(ws: Path, stage: str, angles: list[float], want_color: bool) -
     first = int(np.argmax(dirs @ forward / np.maximum(np.linalg.norm(dirs, axis=1), 1e-12)))
     marker = torch.stack([face.float(), (reg == REGION_MOUTH).float(), torch.ones_like(face, dtype=torch.float32)], -1)
     palette = torch.tensor(REGION_COLORS, dtype=torch.float32)[reg.clamp(0, len(REGION_COLORS) - 1)]
-    out = []
-    for a in angles:
+    out: dict[float, dict[str, Any]] = {}
+    for a in sorted({float(v) for v in angles} | {float(v) for v in panel_angles}):
         cam = RenderCamera.from_camera(cams[(first + int(round(a))) % 360], torch.device("cpu"))
 
         def draw(colors: torch.Tensor, background: float) -> np.ndarray:
@@ -85,11 +86,11 @@ def orbit_renders(ws: Path, stage: str, angles: list[float], want_color: bool) -
                                       near=0.01, far=100.0, return_statistics=False)  # fmt: skip
             return r.color.clamp(0, 1).numpy()
 
-        rec: dict[str, Any] = {"angle": float(a), "share": draw(marker, 0.0)}
-        if want_color:
+        rec: dict[str, Any] = {"share": draw(marker, 0.0)}
+        if a in panel_angles:
             rec["color"] = draw(p.colors.float(), 1.0)
             rec["regions"] = draw(palette, 1.0)
-        out.append(rec)
+        out[a] = rec
     return out
 
 
@@ -121,22 +122,22 @@ def main(argv: list[str] | None = None) -> int:
         if not (ws / "data").is_dir():
             print(f"error: {ws}: not a workspace (no data/ folder)", file=sys.stderr)
             return 2
-    angles = list(np.arange(args.start, args.stop + 1e-9, args.step))
+    angles = [float(a) for a in np.arange(args.start, args.stop + 1e-9, args.step)]
     panel_angles = [float(a) for a in args.angles.split(",")] if args.panels else []
     doc: dict[str, Any] = {"angles": [float(a) for a in angles], "threshold": args.threshold, "avatars": {}}
     rows = []
     print("| avatar | views | foreground px | face shows | mouth shows |\n|---|---|---|---|---|")
     for ws, stage, label in items:
-        recs = [count(r["share"], args.threshold) for r in orbit_renders(ws, stage, angles, False)]
+        renders = orbit_renders(ws, stage, angles, panel_angles)
+        recs = [{"angle": float(a), **count(renders[float(a)]["share"], args.threshold)} for a in angles]
         tot = {k: sum(r[k] for r in recs) for k in ("foreground", "face", "mouth")}
         fg = max(tot["foreground"], 1)
         doc["avatars"][label] = {"workspace": ws.name, "stage": stage, "per_angle": recs, "total": tot,
                                  "face_percent": 100.0 * tot["face"] / fg, "mouth_percent": 100.0 * tot["mouth"] / fg}  # fmt: skip
         print(f"| {label} | {len(angles)} | {tot['foreground']} | {100.0 * tot['face'] / fg:.2f} % | {100.0 * tot['mouth'] / fg:.2f} % |")
         if panel_angles:
-            pr = orbit_renders(ws, stage, panel_angles, True)
-            rows.append(np.concatenate([r["color"] for r in pr], 1))
-            rows.append(np.concatenate([r["regions"] for r in pr], 1))
+            rows.append(np.concatenate([renders[a]["color"] for a in panel_angles], 1))
+            rows.append(np.concatenate([renders[a]["regions"] for a in panel_angles], 1))
     if args.panels:
         import imageio.v3 as iio
 

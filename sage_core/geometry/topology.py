@@ -26,14 +26,16 @@ def boundary_edges(faces: np.ndarray) -> np.ndarray:
     return key[counts == 1].reshape(-1, 2)
 
 
-def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 4096) -> np.ndarray:
+def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int | None = None) -> np.ndarray:
     """(N,) Euclidean distance of each point (N, 3) to the nearest of the segments a[j]–b[j]
     ((S, 3) each; S ≥ 1), exact (the foot of the perpendicular clamped to the segment), in chunks
-    of ``chunk`` points so that memory stays chunk × S."""
+    of ``chunk`` points (default: about four million point-segment pairs per chunk), so that memory
+    stays chunk × S."""
     p = np.asarray(points, dtype=np.float64)
     a = np.asarray(a, dtype=np.float64)
     d = np.asarray(b, dtype=np.float64) - a
     dd = np.maximum((d * d).sum(-1), 1e-300)
+    chunk = max(1, int(chunk) if chunk is not None else (1 << 22) // max(int(a.shape[0]), 1))
     out = np.empty(p.shape[0])
     for s in range(0, p.shape[0], chunk):
         q = p[s : s + chunk, None, :] - a[None]  # (n, S, 3)
