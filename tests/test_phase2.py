@@ -859,6 +859,34 @@ def test_unseen_fill_continues_each_groups_seen_surfels_and_keeps_the_back_cover
     assert bool((geo[grown] * floor3[grown, 1].double() <= d_edge[grown] / 3.0 + 1e-9).all())
 
 
+def test_view_toward_is_the_largest_cosine_of_each_surfels_triangle_to_the_training_cameras(phase1_avatar_path, p2_data, p2_init_dir):
+    """:attr:`Phase2Trainer.view_toward`, which tells the cover which surfels no training view faces,
+    recomputed from the posed meshes and camera centres of the same views."""
+    from sage_core.train.phase2 import evenly_spaced_frames
+
+    tr = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_hair=True)
+    av = tr.avatar
+    got = tr.view_toward
+    assert got is not None and got.shape == (len(av.surfels),)
+    want = torch.full((len(av.surfels),), -1.0, dtype=torch.float64)
+    with torch.no_grad():
+        for fr in evenly_spaced_frames(tr.frames, tr.cfg.rest_teacher.max_views):
+            v = av.pose_mesh(tr.inputs(fr.timestep)).double()
+            tri = v[av.faces]
+            n = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+            n = n / n.norm(dim=-1, keepdim=True)
+            means = av.posed(tr.inputs(fr.timestep), None, shade=False).means.double()
+            to_cam = torch.as_tensor(fr.camera.center) - means
+            cos = (n[av.surfels.binding] * to_cam).sum(-1) / to_cam.norm(dim=-1)
+            want = torch.maximum(want, cos)
+    torch.testing.assert_close(got, want, atol=1e-4, rtol=0)
+    # the face is faced by the cameras of a frontal rig; some of the back of the head by none
+    region = av.surfels.region_id
+    from sage_core.avatar.init import REGION_FACE
+
+    assert float(got[region == REGION_FACE].median()) > 0.5 and bool((got < 0).any())
+
+
 def test_correction_radius_defaults_by_attributes(phase1_avatar_path):
     from sage_core.avatar.corrected import default_radius_edges, median_edge_length
 

@@ -246,3 +246,30 @@ def test_distance_to_segments_is_exact_and_boundary_edges_of_a_closed_mesh_are_n
     b = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 1.0]])
     p = np.array([[0.5, 1.0, 0.0], [-2.0, 0.0, 0.0], [0.0, 2.0, 0.5], [3.0, 0.0, 4.0]])
     np.testing.assert_allclose(distance_to_segments(p, a, b, chunk=3), [1.0, 2.0, 0.0, np.hypot(2.0, 4.0)])
+
+
+def test_surfels_seen_edge_on_do_not_hold_back_the_cover() -> None:
+    """A clip sees the back of the head only edge-on: a surfel seen that way, facing no camera, does
+    not limit the growth of its unseen neighbours as a seen surfel some view faces does; it keeps
+    its own colour, opacity and scales."""
+    x, c, w, r, op = _head(1500, 3)
+    scales = torch.full((x.shape[0], 2), 0.002)
+    seen = w >= 0.5
+    # a grazed rim on the back (z < -0.05): every other hair surfel there just above the seen threshold
+    rim = (x[:, 2] < -0.05) & (r == REGION_HAIR) & (torch.arange(x.shape[0]) % 2 == 0)
+    w = torch.where(rim, torch.full_like(w, 0.8), w)
+    away = x[:, 2] < -0.02
+    kw = dict(groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,), cover_regions=(REGION_HAIR,))
+    base = fill_unseen(x, c, w, r, op, scales, **kw)
+    res = fill_unseen(x, c, w, r, op, scales, facing_away=away, **kw)
+    assert bool(rim.any())
+    assert torch.equal(res.filled, base.filled) and not bool(res.filled[rim].any())
+    assert torch.equal(res.colors, base.colors) and torch.equal(res.opacity, base.opacity)
+    assert bool((res.scale_gain[rim] == 1).all()) and bool((res.scale_gain[seen] == 1).all())
+    unseen_back = res.filled & (x[:, 2] < -0.05)
+    assert bool((res.scale_gain[unseen_back] >= base.scale_gain[unseen_back]).all())
+    assert float(res.scale_gain[unseen_back].mean()) > 1.5 * float(base.scale_gain[unseen_back].mean())
+    # away from the rim the seen surfels that the views face still hold the growth back as before
+    front = res.filled & (x[:, 2] > -0.02)
+    torch.testing.assert_close(res.scale_gain[front], base.scale_gain[front])
+    assert res.per_group[str(REGION_HAIR)]["seen_facing_away"] == float(rim.sum())

@@ -52,7 +52,8 @@ get, as their colour prior, the continuation of the albedos of the seen surfels 
 group over the surfel graph (:mod:`sage_core.train.unseen_fill`, :func:`unseen_fill_groups`; the hair
 only with ``unseen_fill.hair``, never from skin-coloured sources), and as their opacity floor the
 median opacity of those sources with a gain on their scales that closes the gaps between them
-(``unseen_fill.cover``; :meth:`Phase2Trainer.unseen_fill_colors`).
+(``unseen_fill.cover``, for the hair group and with ``unseen_fill.cover_neck`` the neck;
+:meth:`Phase2Trainer.unseen_fill_colors`).
 
 Wrinkle shading (``wrinkles.enabled``, on by default; :mod:`sage_core.avatar.wrinkles`): after the
 last step every surfel gets a darkening amplitude, stored in the avatar and applied at render time in
@@ -417,7 +418,8 @@ class Phase2Trainer:
         seen surfels (eyes, face, neck, mouth each alone; the hair with the rest of the scalp, its
         skin-coloured sources left out, and those of them seen only at grazing angles filled too). Sets :attr:`unseen_fill_result` (with the opacity floor and
         scale gain of ``unseen_fill.cover`` for the hair group, and the neck with ``unseen_fill.cover_neck``;
-        the scales grow no further than the canonical mesh's open boundary allows).
+        the growth is limited near the seen surfels that some training view faces (:attr:`view_toward`
+        at least 0) and by the canonical mesh's open boundary).
         Returns ((N,) bool surfels filled, (M, 3) their colours)."""
         from .unseen_fill import fill_unseen
 
@@ -427,8 +429,9 @@ class Phase2Trainer:
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
         p = av.posed(self.inputs(self.data.canonical_timestep), None, canonical=canon, shade=False)
         facing = getattr(self, "view_facing", None)
+        toward = getattr(self, "view_toward", None)
         if facing is not None and tuple(facing.shape) != tuple(weights.shape):
-            facing = None
+            facing = toward = None
         edge = boundary_edges(av.faces.detach().cpu().numpy())
         verts = av.canonical_vertices.detach().double().cpu().numpy()
         res = fill_unseen(
@@ -437,7 +440,7 @@ class Phase2Trainer:
             groups=unseen_fill_groups(c.hair), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,),
             cover_regions=(REGION_HAIR, REGION_OTHER) + ((REGION_NECK,) if c.cover_neck else ()), taken=taken,
             seen_min=SEEN_MIN_WEIGHT, source_min=c.source_min, neighbours=int(k), grazing_cos=c.grazing_cos,
-            boundary=(verts[edge[:, 0]], verts[edge[:, 1]]),
+            boundary=(verts[edge[:, 0]], verts[edge[:, 1]]), facing_away=None if toward is None else toward < 0,
         )  # fmt: skip
         self.unseen_fill_result = res
         return res.filled, res.colors[res.filled]
@@ -453,12 +456,16 @@ class Phase2Trainer:
         ``rest_teacher.max_views``). The weight of surfel i is the gradient of Σ_p mask_p·C_p with respect
         to its colour, one backward pass per view; over all surfels it sums to Σ_p mask_p·A_p. Also sets
         :attr:`view_facing`: the same sum with each view's weight times |cos| of the angle between the
-        surfel's normal and the direction to that view's camera."""
+        surfel's normal and the direction to that view's camera, and :attr:`view_toward`: the largest
+        cosine over those views between the outward normal of the surfel's triangle (posed) and the
+        direction to the view's camera (negative: no view faces the surfel)."""
         from ..geometry.rotations import quat_to_matrix
 
         av, c = self.avatar, self.cfg
         total = torch.zeros(len(av.surfels), dtype=torch.float64, device=av.device)
         facing = torch.zeros_like(total)
+        toward = torch.full_like(total, -1.0)
+        binding = av.surfels.binding.long()
         canon = av.canonical_state(with_sdf=av.attributes == "mlp")
         for fr in evenly_spaced_frames(self.frames, c.rest_teacher.max_views):
             cam = RenderCamera.from_camera(fr.camera, self.device)
@@ -476,7 +483,12 @@ class Phase2Trainer:
                 to_cam = cam.w2c[:3, :3].T.to(p.means) @ -cam.w2c[:3, 3].to(p.means) - p.means.detach()
                 cos = (n * to_cam).sum(-1).abs() / to_cam.norm(dim=-1).clamp_min(1e-12)
                 facing += grad[:, 0].detach().to(total) * cos.to(total)
+                tri = p.vertices[av.faces]  # (F, 3, 3)
+                fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[binding]
+                lit = (fn * to_cam).sum(-1) / (fn.norm(dim=-1) * to_cam.norm(dim=-1)).clamp_min(1e-20)
+                toward = torch.maximum(toward, lit.to(total))
         self.view_facing = facing
+        self.view_toward = toward
         return total
 
     @torch.no_grad()

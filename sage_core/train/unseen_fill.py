@@ -34,7 +34,11 @@ what was seen, region by region (docs/method.md, "The unseen back and sides"):
    scales are multiplied by the gain that makes their geometric mean at least 0.75 times the
    distance to its 4th nearest surfel of the group (at most 4x): the Gaussians of neighbours then
    overlap well above half opacity (on the tiny one-shot avatar the inside of the face made 6 % of
-   the back views' pixels before, 0.1 % after). A surfel near the mesh's open boundary (the cut
+   the back views' pixels before, 0.1 % after). The growth near the seen surface is limited by the
+   seen surfels that some training view faces only: a surfel seen edge-on at an outline, its
+   triangle turned away from every training camera (``facing_away``), holds nothing back, since a
+   clip of head turns sees the back of the head only that way and its unseen surfels there would
+   otherwise keep the gaps that show the face from behind. A surfel near the mesh's open boundary (the cut
    at the bottom of the neck) grows no further than the disc of three standard deviations reaching
    that boundary (``boundary``), so the cover never stands out of the surface's edge. Both are
    stored in the surfel set (:meth:`SurfelSet.set_unseen_floor`).
@@ -203,6 +207,7 @@ def fill_unseen(
     max_gain: float = 4.0,
     boundary: tuple[np.ndarray, np.ndarray] | None = None,
     boundary_ratio: float = 1.0 / 3.0,
+    facing_away: torch.Tensor | None = None,
 ) -> FillResult:
     """Colours (and opacities) of the unseen surfels of ``groups``, continued from their group's sources.
 
@@ -227,7 +232,8 @@ def fill_unseen(
     distance to the nearest seen surfel, and at most ``max_gain``; boundary: the segments (two (B, 3)
     arrays of end points, in the space of ``points``) of the mesh's open boundary, which caps that
     geometric mean at ``boundary_ratio`` times the distance to the nearest segment (None or B = 0:
-    no cap). Seen surfels are returned unchanged.
+    no cap); facing_away: (N,) bool surfels that no training view faces, left out of the seen
+    surfels that limit the growth (None: none). Seen surfels are returned unchanged.
     """
     dev = colors.device
     x = points.detach().double().cpu().numpy()
@@ -236,6 +242,7 @@ def fill_unseen(
     reg = region.detach().long().cpu().numpy()
     n = int(x.shape[0])
     tk = taken.detach().bool().cpu().numpy() if taken is not None else np.zeros(n, dtype=bool)
+    away = facing_away.detach().bool().cpu().numpy() if facing_away is not None else np.zeros(n, dtype=bool)
     op = opacity.detach().double().cpu().numpy() if opacity is not None else None
     sg = scales.detach().double().cpu().numpy() if scales is not None else None
     grazing = np.zeros(n, dtype=bool)
@@ -305,7 +312,7 @@ def fill_unseen(
 
             d, _ = cKDTree(x[nodes]).query(x[nodes[t]], k=int(cover_neighbours) + 1)
             want = float(cover_ratio) * d[:, -1]
-            kept = seen & ~filled
+            kept = seen & ~filled & ~away  # the seen surface some view faces
             if kept.any():  # near the seen surface the seen surfels cover: grow only away from it
                 d_seen, _ = cKDTree(x[kept]).query(x[nodes[t]], k=1)
                 want = np.minimum(want, float(seen_ratio) * d_seen)
@@ -314,6 +321,7 @@ def fill_unseen(
             geo = np.sqrt(np.maximum(sg[nodes[t], 0] * sg[nodes[t], 1], 1e-30))
             gain[nodes[t]] = np.clip(want / geo, 1.0, float(max_gain))
             s["scale_gain_median"] = float(np.median(gain[nodes[t]]))
+            s["seen_facing_away"] = float((seen & away & in_g).sum())
     all_sources = src_all & ~skin_like & np.isin(reg, [int(v) for g in groups for v in g])
     return FillResult(
         filled=torch.as_tensor(filled, device=dev),
