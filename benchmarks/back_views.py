@@ -10,8 +10,8 @@ closed head never shows from behind: the inside of the face. Each avatar (STAGE 
 ``phase2``) is posed at its capture's canonical timestep and rendered from an orbit about the head
 at the reference camera's distance and focal length, as ``sage reenact --orbit`` frames it, at the
 angles ``--from`` to ``--to``; 0° is the orbit view nearest the direction the face looks in (from the
-centroid of all surfels to that of the face's), 180° the back of the head. A second render of the same
-surfels, with their colours replaced by markers of their region, gives per pixel the share of the
+centroid of all surfels to that of the face's), 180° the back of the head. A render of the
+surfels with their colours replaced by markers of their region gives per pixel the share of the
 colour that the face's surfels (regions ``face`` and ``eyes``) and the mouth's (``mouth``: lips, mouth
 interior, teeth) make. Per angle it counts the foreground pixels (accumulated opacity above one half)
 and those where the face's or the mouth's share exceeds ``--threshold``; the table gives both as a
