@@ -483,9 +483,8 @@ class Phase2Trainer:
                 to_cam = cam.w2c[:3, :3].T.to(p.means) @ -cam.w2c[:3, 3].to(p.means) - p.means.detach()
                 cos = (n * to_cam).sum(-1).abs() / to_cam.norm(dim=-1).clamp_min(1e-12)
                 facing += grad[:, 0].detach().to(total) * cos.to(total)
-                tri = p.vertices[av.faces]  # (F, 3, 3)
-                fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[binding]
-                lit = (fn * to_cam).sum(-1) / (fn.norm(dim=-1) * to_cam.norm(dim=-1)).clamp_min(1e-20)
+                fn = surfel_frames(p.vertices, av.faces)[0][..., 2][binding]  # outward unit triangle normals
+                lit = (fn * to_cam).sum(-1) / to_cam.norm(dim=-1).clamp_min(1e-12)
                 toward = torch.maximum(toward, lit.to(total))
         self.view_facing = facing
         self.view_toward = toward
