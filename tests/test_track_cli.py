@@ -114,6 +114,10 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
         assert (out / name).is_file(), name
     report = json.loads((out / "track" / "report.json").read_text())
     assert report["regime"] == "one-shot" and report["calibration"]["kept"] > 200 and report["reprojection_px"]["mean"] < 3
+    from sage_core.data.imageio import read_image
+
+    height = read_image(out / "images" / "00000_00.png").shape[0]
+    assert (height < 186) == any("px tall" in w for w in report["warnings"])
     assert report["masks"] == {"keyed": 1, "colour_cut": 0}  # matted on white: keyed, no colour cut
     err = compare_to_truth(out, oneshot)
     assert err["aligned"]["mean_mm"] < 4.0, err["aligned"]
@@ -125,13 +129,32 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
 
     assert eval_splits(ws) == []  # one photo, no held-out frames: `sage run` leaves eval out
     # the mask covers the head and not the background
-    from sage_core.data.imageio import read_image
-
     m = read_image(out / "fg_masks" / "00000_00.png")[..., 0]
     truth = read_image(oneshot / "fg_masks" / "00000_08.png")[..., 0]
     if m.shape == truth.shape:
         inter, union = ((m > 0.5) & (truth > 0.5)).sum(), ((m > 0.5) | (truth > 0.5)).sum()
         assert inter / union > 0.9
+
+
+def test_a_distant_face_in_a_large_photo(tmp_path, model, embedding):
+    """The astronaut shrunk to a face about 47 px wide in a 1200x1600 picture: found by the tiled
+    search, tracked, written at the crop's own size with a warning that it is small."""
+    import cv2
+
+    from sage_core.data.imageio import read_image
+
+    canvas = np.full((1600, 1200, 3), 0.55, np.float32)
+    canvas[900:1156, 700:956] = cv2.resize(astronaut(), (256, 256), interpolation=cv2.INTER_AREA)
+    out = tmp_path / "cap"
+    res = invoke(["track", write_png(tmp_path / "far.png", canvas), out, "--flame-model", model, *TINY,
+                  "--landmark-embedding", embedding])
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "track" / "report.json").read_text())
+    img = read_image(out / "images" / "00000_00.png")
+    assert img.shape[0] < 186 and any("px tall" in w for w in report["warnings"])
+    assert report["reprojection_px"]["mean"] < 4
+    # the crop holds the face: the photo's grey backdrop is not the whole image
+    assert (np.abs(img[..., :3] - 0.55).max(-1) > 0.1).mean() > 0.3
 
 
 @pytest.mark.slow

@@ -88,3 +88,67 @@ def test_refusals(observer):
     canvas[25:70, 24:72] = small
     p = _problem(observer, canvas)
     assert p.kind == "tiny-face" and "px wide, less than the 40 px needed" in p.message
+
+
+def test_tiles_cover_the_image_and_their_central_halves_leave_no_gap():
+    from sage_core.track.detector import tile_starts
+
+    for length, side in ((128, 128), (300, 128), (1000, 128), (129, 128), (64, 128)):
+        starts = tile_starts(length, side)
+        assert starts[0] == 0 and starts == sorted(set(starts))
+        if length <= side:
+            assert starts == [0]
+            continue
+        assert starts[-1] == length - side and all(b - a <= side // 2 for a, b in zip(starts, starts[1:]))
+        # the half each tile answers for (to the edge for the outer tiles) reaches the next one's
+        ends = [s + 3 * side / 4 for s in starts[:-1]]
+        begins = [s + side / 4 for s in starts[1:]]
+        assert all(b <= e for b, e in zip(begins, ends))
+
+
+def _pasted(size: int, canvas_hw: tuple[int, int], corners: list[tuple[int, int]]) -> np.ndarray:
+    """The astronaut shrunk to size×size, pasted at the (x, y) corners of a grey canvas."""
+    import cv2
+
+    small = cv2.resize(astronaut(), (size, size), interpolation=cv2.INTER_AREA)
+    canvas = np.full(canvas_hw + (3,), 0.55, np.float32)
+    for x, y in corners:
+        canvas[y:y + size, x:x + size] = small
+    return canvas
+
+
+def test_a_small_face_in_a_large_image_is_found_by_the_tiled_search(observer):
+    # a person a few metres away: the face about 47 px wide in a 1200x1600 picture, too small for
+    # the whole-image pass, which letterboxes the picture into 128 px
+    size, x, y = 256, 700, 900
+    img = _pasted(size, (1600, 1200), [(x, y)])
+    assert observer.detector(img) == []
+    obs = observer(img)
+    k = size / 512
+    x0, y0, x1, y1 = FACE_BOX
+    cx, cy = obs.detection.center
+    assert x + x0 * k < cx < x + x1 * k and y + y0 * k < cy < y + y1 * k
+    assert obs.presence > 0.9 and 35 < obs.detection.width < 70
+    lm = obs.landmarks
+    assert lm[33, 0] < lm[263, 0] and lm[10, 1] < lm[1, 1] < lm[152, 1]
+    assert x + (x0 - 20) * k < lm[:, 0].min() and lm[:, 0].max() < x + (x1 + 20) * k
+
+
+def test_the_tiled_search_refuses_two_small_faces_and_finds_none_in_an_empty_picture(observer):
+    p = _problem(observer, _pasted(256, (1600, 1200), [(100, 900), (760, 300)]))
+    assert p.kind == "two-faces" and "2 faces" in p.message
+    p = _problem(observer, np.full((1600, 1200, 3), 0.55, np.float32))
+    assert p.kind == "no-face" and "at least 40 px wide" in p.message
+
+
+def test_a_video_frame_is_searched_first_where_the_previous_face_was(observer):
+    size, x, y = 256, 700, 900
+    img = _pasted(size, (1600, 1200), [(x, y)])
+    first = observer(img)
+    near = observer.detector.in_region(img, first.detection.box)
+    assert near and abs(near[0].center - first.detection.center).max() < 6
+    again = observer(img, first.detection.box)
+    assert np.abs(again.landmarks - first.landmarks).max() < 3.0
+    # a box far from the face finds nothing there, and the search still finds the face
+    assert observer.detector.in_region(img, np.array([40.0, 40.0, 90.0, 90.0])) == []
+    assert abs(observer(img, np.array([40.0, 40.0, 90.0, 90.0])).detection.center - first.detection.center).max() < 6

@@ -44,7 +44,8 @@ class TrackConfig:
     # -- faces -----------------------------------------------------------------------------------
     min_detection_score: float = _opt(0.5, "Face detector confidence below which a face is ignored.", gt=0, lt=1)
     min_presence: float = _opt(0.5, "Landmark face-presence probability below which a frame counts as a missed detection.", gt=0, lt=1)
-    min_face_px: float = _opt(40.0, "A face narrower than this (pixels of the input image) is refused as too small.", gt=0)
+    min_face_px: float = _opt(40.0, "A face narrower than this (pixels of the input image) is refused as too small; the tiled search "
+                                      "for faces the whole image misses looks down to this width.", gt=0)
     second_face_ratio: float = _opt(0.5, "Another face at least this fraction of the main face's width makes the image ambiguous.", gt=0, le=1)
     max_roll_deg: float = _opt(45.0, "Refuse faces turned further than this in the image plane (a sideways photo).", gt=0, le=180)
     max_dropped: float = _opt(0.5, "Fail when more than this fraction of the frames has no usable face.", ge=0, le=1)

@@ -8,6 +8,11 @@ boxes are merged by score-weighted averaging (the "weighted" suppression MediaPi
 
 Keypoints, in the order the model gives them: the subject's right eye, left eye, nose tip, mouth
 centre, right ear tragion, left ear tragion (the right eye is on the image's left in a photo).
+
+The short-range model finds a face whose box is at least about an eighth of its square input, so a
+whole image letterboxed into 128 pixels misses a face that fills less than that of the image's
+longer side (a person a few metres from the camera). :meth:`FaceDetector.search` looks for such
+faces: squares of the image at halving sizes, each cut into tiles at half a tile's stride.
 """
 
 from __future__ import annotations
@@ -21,6 +26,14 @@ from .litert import TFLiteModel
 INPUT_SIZE = 128
 SCORE_CLIP = 100.0
 SUPPRESSION_IOU = 0.3
+TILE_FACE_RANGE = (0.15, 0.3)
+"""Face widths, as fractions of a tile's side, that a tile of the search is responsible for: above the
+smallest the model finds reliably, below what a tile holds with a margin when the face's centre lies in
+the tile's central half (the part of the tile it answers for)."""
+SEARCH_MIN_SCORE = 0.75
+"""Confidence a tile's detection needs: the search scores hundreds of windows, and patterns that are not
+faces (a picture's edge, a collar) reach 0.5–0.6 in some of them, where a face at a size the model
+sees well scores above 0.9."""
 
 
 @dataclass
@@ -117,9 +130,15 @@ def decode(regressors: np.ndarray, logits: np.ndarray, min_score: float) -> list
     w, h = r[:, 2], r[:, 3]
     boxes = np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], -1)
     kps = r[:, 4:16].reshape(-1, 6, 2) + a[:, None, :]
-    s = scores[keep]
-    order = np.argsort(-s)
-    boxes, kps, s = boxes[order], kps[order], s[order]
+    return merge(boxes, kps, scores[keep])
+
+
+def merge(boxes: np.ndarray, keypoints: np.ndarray, scores: np.ndarray) -> list[Detection]:
+    """Weighted suppression: boxes (K, 4), keypoints (K, 6, 2), scores (K,) -> one detection per group
+    of boxes overlapping the group's best by IoU above 0.3, its box and keypoints the score-weighted
+    means, best first."""
+    order = np.argsort(-scores, kind="stable")
+    boxes, kps, s = boxes[order], keypoints[order], scores[order]
     out: list[Detection] = []
     remaining = np.ones(len(s), bool)
     for i in range(len(s)):
@@ -133,6 +152,22 @@ def decode(regressors: np.ndarray, logits: np.ndarray, min_score: float) -> list
         kp = (kps[group] * wts[:, :, None]).sum(0) / wts.sum()
         out.append(Detection(float(s[i]), box, kp))
     return out
+
+
+def tile_starts(length: int, side: int) -> list[int]:
+    """Corners along one axis of tiles of ``side`` pixels at a stride of side/2 covering [0, length),
+    the last one flush with the end."""
+    if length <= side:
+        return [0]
+    stride = max(1, side // 2)
+    starts = list(range(0, length - side, stride))
+    return starts + [length - side]
+
+
+def _merge_all(dets: list[Detection]) -> list[Detection]:
+    if not dets:
+        return []
+    return merge(np.stack([d.box for d in dets]), np.stack([d.keypoints for d in dets]), np.array([d.score for d in dets]))
 
 
 class FaceDetector:
@@ -157,3 +192,63 @@ class FaceDetector:
             d.box = (d.box.reshape(2, 2) * INPUT_SIZE - offset).reshape(4) / scale
             d.keypoints = (d.keypoints * INPUT_SIZE - offset) / scale
         return dets
+
+    def in_region(self, image: np.ndarray, box: np.ndarray, context: float = 4.0) -> list[Detection]:
+        """Detections in a square of ``context`` × the larger side of ``box`` (4,) x0, y0, x1, y1 around
+        its centre, clipped to the image (a face near where a neighbouring video frame had it), in
+        image pixels, best first."""
+        H, W = image.shape[:2]
+        side = max(float(box[2] - box[0]), float(box[3] - box[1])) * context
+        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        x0, y0 = int(max(0, np.floor(cx - side / 2))), int(max(0, np.floor(cy - side / 2)))
+        x1, y1 = int(min(W, np.ceil(cx + side / 2))), int(min(H, np.ceil(cy + side / 2)))
+        if x1 - x0 < 8 or y1 - y0 < 8:
+            return []
+        dets = self(image[y0:y1, x0:x1])
+        for d in dets:
+            d.box = d.box + np.array([x0, y0, x0, y0], np.float64)
+            d.keypoints = d.keypoints + np.array([x0, y0], np.float64)
+        return dets
+
+    def search(self, image: np.ndarray, min_width: float) -> list[Detection]:
+        """Faces too small for the whole-image pass, in image pixels, best first.
+
+        Squares of side t, from the image's shorter side halving down to the side at which a face
+        ``min_width`` pixels wide is the smallest of :data:`TILE_FACE_RANGE` (and not below 128, so no
+        tile is enlarged), cover the image at a stride of t/2; each is scored at 128×128 and answers
+        for the faces whose centre lies in its central half and whose width is at most half its side,
+        found with at least :data:`SEARCH_MIN_SCORE`. The tiles' detections are merged.
+        """
+        import cv2
+
+        H, W = image.shape[:2]
+        t_min = max(float(INPUT_SIZE), min_width / TILE_FACE_RANGE[0])
+        t = float(min(H, W))
+        min_score = max(self.min_score, SEARCH_MIN_SCORE)
+        found: list[Detection] = []
+        while t >= t_min:
+            s = INPUT_SIZE / t
+            w, h = max(INPUT_SIZE, int(round(W * s))), max(INPUT_SIZE, int(round(H * s)))
+            small = cv2.resize(np.ascontiguousarray(image[..., :3], dtype=np.float32), (w, h), interpolation=cv2.INTER_AREA)
+            sx, sy = w / W, h / H
+            xs, ys = tile_starts(w, INPUT_SIZE), tile_starts(h, INPUT_SIZE)
+            for y0 in ys:
+                for x0 in xs:
+                    tile = small[y0:y0 + INPUT_SIZE, x0:x0 + INPUT_SIZE]
+                    outs = self.model(tile * 2.0 - 1.0)
+                    reg = self.model.output_by_size(outs, 896 * 16).reshape(896, 16)
+                    logit = self.model.output_by_size(outs, 896).reshape(896)
+                    # the central half this tile answers for (to the image's edge for the outer tiles)
+                    lo_x = 0.0 if x0 == xs[0] else x0 + INPUT_SIZE / 4
+                    hi_x = float(w) if x0 == xs[-1] else x0 + 3 * INPUT_SIZE / 4
+                    lo_y = 0.0 if y0 == ys[0] else y0 + INPUT_SIZE / 4
+                    hi_y = float(h) if y0 == ys[-1] else y0 + 3 * INPUT_SIZE / 4
+                    for d in decode(reg, logit, min_score):
+                        box = d.box * INPUT_SIZE + np.array([x0, y0, x0, y0], np.float64)
+                        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+                        if not (lo_x <= cx < hi_x and lo_y <= cy < hi_y) or box[2] - box[0] > INPUT_SIZE / 2:
+                            continue
+                        kp = d.keypoints * INPUT_SIZE + np.array([x0, y0], np.float64)
+                        found.append(Detection(d.score, box / np.array([sx, sy, sx, sy]), kp / np.array([sx, sy])))
+            t /= 2.0
+        return _merge_all(found)

@@ -3,7 +3,8 @@
 :class:`FaceObserver` runs the detector and the landmark model on one image and returns a
 :class:`FaceObservation`, or raises :class:`FaceProblem` saying why the image cannot be tracked:
 
-- ``no-face``: nothing detected (also when the landmark model finds no face in the detected box);
+- ``no-face``: nothing detected, in the whole image nor in the tiled search for faces down to
+  ``min_face_px`` wide (also when the landmark model finds no face in the detected box);
 - ``rotated``: no upright face, but one appears when the image is turned by 90°, 180° or 270°; or
   the face's eye line is tilted beyond ``max_roll_deg``; or an unsure upright face (an upside-down
   face can pass for one) is found much more surely in a turned view;
@@ -93,17 +94,29 @@ class FaceObserver:
                 return deg
         return None
 
-    def __call__(self, image: np.ndarray) -> FaceObservation:
-        """image: (H, W, 3) float RGB in [0, 1]. Raises FaceProblem."""
-        H, W = image.shape[:2]
+    def detect(self, image: np.ndarray, near: np.ndarray | None = None) -> list[Detection]:
+        """Faces in ``image`` (H, W, 3), best first: the whole image first; when it shows none, the
+        region around ``near`` (4,) (a neighbouring video frame's face box), then the tiled search
+        for faces down to ``min_face_px`` wide (:meth:`FaceDetector.search`)."""
         dets = self.detector(image)
+        if not dets and near is not None:
+            dets = self.detector.in_region(image, near)
+        if not dets:
+            dets = self.detector.search(image, self.min_face_px)
+        return dets
+
+    def __call__(self, image: np.ndarray, near: np.ndarray | None = None) -> FaceObservation:
+        """image: (H, W, 3) float RGB in [0, 1]; near: (4,) x0, y0, x1, y1 where a neighbouring frame's
+        face was (or None). Raises FaceProblem."""
+        H, W = image.shape[:2]
+        dets = self.detect(image, near)
         if not dets:
             turn = self._turned(image)
             if turn is not None:
                 raise FaceProblem("rotated", f"no upright face, but a face appears when the image is turned {turn}° clockwise: "
                                              "the image is sideways or upside down; rotate it upright")
-            raise FaceProblem("no-face", f"no face found in the {W}x{H} image (the detector needs a face that fills at least "
-                                         "about a tenth of the image's width, seen from the front or the side)")
+            raise FaceProblem("no-face", f"no face found in the {W}x{H} image (searched for faces at least "
+                                         f"{self.min_face_px:.0f} px wide, seen from the front or the side)")
         dets.sort(key=lambda d: -d.width)
         main = dets[0]
         others = [d for d in dets[1:] if d.width >= self.second_face_ratio * main.width]

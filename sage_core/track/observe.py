@@ -56,11 +56,13 @@ def observe(source: TrackSource, observer: FaceObserver, cfg: TrackConfig, progr
     total = len(source.timesteps) * len(source.views)
     done = 0
     for vi, view in enumerate(source.views):
+        near = None  # the last face box of this view: where to look first when the whole frame shows none
         for t, img in source.frames(vi):
             sizes[vi] = (img.shape[1], img.shape[0])
             done += 1
             try:
-                faces[(vi, t)] = observer(img)
+                faces[(vi, t)] = observer(img, near)
+                near = faces[(vi, t)].detection.box
             except FaceProblem as p:
                 if source.kind == "image":
                     raise InputError(source.views[vi].files.get(t, source.path), p.message) from None

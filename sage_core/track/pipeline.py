@@ -33,6 +33,9 @@ from .config import TrackConfig, to_dict
 
 Progress = Callable[..., None]
 REPORT_FORMAT = "sage-track-report-v1"
+SMALL_IMAGE_HEIGHT = 186
+"""Written images less tall than this (the tiny preset's synthetic captures) get a warning: the face
+spans few pixels of the input."""
 
 
 @dataclass
@@ -295,6 +298,12 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         size = obs.sizes.get(vi, (view.width, view.height))
         boxes = [f.box() for (v, t), f in obs.faces.items() if v == vi]
         win = crop_window(boxes, size, cfg)
+        if win.out_h < SMALL_IMAGE_HEIGHT:
+            faces_h = [f.face_height for (v, t), f in obs.faces.items() if v == vi]
+            warnings.append(f"{'view ' + view.name + ': ' if len(source.views) > 1 else ''}the face is about "
+                            f"{np.median(faces_h):.0f} px tall (forehead to chin) in the input, so the written images are "
+                            f"{win.out_w}x{win.out_h} (crops are never enlarged): the avatar will show little detail; "
+                            "a closer or larger picture gives more")
         if view.calibrated is not None:
             K, w2c = view.calibrated.K, view.calibrated.w2c
         else:
