@@ -25,6 +25,7 @@ from .shading import AMBIENT, DIFFUSE, LIGHT_DIR, Render, Specular, _eye_albedo,
 if TYPE_CHECKING:
     from .hair import PosedHair
     from .mouth import PosedMouth
+    from .photo_skin import PhotoSkin
 
 _SKIN_TONES = np.array(
     [[0.93, 0.76, 0.66], [0.85, 0.64, 0.52], [0.72, 0.52, 0.40], [0.55, 0.38, 0.28], [0.95, 0.80, 0.72], [0.80, 0.60, 0.47]]
@@ -44,11 +45,14 @@ class Appearance:
     lips: tuple[float, float, float]
     noise_seed: int
     detail: DetailStyle | None = None
+    photo: PhotoSkin | None = None
 
     def to_dict(self) -> dict:
         d = {"skin": list(self.skin), "hair": list(self.hair), "iris": list(self.iris), "lips": list(self.lips), "noise_seed": self.noise_seed}
         if self.detail is not None:
             d["detail"] = self.detail.to_dict()
+        if self.photo is not None:
+            d["skin_photo"] = self.photo.source
         return d
 
 

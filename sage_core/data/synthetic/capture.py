@@ -63,6 +63,7 @@ from .motion import (
     shift_camera,
 )
 from .mouth import MouthVolume, PosedMouth, build_mouth, pose_mouth, sample_mouth_style
+from .photo_skin import PHOTO_SKIN_FILE, PhotoSkin, save_photo_skin
 from .tracking import TrackedHead, add_pose_noise, fit_frames, make_tracked_head, pose_truth, vertex_errors, written_vertices
 
 Progress = Callable[[int, int, str], None]
@@ -311,9 +312,10 @@ def _preview(path: Path, subject: _Subject, frames: list[Frame], cameras: list[C
     write_image(path, np.concatenate(tiles, 0))
 
 
-def make_subject(cfg: SynthConfig) -> _Subject:
+def make_subject(cfg: SynthConfig, photo: PhotoSkin | None = None) -> _Subject:
     """The head model, identity and appearance determined by the config (resolution + seed), and
-    for ``tracking="fitted"`` the truth / written-model pair and the truth's highlights."""
+    for ``tracking="fitted"`` the truth / written-model pair and the truth's highlights. photo: the
+    photo skin of a capture with ``skin_photo`` (None: read from the config's capture)."""
     head = build_head(cfg.head_rows, cfg.head_cols, cfg.eye_rows, cfg.eye_cols)
     rng = np.random.default_rng([cfg.seed, 1])
     shape, static_offset = sample_identity(head, rng)
@@ -322,6 +324,8 @@ def make_subject(cfg: SynthConfig) -> _Subject:
     if cfg.appearance == "detailed":
         _add_detail(subject, np.random.default_rng([cfg.seed, 6]))
         _add_mouth(subject, np.random.default_rng([cfg.seed, 8]))
+        if cfg.skin_photo is not None:
+            _add_photo_skin(subject, cfg.skin_photo, cfg.skin_photo_model, photo)
     if cfg.tracking == "exact":
         return subject
     subject.tracked = make_tracked_head(head, cfg.expr_keep, cfg.corrective_scale, cfg.crease_depth_mm)
@@ -340,6 +344,26 @@ def _add_detail(subject: _Subject, rng: np.random.Generator) -> None:
     subject.hair = build_hair(head, style)
     subject.canonical = canonical_vertices(subject)
     subject.hair_canonical = subject.hair.place(subject.canonical, head.faces)
+
+
+def _add_photo_skin(subject: _Subject, capture: str, model: str | None, skin: PhotoSkin | None) -> None:
+    """Give a detailed ``subject`` a photograph as the skin of its face (:mod:`.photo_skin`; ``skin``
+    when given, else from the photo's capture); the procedural skin tone becomes the photo's median
+    face colour."""
+    from .photo_skin import load_photo_skin
+
+    head = subject.head
+    if skin is None:
+        # the face and the bare skin around it (cheeks to the ears), not the neck nor what the hair covers
+        face = np.zeros(head.n_vertices, bool)
+        face[np.asarray(head.masks["face"], dtype=np.int64)] = True
+        face |= hair_weight(head.v_template) < 0.2
+        face[np.asarray(head.masks["neck"], dtype=np.int64)] = False
+        face &= head.part == PART_SKIN
+        skin = load_photo_skin(capture, model, head.n_vertices, head.faces, face)
+    elif skin.uv.shape[0] != head.n_vertices:
+        raise ConfigError(f"the photo skin has {skin.uv.shape[0]} vertices, this head {head.n_vertices}")
+    subject.app = replace(subject.app, photo=skin, skin=tuple(float(c) for c in skin.median_rgb))
 
 
 def _add_mouth(subject: _Subject, rng: np.random.Generator) -> None:
@@ -439,6 +463,8 @@ def _generate(root: Path, cfg: SynthConfig, progress: Progress | None, preview: 
     mesh_names = _write_meshes(root / "gt" / "meshes", head, verts)
     if subject.hair is not None:
         _write_hair(root / "gt" / "hair", subject, verts)
+    if subject.app.photo is not None:
+        save_photo_skin(subject.app.photo, root / "gt" / PHOTO_SKIN_FILE)
     info: dict = {
         "generator": "sage synth",
         "regime": cfg.regime,

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ...errors import InputError
+from ...errors import ConfigError, InputError
 from ..cameras import Camera
 from .appearance import crease_weights
 from .capture import _Subject, make_subject, neck_line_mask
@@ -73,7 +73,15 @@ class TrackedTruth:
             cfg = SynthConfig.from_dict(info["config"])
         except (TypeError, ValueError, KeyError) as e:
             raise InputError(info_path, f"its synthesis config is not readable by this version: {e}") from None
-        subject = make_subject(cfg)
+        photo = None
+        if cfg.skin_photo is not None:  # the capture keeps its photo skin
+            from .photo_skin import PHOTO_SKIN_FILE, read_photo_skin
+
+            try:
+                photo = read_photo_skin(root / "gt" / PHOTO_SKIN_FILE)
+            except (OSError, ValueError, KeyError, ConfigError) as e:
+                raise InputError(root / "gt" / PHOTO_SKIN_FILE, f"unreadable: {e}") from None
+        subject = make_subject(cfg, photo)
         written = subject.tracked.written if subject.tracked is not None else flame_model(subject.head)
         truth = cls(root, cfg, subject, written)
         truth._check(info)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
 from typing import Any
 
 from ...config import parse_bool
@@ -73,6 +74,11 @@ class SynthConfig:
             cameras off the training arc (between its cameras, above and below it) and the
             ``novel_around`` views around the head; no held-out expressions (the test split has them).
             False = no gt/novel/ (earlier versions).
+        skin_photo: (detailed) a one-photo capture of ``sage track`` (its folder) whose photograph
+            becomes the face's skin (:mod:`.photo_skin`); the photo must be tracked with a
+            FLAME-format model of the same head grid (``sage synth --preset`` of the same size).
+            None: the procedural skin.
+        skin_photo_model: that FLAME-format model (None: the one the capture's track report names).
     """
 
     regime: str = "multiview"
@@ -103,6 +109,8 @@ class SynthConfig:
     appearance: str = "smooth"
     novel_around: int = 0
     novel_multiview: bool = False
+    skin_photo: str | None = None
+    skin_photo_model: str | None = None
 
     def validate(self) -> "SynthConfig":
         """Raise ConfigError for impossible values; returns self."""
@@ -142,6 +150,10 @@ class SynthConfig:
             raise ConfigError(f"appearance must be one of {', '.join(APPEARANCES)}, got '{self.appearance}'")
         if not 0 <= self.novel_around <= 64:
             raise ConfigError(f"novel_around must be 0..64, got {self.novel_around}")
+        if self.skin_photo is not None and self.appearance != "detailed":
+            raise ConfigError("skin_photo needs the detailed appearance (--appearance detailed)")
+        if self.skin_photo_model is not None and self.skin_photo is None:
+            raise ConfigError("skin_photo_model is given without skin_photo")
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -158,6 +170,11 @@ class SynthConfig:
             d.pop("novel_around")
         if not self.novel_multiview:
             d.pop("novel_multiview")
+        for k in ("skin_photo", "skin_photo_model"):
+            if d[k] is None:
+                d.pop(k)
+            else:  # the folder's name: a capture carries no path of the machine that wrote it
+                d[k] = Path(d[k]).name
         return d
 
     @staticmethod
@@ -185,7 +202,7 @@ def parse_sets(items: list[str] | None) -> dict[str, Any]:
         key, val = key.strip(), val.strip()
         if not sep or key not in types:
             raise ConfigError(f"--set expects FIELD=VALUE with a synth config field ({', '.join(types)}), got '{item}'")
-        tp = {"int": int, "float": float, "str": str, "bool": parse_bool}[str(types[key])]
+        tp = {"int": int, "float": float, "str": str, "bool": parse_bool, "str | None": str}[str(types[key])]
         try:
             out[key] = tp(val)
         except ValueError:

@@ -72,7 +72,10 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
     part[head.part == PART_MOUTH, _MOUTH] = 1.0
     part[head.part == PART_SKIN, _SKIN] = 1.0
     nrm = vertex_normals(vertices, head.faces)
-    cols = [head.v_template, head.eye_dir, part, head.mouth_depth[:, None], crease[:, None], nrm, np.zeros((V, 6))]
+    # columns 21:24: the photo skin's coordinates and weight (zeros without one)
+    photo = app.photo
+    ph = np.zeros((V, 3)) if photo is None else np.concatenate([photo.uv, photo.weight[:, None]], 1)
+    cols = [head.v_template, head.eye_dir, part, head.mouth_depth[:, None], crease[:, None], nrm, np.zeros((V, 6)), ph]
     attrs = np.concatenate(cols, 1)
     verts, faces = np.asarray(vertices, np.float64), head.faces
     rot = np.eye(3)
@@ -83,7 +86,7 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
         hpart[:, _HAIR] = 1.0
         hn = vertex_normals(hair.vertices, hv.faces)
         hattrs = np.concatenate([hv.tex, np.zeros((H, 3)), hpart, np.zeros((H, 2)), hn, hv.force[:, None], hv.frame[:, None].astype(np.float64),
-                                 hv.tangent, np.zeros((H, 1))], 1)
+                                 hv.tangent, np.zeros((H, 1)), np.zeros((H, 3))], 1)
         attrs = np.concatenate([attrs, hattrs], 0)
         verts = np.concatenate([verts, hair.vertices], 0)
         faces = np.concatenate([faces, hv.faces + V], 0)
@@ -95,7 +98,8 @@ def render_detailed(head: HeadModel, vertices: np.ndarray, camera: Camera, app: 
         mpart = np.zeros((M, 4))
         mpart[:, _MOUTH] = 1.0
         mn = vertex_normals(mouth.vertices, mv.faces)
-        mattrs = np.concatenate([mv.albedo, np.zeros((M, 3)), mpart, np.zeros((M, 2)), mn, np.zeros((M, 5)), np.ones((M, 1))], 1)
+        mattrs = np.concatenate([mv.albedo, np.zeros((M, 3)), mpart, np.zeros((M, 2)), mn, np.zeros((M, 5)), np.ones((M, 1)),
+                                 np.zeros((M, 3))], 1)
         n_before = verts.shape[0]
         attrs = np.concatenate([attrs, mattrs], 0)
         verts = np.concatenate([verts, mouth.vertices], 0)
@@ -217,6 +221,11 @@ def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, h
     if sk.any():
         alb[sk], cov[sk], tan[sk] = skin_detail(tex[sk], fp[sk], np.where(which[sk] == _SKIN, crease[sk], 0.0), skin_rgb, lips_rgb,
                                                 hair_rgb, st, fa)  # fmt: skip
+    if app.photo is not None:  # the face's skin from a photograph (photo_skin.py), faded at its edge
+        ph = (which == _SKIN) & (a[:, 23] > 1e-3)
+        if ph.any():
+            w = np.clip(a[ph, 23], 0.0, 1.0)[:, None]
+            alb[ph] = alb[ph] * (1.0 - w) + app.photo.sample(a[ph, 21:23]) * w
     forced = hair_px & ~bun & (force > 1e-3)
     if forced.any():
         hcol, htan = hair_strands(tex[forced], fp[forced], hair_rgb, st, st.whorl_frame())
