@@ -26,10 +26,10 @@ from .litert import TFLiteModel
 INPUT_SIZE = 128
 SCORE_CLIP = 100.0
 SUPPRESSION_IOU = 0.3
-TILE_FACE_RANGE = (0.15, 0.3)
-"""Face widths, as fractions of a tile's side, that a tile of the search is responsible for: above the
-smallest the model finds reliably, below what a tile holds with a margin when the face's centre lies in
-the tile's central half (the part of the tile it answers for)."""
+TILE_FACE_RANGE = (0.15, 0.5)
+"""Face widths, as fractions of a tile's side, that a tile of the search counts: from the smallest the
+model finds reliably (the search goes down to tiles where a face ``min_width`` wide is that small) to
+half the tile (a wider face is a coarser tile's, which holds it with a margin)."""
 SEARCH_MIN_SCORE = 0.75
 """Confidence a tile's detection needs: the search scores hundreds of windows, and patterns that are not
 faces (a picture's edge, a collar) reach 0.5–0.6 in some of them, where a face at a size the model
@@ -216,8 +216,9 @@ class FaceDetector:
         Squares of side t, from the image's shorter side halving down to the side at which a face
         ``min_width`` pixels wide is the smallest of :data:`TILE_FACE_RANGE` (and not below 128, so no
         tile is enlarged), cover the image at a stride of t/2; each is scored at 128×128 and answers
-        for the faces whose centre lies in its central half and whose width is at most half its side,
-        found with at least :data:`SEARCH_MIN_SCORE`. The tiles' detections are merged.
+        for the faces whose centre lies in its central half and whose width is at most
+        ``TILE_FACE_RANGE[1]`` of its side, found with at least :data:`SEARCH_MIN_SCORE`. The tiles'
+        detections are merged.
         """
         import cv2
 
@@ -246,7 +247,7 @@ class FaceDetector:
                     for d in decode(reg, logit, min_score):
                         box = d.box * INPUT_SIZE + np.array([x0, y0, x0, y0], np.float64)
                         cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
-                        if not (lo_x <= cx < hi_x and lo_y <= cy < hi_y) or box[2] - box[0] > INPUT_SIZE / 2:
+                        if not (lo_x <= cx < hi_x and lo_y <= cy < hi_y) or box[2] - box[0] > TILE_FACE_RANGE[1] * INPUT_SIZE:
                             continue
                         kp = d.keypoints * INPUT_SIZE + np.array([x0, y0], np.float64)
                         found.append(Detection(d.score, box / np.array([sx, sy, sx, sy]), kp / np.array([sx, sy])))
