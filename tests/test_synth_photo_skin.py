@@ -96,3 +96,14 @@ def test_photo_skin_refusals(photo, tmp_path):
                             skin_photo_model=str(photo / "model" / "synth_flame.npz")))
     with pytest.raises(ConfigError, match="not found"):
         make_subject(preset("tiny", appearance="detailed", skin_photo=str(photo), skin_photo_model=str(tmp_path / "none.npz"), **SMALL))
+
+
+def test_ring_distance_counts_edges_to_the_outside():
+    from sage_core.data.synthetic.photo_skin import ring_distance
+
+    # a strip of triangles over vertices 0..9 (i, i+1, i+2): vertex i neighbours i±1 and i±2
+    faces = np.array([[i, i + 1, i + 2] for i in range(8)])
+    inside = np.ones(10, bool)
+    inside[0] = False
+    d = ring_distance(inside, faces, 3)
+    assert d.tolist() == [0, 1, 1, 2, 2, 3, 3, 3, 3, 3]
