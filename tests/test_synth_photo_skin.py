@@ -107,3 +107,21 @@ def test_ring_distance_counts_edges_to_the_outside():
     inside[0] = False
     d = ring_distance(inside, faces, 3)
     assert d.tolist() == [0, 1, 1, 2, 2, 3, 3, 3, 3, 3]
+
+
+def test_expression_creases_darken_the_photo_skin(photo):
+    kw = {**SMALL, "seed": 3}
+    model = str(photo / "model" / "synth_flame.npz")
+    with_photo = make_subject(preset("tiny", appearance="detailed", skin_photo=str(photo), skin_photo_model=model, **kw))
+    plain = make_subject(preset("tiny", appearance="detailed", **kw))
+    v = canonical_vertices(plain)
+    cam = arc_cameras(np.random.default_rng(0), 16, 80, 116, 1.0, 0.42)[8]
+    none, full = np.zeros(v.shape[0]), np.ones(v.shape[0])
+    flat = with_photo.render(v, cam, none, 1).rgb
+    creased = with_photo.render(v, cam, full, 1).rgb
+    plain_flat, plain_creased = plain.render(v, cam, none, 1).rgb, plain.render(v, cam, full, 1).rgb
+    region = np.abs(flat - plain_flat).max(-1) > 0.02  # where the photo shows
+    assert region.sum() > 50
+    darkening = creased[region].mean() / flat[region].mean()
+    darkening_plain = plain_creased[region].mean() / plain_flat[region].mean()
+    assert darkening_plain < 0.95 and abs(darkening - darkening_plain) < 0.03
