@@ -63,7 +63,7 @@ from .motion import (
     shift_camera,
 )
 from .mouth import MouthVolume, PosedMouth, build_mouth, pose_mouth, sample_mouth_style
-from .photo_skin import PHOTO_SKIN_FILE, PhotoSkin, save_photo_skin
+from .photo_skin import PHOTO_SKIN_FILE, PhotoSkin, load_photo_skin, save_photo_skin
 from .tracking import TrackedHead, add_pose_noise, fit_frames, make_tracked_head, pose_truth, vertex_errors, written_vertices
 
 Progress = Callable[[int, int, str], None]
@@ -350,8 +350,6 @@ def _add_photo_skin(subject: _Subject, capture: str, model: str | None, skin: Ph
     """Give a detailed ``subject`` a photograph as the skin of its face (:mod:`.photo_skin`; ``skin``
     when given, else from the photo's capture); the procedural skin tone becomes the photo's median
     face colour."""
-    from .photo_skin import load_photo_skin
-
     head = subject.head
     if skin is None:
         # the face and the bare skin around it (cheeks to the ears), not the neck nor what the hair covers
