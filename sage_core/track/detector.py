@@ -181,13 +181,15 @@ class FaceDetector:
         self.model = TFLiteModel(model_path, threads)
         self.min_score = float(min_score)
 
+    def _raw(self, square: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A (128, 128, 3) square in [0, 1] -> the model's regressors (896, 16) and logits (896,)."""
+        outs = self.model(square * 2.0 - 1.0)
+        return self.model.output_by_size(outs, 896 * 16).reshape(896, 16), self.model.output_by_size(outs, 896).reshape(896)
+
     def __call__(self, image: np.ndarray) -> list[Detection]:
         """image: (H, W, 3) float RGB in [0, 1] -> detections in image pixels, best first."""
         square, scale, offset = letterbox(image, INPUT_SIZE)
-        outs = self.model(square * 2.0 - 1.0)
-        reg = self.model.output_by_size(outs, 896 * 16).reshape(896, 16)
-        logit = self.model.output_by_size(outs, 896).reshape(896)
-        dets = decode(reg, logit, self.min_score)
+        dets = decode(*self._raw(square), self.min_score)
         for d in dets:  # square [0, 1] units -> image pixels
             d.box = (d.box.reshape(2, 2) * INPUT_SIZE - offset).reshape(4) / scale
             d.keypoints = (d.keypoints * INPUT_SIZE - offset) / scale
@@ -235,10 +237,7 @@ class FaceDetector:
             xs, ys = tile_starts(w, INPUT_SIZE), tile_starts(h, INPUT_SIZE)
             for y0 in ys:
                 for x0 in xs:
-                    tile = small[y0:y0 + INPUT_SIZE, x0:x0 + INPUT_SIZE]
-                    outs = self.model(tile * 2.0 - 1.0)
-                    reg = self.model.output_by_size(outs, 896 * 16).reshape(896, 16)
-                    logit = self.model.output_by_size(outs, 896).reshape(896)
+                    reg, logit = self._raw(small[y0:y0 + INPUT_SIZE, x0:x0 + INPUT_SIZE])
                     # the central half this tile answers for (to the image's edge for the outer tiles)
                     lo_x = 0.0 if x0 == xs[0] else x0 + INPUT_SIZE / 4
                     hi_x = float(w) if x0 == xs[-1] else x0 + 3 * INPUT_SIZE / 4

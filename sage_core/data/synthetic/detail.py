@@ -337,13 +337,15 @@ def hair_coverage(p: np.ndarray, fp: np.ndarray, st: DetailStyle) -> np.ndarray:
 
 
 def skin_detail(p: np.ndarray, fp: np.ndarray, crease: np.ndarray, skin_rgb: np.ndarray, lips_rgb: np.ndarray,
-                hair_rgb: np.ndarray, st: DetailStyle, fa: FaceAnchors) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                hair_rgb: np.ndarray, st: DetailStyle, fa: FaceAnchors,
+                over: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Detailed albedo of M skin points (skin, lips, brows, lashes, scalp hair).
 
     p: (M, 3) template positions; fp: (M,) footprint (metres); crease: (M,) compression weights;
-    skin_rgb, lips_rgb, hair_rgb: (3,) base colours -> (albedo (M, 3), hair coverage (M,) of
-    scalp, brows and lashes, template hair tangent (M, 3) whose length is the gloss, zero where
-    there is no hair).
+    skin_rgb, lips_rgb, hair_rgb: (3,) base colours; over: an albedo (M, 3) and its weight (M,) in
+    [0, 1] laid over the procedural one before the expression creases shade it (a photograph's
+    skin, :mod:`.photo_skin`), or None -> (albedo (M, 3), hair coverage (M,) of scalp, brows and
+    lashes, template hair tangent (M, 3) whose length is the gloss, zero where there is no hair).
     """
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     ax = np.abs(x)
@@ -424,6 +426,9 @@ def skin_detail(p: np.ndarray, fp: np.ndarray, crease: np.ndarray, skin_rgb: np.
     lb = lw > 1e-3
     if lb.any():
         col[lb] = _mix(col[lb], np.broadcast_to(hair_rgb * 0.35 + 0.01, (int(lb.sum()), 3)), lw[lb])
+    if over is not None:
+        rgb, w = over
+        col = col * (1.0 - w[:, None]) + rgb * w[:, None]
     # expression creases (as the smooth head)
     lines = 0.55 + 0.45 * np.cos(2 * np.pi * y / 0.0045 + 3.0 * n_low)
     forehead = smoothstep(y, 0.045, 0.055)

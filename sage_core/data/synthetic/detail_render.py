@@ -219,20 +219,15 @@ def _albedo(a: np.ndarray, which: np.ndarray, fp: np.ndarray, app: Appearance, h
     # skin, and the hair sheet where it may still show skin (near the hairline)
     sk = (which == _SKIN) | (hair_px & ~bun & (force < 0.999))
     if sk.any():
+        over = None
+        if app.photo is not None:  # the face's skin from a photograph (photo_skin.py), faded at its edge
+            w = np.where(which[sk] == _SKIN, np.clip(a[sk, 23], 0.0, 1.0), 0.0)
+            rgb = np.zeros((w.size, 3))
+            on = w > 1e-3
+            rgb[on] = app.photo.sample(a[sk][on, 21:23])
+            over = (rgb, w)
         alb[sk], cov[sk], tan[sk] = skin_detail(tex[sk], fp[sk], np.where(which[sk] == _SKIN, crease[sk], 0.0), skin_rgb, lips_rgb,
-                                                hair_rgb, st, fa)  # fmt: skip
-    if app.photo is not None:  # the face's skin from a photograph (photo_skin.py), faded at its edge
-        ph = np.flatnonzero((which == _SKIN) & (a[:, 23] > 1e-3))
-        if ph.size:
-            w = np.clip(a[ph, 23], 0.0, 1.0)[:, None]
-            photo = app.photo.sample(a[ph, 21:23])
-            # the expression creases darken the photo as they darken the procedural skin
-            creased = crease[ph] > 0
-            if creased.any():
-                idx = ph[creased]
-                plain, _, _ = skin_detail(tex[idx], fp[idx], np.zeros(idx.size), skin_rgb, lips_rgb, hair_rgb, st, fa)
-                photo[creased] *= np.clip(alb[idx].sum(1) / np.maximum(plain.sum(1), 1e-9), 0.0, 1.0)[:, None]
-            alb[ph] = alb[ph] * (1.0 - w) + photo * w
+                                                hair_rgb, st, fa, over)  # fmt: skip
     forced = hair_px & ~bun & (force > 1e-3)
     if forced.any():
         hcol, htan = hair_strands(tex[forced], fp[forced], hair_rgb, st, st.whorl_frame())

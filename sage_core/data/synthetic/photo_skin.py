@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import ConfigError
+from ...geometry.topology import edges
 from ..cameras import Camera
 from .mesh_render import rasterize, vertex_normals
 
@@ -72,7 +73,7 @@ class PhotoSkin:
 def ring_distance(inside: np.ndarray, faces: np.ndarray, most: int) -> np.ndarray:
     """(V,) bool, (F, 3) -> (V,) int: for every vertex of ``inside`` the number of mesh edges to the
     nearest vertex outside it (1 on its border), capped at ``most``; 0 outside."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = edges(faces)
     e = np.concatenate([e, e[:, ::-1]])
     d = np.where(inside, most, 0).astype(np.int64)
     for k in range(1, most):
