@@ -3,7 +3,7 @@ trains and evaluates every row on the same data and seed, and writes the results
 
 Usage:
     python benchmarks/suite.py --size tiny|small|full --out DIR [--rows a,b,...] [--device auto]
-                               [--seed 0] [--head detailed|smooth] [--subjects 2] [--lpips-weights PATH]
+                               [--seed 0] [--head detailed|smooth|photo] [--subjects 2] [--lpips-weights PATH]
 
 Rows (ids): ceiling, sage, sage_exact, no_mlp, no_phase2, no_correction, no_wrinkles, no_relocation, no_light, ga_mvsf, ga_mvmf, free_mvsf,
 sv_hr, one_shot (``ceiling`` trains nothing: the capture's ground truth on its tracked FLAME fit).
@@ -16,12 +16,15 @@ on the exact multiview capture (``--tracking exact``) so both are visible. The s
 detailed (``sage synth --appearance detailed``: pixel-scale skin and hair detail, hair volume off the
 scalp) and every row runs on ``--subjects`` subjects (capture seeds ``--seed``, ``--seed``+1, …);
 the tables show the mean over the subjects, and a per-subject table. ``--head smooth --subjects 1``
-reproduces the captures and numbers of earlier versions (the smooth head, one subject).
+reproduces the captures and numbers of earlier versions (the smooth head, one subject). ``--head
+photo`` gives the detailed heads a real face: scikit-image's astronaut photograph, tracked by ``sage
+track`` with a model of the size's head grid, becomes their face's skin (``sage synth --set
+skin_photo``; it needs the MediaPipe face models of ``sage track``).
 Every stage runs through the real ``sage`` CLI in a subprocess, one workspace per row under
 ``DIR/ws/<row>``; rows copy the finished stages they share with the SAGE row (``cp -a`` of the
 stage folders keeps their manifests, so the workspace accepts them as complete). A rerun skips
 every stage that is already complete with the same settings. Results go to
-``docs/benchmarks/suite_<size>.json`` (``suite_<size>_detailed.json`` for the detailed heads; rows of an
+``docs/benchmarks/suite_<size>.json`` (``suite_<size>_<head>.json`` for the detailed and photo heads; rows of an
 earlier run that were not rerun are kept) and
 ``docs/results.md`` is regenerated from every ``suite_*.json``; both name no path of this machine
 (paths relative to ``--out``, written ``OUT`` in commands; the LPIPS weights by file name:
@@ -49,7 +52,7 @@ if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
 def build_parser() -> argparse.ArgumentParser:
-    from _suite.rows import ROW_IDS, SIZES
+    from _suite.rows import HEADS, ROW_IDS, SIZES
 
     ap = argparse.ArgumentParser(prog="python benchmarks/suite.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", required=True, choices=sorted(SIZES), help="tiny (tiny presets, 128x186, CPU), small (small presets, 256x372, CPU) or full (default presets, 550x802, GPU).")
@@ -57,7 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--rows", default=",".join(ROW_IDS), help=f"Comma-separated subset of: {', '.join(ROW_IDS)} (default: all).")
     ap.add_argument("--device", default="auto", help="Device of every stage: auto, cpu or cuda[:N].")
     ap.add_argument("--seed", type=int, default=0, help="Seed of every stage and of the first subject's captures (further subjects: seed+1, ...).")
-    ap.add_argument("--head", default="detailed", choices=("detailed", "smooth"), help="Synthetic heads: detailed (pixel-scale skin and hair detail, hair volume) or smooth (earlier versions' head).")
+    ap.add_argument("--head", default="detailed", choices=HEADS,
+                    help="Synthetic heads: detailed (pixel-scale skin and hair detail, hair volume), smooth (earlier versions' head) or photo "
+                         "(the detailed heads with a real photograph's face as their skin; needs the face models of `sage track`).")  # fmt: skip
     ap.add_argument("--subjects", type=int, default=2, help="Synthetic subjects (different seeds) every row runs on; the tables show their mean.")
     ap.add_argument("--lpips-weights", type=Path, default=None, help="LPIPS AlexNet v0.1 weights (default: where sage finds them: $SAGE_LPIPS_WEIGHTS, then ~/.cache/sage/lpips_alex_v0.1.pth; LPIPS is reported unavailable without them).")
     ap.add_argument("--smoke", action="store_true", help=argparse.SUPPRESS)
@@ -129,6 +134,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(e))
     if args.subjects < 1:
         ap.error("--subjects must be at least 1")
+    if args.head == "photo":
+        from sage_core.track.weights import models_available
+
+        missing = models_available()
+        if missing:
+            ap.error(f"--head photo tracks a photograph with `sage track`: {missing}")
     size = SIZES[args.size]
     if args.smoke:
         size = smoke_size(size)

@@ -179,6 +179,61 @@ def test_every_row_runs_on_each_subject_with_the_chosen_head(tmp_path):
     assert not any(k.startswith("seed") for k in smooth) and _flag(smooth["synth:multiview"].argv, "--appearance") == "smooth"
 
 
+def test_the_photo_head_tracks_the_photograph_once_and_skins_every_subject_with_it(tmp_path):
+    by_key, needs, steps = _steps(tmp_path, rows=("sage", "one_shot"), head="photo")
+    photo = tmp_path / "out/photo/tiny"
+    model, track = by_key["photo:model"], by_key["photo:track"]
+    # one model of the size's head grid and one track of the photograph, shared by every subject
+    assert [s.key for s in steps].count("photo:track") == 1 and [s.key for s in steps][:2] == ["photo:model", "photo:track"]
+    assert model.argv[:2] == ["synth", str(photo / "model_head")] and _flag(model.argv, "--preset") == "tiny"
+    assert track.argv[:3] == ["track", str(photo / "astronaut.png"), str(photo / "capture")] and track.deps == ["photo:model"]
+    assert _flag(track.argv, "--flame-model") == str(photo / "model_head/model/synth_flame.npz")
+    for key in ("synth:multiview", "seed1/synth:multiview", "synth:oneshot", "seed1/synth:oneshot"):
+        a = by_key[key].argv
+        assert _flag(a, "--appearance") == "detailed" and _sets(a) == [f"skin_photo={photo / 'capture'}"], key
+        assert by_key[key].deps == ["photo:track"]
+    assert needs["sage"].count("photo:track") == 1 and "photo:track" in needs["one_shot"]
+    assert "novel" in [k.rsplit(":", 1)[1] for k in by_key if k.startswith("sage:eval:")]  # a detailed head's novel views
+    assert step_command(track).startswith("python -c ") and " && sage track " in step_command(track)
+    # the other heads have no photo steps and no skin_photo
+    assert not any(k.startswith("photo:") for k in _steps(tmp_path, rows=("sage",))[0])
+
+
+def test_the_photo_head_is_refused_without_the_face_models(tmp_path, monkeypatch, capsys):
+    import suite
+
+    empty = tmp_path / "no_models"
+    empty.mkdir()
+    monkeypatch.setenv("SAGE_MEDIAPIPE_DIR", str(empty))
+    with pytest.raises(SystemExit) as exc:
+        suite.main(["--size", "tiny", "--out", str(tmp_path / "out"), "--rows", "sage", "--head", "photo", "--docs", str(tmp_path / "docs")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--head photo tracks a photograph with `sage track`" in err and str(empty) in err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "docs").exists()  # nothing started
+
+
+def test_photo_track_is_current_only_for_the_same_photograph_model_and_seed(tmp_path):
+    import time
+
+    from _suite.workspaces import track_is_current
+
+    model = tmp_path / "model.npz"
+    model.write_bytes(b"m")
+    cap = tmp_path / "cap"
+    argv = ["track", str(tmp_path / "a.png"), str(cap), "--flame-model", str(model), "--seed", "0", "--quiet"]
+    assert not track_is_current(cap, argv)  # nothing tracked yet
+    (cap / "track").mkdir(parents=True)
+    report = {"input": {"path": str(tmp_path / "a.png")}, "flame_model": str(model), "seed": 0}
+    (cap / "track" / "report.json").write_text(json.dumps(report))
+    assert track_is_current(cap, argv)
+    assert not track_is_current(cap, [*argv[:-3], "--seed", "1", "--quiet"])
+    assert not track_is_current(cap, ["track", str(tmp_path / "b.png"), *argv[2:]])
+    later = time.time() + 5
+    os.utime(model, (later, later))  # the model was rewritten after the track
+    assert not track_is_current(cap, argv)
+
+
 def test_capture_check_follows_the_appearance(tmp_path):
     from _suite.workspaces import capture_is_current
 
@@ -192,6 +247,13 @@ def test_capture_check_follows_the_appearance(tmp_path):
     assert capture_is_current(cap, argv) and capture_is_current(cap, [*argv[:-1], "--appearance", "detailed"])
     assert not capture_is_current(cap, [*argv[:-1], "--appearance", "smooth"])
     assert not capture_is_current(cap, [*argv[:-3], "--seed", "2"])
+    # the photo head's captures: the skin photo is part of the config (by its folder's name)
+    cfg = preset("tiny", "oneshot", seed=1, tracking="fitted", appearance="detailed", skin_photo=str(tmp_path / "photo/capture"))
+    (cap / "gt" / "info.json").write_text(json.dumps({"config": cfg.to_dict()}))
+    with_photo = [*argv[:-3], "--set", f"skin_photo={tmp_path / 'photo/capture'}", "--seed", "1", "--quiet"]
+    assert capture_is_current(cap, with_photo) and not capture_is_current(cap, argv)
+    assert not capture_is_current(cap, [*argv[:-3], "--set", "skin_photo=elsewhere", "--seed", "1", "--quiet"])
+    assert not capture_is_current(cap, [*argv[:-3], "--set", "no_such_key=1", "--seed", "1", "--quiet"])
 
 
 def test_subject_numbers_are_averaged_and_counts_summed():
@@ -339,8 +401,13 @@ def test_markdown_shows_the_head_the_subjects_and_the_back_views():
     header, rows = _table_rows(md, "### Novel views of the training timestep (multiview rows, detailed captures)")
     col = {h: j for j, h in enumerate(header)}
     assert list(rows) == ["sage"] and rows["sage"][col["Off-arc views PSNR"]] == "25.14" and rows["sage"][col["Back views PSNR"]] == "24.36"
-    full = render_document([doc, old])
-    assert full.index("## Size `tiny`\n") < full.index("## Size `tiny`, detailed heads")  # the smooth head first
+    photo = {**doc, "head": "photo"}
+    pmd = render_markdown(photo)
+    assert pmd.startswith("## Size `tiny`, photo-skinned heads") and "--set skin_photo=OUT/photo/PRESET/capture" in pmd
+    assert merge_results(doc, photo) is photo  # another head is never merged
+    full = render_document([photo, doc, old])
+    # the smooth head first, then the detailed heads, then the photo-skinned ones
+    assert full.index("## Size `tiny`\n") < full.index("## Size `tiny`, detailed heads") < full.index("## Size `tiny`, photo-skinned heads")
 
 
 def test_smoke_results_are_labelled():

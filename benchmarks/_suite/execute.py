@@ -12,7 +12,8 @@ from sage_core.workspace import Workspace, now_iso
 from . import collect
 from .rows import ROWS, RowSpec, Settings, Step, row_eval_splits
 from .runner import command_line, run_process, sage_argv
-from .workspaces import capture_is_current, ceiling_command, copy_command, copy_stages, motion_command, write_test_motion
+from .workspaces import (capture_is_current, ceiling_command, copy_command, copy_stages, motion_command, photo_command, track_is_current,
+                         write_photo, write_test_motion)
 
 Log = Callable[[str], None]
 
@@ -21,6 +22,8 @@ def step_command(step: Step) -> str:
     """The shell line that reproduces a step."""
     if step.kind in ("cli", "synth"):
         return command_line(step.argv)
+    if step.kind == "track":
+        return photo_command(Path(step.argv[1])) + " && " + command_line(step.argv)
     if step.kind == "copy":
         assert step.src is not None and step.dst is not None
         return copy_command(step.src, step.dst, step.stages)
@@ -55,6 +58,16 @@ def run_step(step: Step, settings: Settings, previous: dict[str, Any] | None, po
                 return _keep_previous(rec, previous)
             argv = list(step.argv) + (["--force"] if step.capture.exists() else [])
             rec["command"] = command_line(argv)
+            return _run_cli(rec, argv, settings, step, poll_gpu, None)
+        if step.kind == "track":
+            assert step.capture is not None
+            photo = Path(step.argv[1])
+            if track_is_current(step.capture, step.argv):
+                rec.update(rc=0, ran=False, wall_s=time.perf_counter() - t0, note="capture already present")
+                return _keep_previous(rec, previous)
+            write_photo(photo)
+            argv = list(step.argv) + (["--force"] if step.capture.exists() else [])
+            rec["command"] = photo_command(photo) + " && " + command_line(argv)
             return _run_cli(rec, argv, settings, step, poll_gpu, None)
         if step.kind == "cli":
             ws = settings.for_subject(step.subject).ws(step.row) if step.row else None

@@ -239,11 +239,12 @@ def smoke_size(size: Size) -> Size:
 class Step:
     """One step of the plan.
 
-    kind: "synth" | "cli" | "copy" | "motion" | "ceiling". key: unique id (e.g. ``sage:phase1``;
-    a further subject's keys start with ``seed<S>/``). argv: the arguments after ``sage`` ("synth"
-    and "cli"). row: the row whose workspace the step writes (None: shared). stage: the workspace
-    stage it writes (manifest to read), if any. deps: keys of the steps it needs. src / dst /
-    stages: the copy. capture / out: the motion, or the ceiling's capture and workspace. split /
+    kind: "synth" | "track" | "cli" | "copy" | "motion" | "ceiling". key: unique id (e.g.
+    ``sage:phase1``; a further subject's keys start with ``seed<S>/``). argv: the arguments after
+    ``sage`` ("synth", "track" and "cli"). row: the row whose workspace the step writes (None:
+    shared). stage: the workspace stage it writes (manifest to read), if any. deps: keys of the
+    steps it needs. src / dst / stages: the copy. capture / out: the capture "synth" and "track"
+    write, the motion's, or the ceiling's capture and workspace. split /
     lpips_weights: the ceiling's split and LPIPS weights. subject: index of the synthetic subject
     (:attr:`Settings.subjects`) the step belongs to.
     """
@@ -265,17 +266,23 @@ class Step:
     subject: int = 0
 
 
-HEADS: tuple[str, ...] = ("detailed", "smooth")
-"""``--head``: the synthetic captures' appearance (``sage synth --appearance``)."""
+HEADS: tuple[str, ...] = ("detailed", "smooth", "photo")
+"""``--head``: the synthetic captures' appearance: ``sage synth --appearance detailed`` or
+``smooth``, or "photo": the detailed heads with a real photograph's face as their skin
+(``sage synth --set skin_photo=CAPTURE``, the capture ``sage track`` makes of :data:`PHOTO_FILE`)."""
+
+PHOTO_FILE = "astronaut.png"
+"""The photograph of the photo head: scikit-image's ``data.astronaut()`` (a real person, shipped
+inside the scikit-image wheel), written into the suite's ``photo/`` folder."""
 
 
 @dataclass
 class Settings:
     """What every command of one suite run shares.
 
-    head: appearance of the synthetic subjects ("detailed" or "smooth", the head of earlier
-    versions); subjects: how many subjects (capture seeds ``seed``, ``seed + 1``, …) every row runs
-    on; subject: the subject this copy of the settings addresses (:meth:`for_subject`). The first
+    head: appearance of the synthetic subjects ("detailed", "smooth": the head of earlier
+    versions, or "photo": the detailed heads with the photograph's face, :data:`HEADS`);
+    subjects: how many subjects (capture seeds ``seed``, ``seed + 1``, …) every row runs on; subject: the subject this copy of the settings addresses (:meth:`for_subject`). The first
     subject keeps the plain paths and step keys; a further one appends ``_seed<S>`` to its capture,
     workspace and motion paths and prefixes its step keys with ``seed<S>/``. Every stage uses
     ``seed`` whatever the subject.
@@ -294,6 +301,17 @@ class Settings:
     def for_subject(self, k: int) -> "Settings":
         """These settings addressing subject ``k``."""
         return replace(self, subject=k)
+
+    @property
+    def detailed(self) -> bool:
+        """The subjects have the detailed appearance (the photo head is a detailed head)."""
+        return self.head in ("detailed", "photo")
+
+    @property
+    def photo_dir(self) -> Path:
+        """The photo head's folder: the photograph, the FLAME-format model it is tracked with
+        (``model_head``: a one-shot capture of the size's head grid) and its capture (``capture``)."""
+        return self.out / "photo" / self.size.synth_preset
 
     @property
     def capture_seed(self) -> int:
@@ -380,14 +398,38 @@ def synth_argv(st: Settings, kind: str) -> list[str]:
     """``sage synth`` arguments of a capture kind for the settings' subject (``--force`` is added
     when an older capture is replaced)."""
     regime, tracking = CAPTURES[kind]
-    return ["synth", str(st.capture_dir(kind)), "--regime", regime, "--tracking", tracking, "--appearance", st.head,
-            "--preset", st.size.synth_preset, *st.size.synth_args.get(regime, ()), "--seed", str(st.capture_seed), "--quiet"]  # fmt: skip
+    photo = ["--set", f"skin_photo={st.photo_dir / 'capture'}"] if st.head == "photo" else []
+    return ["synth", str(st.capture_dir(kind)), "--regime", regime, "--tracking", tracking,
+            "--appearance", "detailed" if st.detailed else st.head, "--preset", st.size.synth_preset,
+            *st.size.synth_args.get(regime, ()), *photo, "--seed", str(st.capture_seed), "--quiet"]  # fmt: skip
+
+
+def photo_steps(st: Settings) -> list[Step]:
+    """The photo head's two shared steps (no subject's: every subject takes the same photo): a
+    one-shot capture whose FLAME-format model has the size's head grid, then ``sage track`` of the
+    photograph with that model. Empty for the other heads."""
+    if st.head != "photo":
+        return []
+    model = ["synth", str(st.photo_dir / "model_head"), "--regime", "oneshot", "--tracking", "fitted", "--appearance", "detailed",
+             "--preset", st.size.synth_preset, "--seed", str(st.seed), "--quiet"]  # fmt: skip
+    track = ["track", str(st.photo_dir / PHOTO_FILE), str(st.photo_dir / "capture"), "--flame-model",
+             str(st.photo_dir / "model_head" / "model" / "synth_flame.npz"), "--seed", str(st.seed), "--quiet"]  # fmt: skip
+    return [Step("synth", "photo:model", model, capture=st.photo_dir / "model_head"),
+            Step("track", "photo:track", track, deps=["photo:model"], capture=st.photo_dir / "capture")]
+
+
+def synth_steps(st: Settings, kind: str) -> list[Step]:
+    """The steps that write a capture kind for the settings' subject: the photo head's shared
+    steps (:func:`photo_steps`), then ``sage synth``."""
+    pre = photo_steps(st)
+    return [*pre, Step("synth", st.key(f"synth:{kind}"), synth_argv(st, kind), capture=st.capture_dir(kind), subject=st.subject,
+                       deps=[s.key for s in pre[-1:]])]  # fmt: skip
 
 
 def row_eval_splits(st: Settings, row: RowSpec) -> tuple[str, ...]:
     """The splits ``row`` is evaluated on: its own, and ``novel`` for a trained row on a detailed
     multiview capture (whose ``gt/novel`` holds held-out views of the training timestep)."""
-    if row.ceiling or not row.capture.startswith("multiview") or st.head != "detailed" or "novel" in row.eval_splits:
+    if row.ceiling or not row.capture.startswith("multiview") or not st.detailed or "novel" in row.eval_splits:
         return row.eval_splits
     return (*row.eval_splits, "novel")
 
@@ -420,7 +462,7 @@ def row_steps(st: Settings, row: RowSpec) -> list[Step]:
                           subject=sub))  # fmt: skip
         deps = [k(f"{row.id}:copy")]
     else:
-        steps.append(Step("synth", k(f"synth:{row.capture}"), synth_argv(st, row.capture), capture=st.capture_dir(row.capture), subject=sub))
+        steps += synth_steps(st, row.capture)
         deps = [k(f"synth:{row.capture}")]
     for stage in own_stages(row):
         key = k(f"{row.id}:{stage}")
@@ -446,7 +488,7 @@ def base_steps(st: Settings, base: RowSpec, stages: tuple[str, ...]) -> list[Ste
     """The steps of ``base`` up to and including the last of ``stages`` (its capture first), for the
     settings' subject."""
     k, sub = st.key, st.subject
-    steps = [Step("synth", k(f"synth:{base.capture}"), synth_argv(st, base.capture), capture=st.capture_dir(base.capture), subject=sub)]
+    steps = synth_steps(st, base.capture)
     deps = [k(f"synth:{base.capture}")]
     for stage in own_stages(base):
         if stage not in stages:
@@ -471,7 +513,7 @@ def plan(st: Settings, rows: list[str]) -> tuple[list[Step], dict[str, list[str]
         sk = st.for_subject(sub)
         for rid in rows:
             steps = row_steps(sk, ROWS[rid])
-            needs[rid] += [s.key for s in steps]
+            needs[rid] += [s.key for s in steps if s.key not in needs[rid]]  # the photo head's steps are every subject's
             for s in steps:
                 if s.key not in seen:
                     seen.add(s.key)

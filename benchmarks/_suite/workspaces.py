@@ -8,7 +8,7 @@ import os
 import shutil
 from pathlib import Path
 
-from sage_core.errors import StageError
+from sage_core.errors import SageError, StageError
 from sage_core.workspace import STAGE_FOLDERS, Workspace
 
 
@@ -20,7 +20,10 @@ def capture_is_current(capture: Path, argv: list[str]) -> bool:
     info = capture / "gt" / "info.json"
     if not info.is_file():
         return False
-    opts = _synth_options(argv)
+    try:
+        opts = _synth_options(argv)
+    except (ValueError, SageError):  # an argument sage synth would refuse: nothing is current
+        return False
     opts.setdefault("tracking", "fitted")  # sage synth's defaults
     opts.setdefault("appearance", "detailed")
     try:
@@ -39,7 +42,45 @@ def _synth_options(argv: list[str]) -> dict:
         if a in names:
             key, tp = names[a]
             out[key] = tp(argv[i + 1])
+    from sage_core.data.synthetic.config import parse_sets
+
+    out.update(parse_sets([argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--set"]))
     return out
+
+
+def write_photo(path: Path) -> Path:
+    """Write the photo head's photograph (scikit-image's ``data.astronaut()``, 512 x 512 RGB) as a
+    PNG at ``path`` unless it is already there."""
+    if path.is_file():
+        return path
+    import imageio.v3 as iio
+    from skimage import data
+
+    from sage_core.atomic import atomic_write_bytes
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, iio.imwrite("<bytes>", data.astronaut(), extension=".png"))
+    return path
+
+
+def photo_command(path: Path) -> str:
+    """The shell line that writes the photo head's photograph (:func:`write_photo`)."""
+    code = f"from skimage import data; import imageio.v3 as iio; iio.imwrite({str(path)!r}, data.astronaut())"
+    return f'python -c "{code}"'
+
+
+def track_is_current(capture: Path, argv: list[str]) -> bool:
+    """True when ``capture`` already holds what ``sage track ARGV`` would write: its report names
+    the same photograph, FLAME model and seed, and is newer than the model."""
+    report = capture / "track" / "report.json"
+    try:
+        doc = json.loads(report.read_text(encoding="utf-8"))
+        model = Path(argv[argv.index("--flame-model") + 1])
+        seed = int(argv[argv.index("--seed") + 1]) if "--seed" in argv else 0
+        return (Path(doc["input"]["path"]).resolve() == Path(argv[1]).resolve() and Path(doc["flame_model"]).resolve() == model.resolve()
+                and doc.get("seed") == seed and report.stat().st_mtime >= model.stat().st_mtime)  # fmt: skip
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
+        return False
 
 
 def _link_or_copy(src: str, dst: str) -> str:
