@@ -1,10 +1,11 @@
 """The training losses against recorded reference values: 20 steps of phase 1 (network and free
-surfels, a one-shot capture with pseudo views) and phase 2 (rest and NeuS teachers) must give
-bit-identical loss terms, and the config hashes of the presets must stay as recorded.
+surfels, a one-shot capture with pseudo views) and phase 2 (rest and NeuS teachers) must give the
+recorded loss terms (bit-identical on the recording machine, within :data:`LOSS_REL` on another
+CPU), and the config hashes of the presets must stay as recorded.
 
 The reference (``tests/loss_reference.json``) records, per case, every step's total loss and, per loss
-term, the sum of its values over the steps, each as ``float.hex`` (exact); a mismatch names the case,
-the term and the step. The numbers depend on the training code, the synthetic test captures and the
+term, the sum of its values over the steps, each as ``float.hex``; a mismatch names the case, the
+term and the step. The numbers depend on the training code, the synthetic test captures and the
 torch build. When a deliberate change of the training method or of the synthetic captures changes
 them, record them anew and say so in the change:
 
@@ -89,12 +90,35 @@ def _phase1_history(data, init_dir, flags: dict, pseudo: bool = False) -> list[d
     return [tr.step() for _ in range(STEPS)]
 
 
-def _check(case: str, got: dict, ref: dict) -> None:
+LOSS_REL = float(os.environ.get("SAGE_LOSS_REFERENCE_REL", "1e-2"))
+"""Relative tolerance of every recorded value (each step's total, each term's sum). On the machine
+that recorded the reference the values are bit-identical; another CPU rounds float32 sums
+differently (vector widths, BLAS kernels), in the synthetic test captures and in training, and
+twenty steps carry that forward: an Intel Xeon against the AMD EPYC that recorded it deviated by up
+to 2.6e-3 (the SDF smoothness and NeuS mask terms of the network case), as did the same Xeon with
+torch's vector kernels or OpenBLAS's kernel choice forced. The set of terms is compared exactly; a
+change of a term, a weight or a schedule moves its sum by far more than 1 %."""
+
+
+def _rel(a: str, b: str) -> float:
+    x, y = float.fromhex(a), float.fromhex(b)
+    return abs(x - y) / max(abs(y), 1e-12)
+
+
+def _check(case: str, got: dict, ref: dict) -> float:
+    """Assert every step's total and every term's sum agree with the reference within
+    :data:`LOSS_REL`; returns the largest relative deviation."""
     assert set(got["terms"]) == set(ref["terms"]), (case, sorted(set(got["terms"]) ^ set(ref["terms"])))
+    worst = 0.0
     for i, (a, b) in enumerate(zip(got["loss"], ref["loss"])):
-        assert a == b, f"{case}: total loss of step {i} is {float.fromhex(a)!r}, recorded {float.fromhex(b)!r}"
+        d = _rel(a, b)
+        worst = max(worst, d)
+        assert d <= LOSS_REL, f"{case}: total loss of step {i} is {float.fromhex(a)!r}, recorded {float.fromhex(b)!r}"
     for k, v in ref["terms"].items():
-        assert got["terms"][k] == v, f"{case}: term {k} sums to {float.fromhex(got['terms'][k])!r}, recorded {float.fromhex(v)!r}"
+        d = _rel(got["terms"][k], v)
+        worst = max(worst, d)
+        assert d <= LOSS_REL, f"{case}: term {k} sums to {float.fromhex(got['terms'][k])!r}, recorded {float.fromhex(v)!r}"
+    return worst
 
 
 @pytest.fixture(scope="module")
@@ -153,8 +177,8 @@ def test_losses_match_the_reference(results):
         pytest.skip(f"recorded {REFERENCE.name}")
     ref = json.loads(REFERENCE.read_text())
     assert set(results) == set(ref["cases"])
-    for case, got in results.items():
-        _check(case, got, ref["cases"][case])
+    worst = {case: _check(case, got, ref["cases"][case]) for case, got in results.items()}
+    print("largest relative deviation per case:", {k: f"{v:.1e}" for k, v in worst.items()})
 
 
 def test_every_case_exercises_its_terms(results):
@@ -176,3 +200,14 @@ def test_config_hashes_match_the_reference():
         pytest.skip("recording")
     ref = json.loads(REFERENCE.read_text())["config_hashes"]
     assert _hashes() == ref
+
+
+def test_the_comparison_takes_rounding_and_refuses_a_changed_term():
+    ref = {"loss": [_hex(1.5), _hex(1.25)], "terms": {"rgb": _hex(2.0), "smooth": _hex(0.5)}}
+    rounded = {"loss": [_hex(1.5 * (1 + 3e-3)), _hex(1.25)], "terms": {"rgb": _hex(2.0 * (1 - 2e-3)), "smooth": _hex(0.5)}}
+    assert 2e-3 < _check("case", rounded, ref) < 4e-3
+    changed = {"loss": [_hex(1.5), _hex(1.25)], "terms": {"rgb": _hex(2.0), "smooth": _hex(0.5 * 1.05)}}
+    with pytest.raises(AssertionError, match="term smooth"):
+        _check("case", changed, ref)
+    with pytest.raises(AssertionError):
+        _check("case", {"loss": ref["loss"], "terms": {"rgb": _hex(2.0)}}, ref)  # a term went missing
