@@ -213,6 +213,23 @@ def test_the_photo_head_is_refused_without_the_face_models(tmp_path, monkeypatch
     assert not (tmp_path / "out").exists() and not (tmp_path / "docs").exists()  # nothing started
 
 
+def test_the_photo_steps_track_the_photograph_once(tmp_path):
+    from track_helpers import models_or_skip
+
+    from _suite.execute import run_step
+    from _suite.rows import photo_steps
+
+    models_or_skip()
+    st = Settings(SIZES["tiny"], tmp_path / "out", head="photo")
+    model, track = photo_steps(st)
+    first = [run_step(s, st, None, False) for s in (model, track)]
+    assert [r["rc"] for r in first] == [0, 0] and all(r["ran"] for r in first), first
+    assert (st.photo_dir / "astronaut.png").is_file() and (st.photo_dir / "capture" / "track" / "report.json").is_file()
+    assert first[1]["command"].startswith("python -c ") and "sage track " in first[1]["command"]
+    again = run_step(track, st, first[1], False)  # current: neither the photo nor the track is redone
+    assert again["rc"] == 0 and not again["ran"] and again["note"] == "capture already present"
+
+
 def test_photo_track_is_current_only_for_the_same_photograph_model_and_seed(tmp_path):
     import time
 

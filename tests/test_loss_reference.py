@@ -90,7 +90,7 @@ def _phase1_history(data, init_dir, flags: dict, pseudo: bool = False) -> list[d
     return [tr.step() for _ in range(STEPS)]
 
 
-LOSS_REL = float(os.environ.get("SAGE_LOSS_REFERENCE_REL", "1e-2"))
+LOSS_REL = 1e-2
 """Relative tolerance of every recorded value (each step's total, each term's sum). On the machine
 that recorded the reference the values are bit-identical; another CPU rounds float32 sums
 differently (vector widths, BLAS kernels), in the synthetic test captures and in training, and

@@ -4,6 +4,7 @@ then each row's numbers collected from its workspace."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -51,23 +52,16 @@ def run_step(step: Step, settings: Settings, previous: dict[str, Any] | None, po
                            "started_at": now_iso(), "error": None}  # fmt: skip
     t0 = time.perf_counter()
     try:
-        if step.kind == "synth":
+        if step.kind in ("synth", "track"):  # a capture: kept when it is what the command would write
             assert step.capture is not None
-            if capture_is_current(step.capture, step.argv):
+            current = capture_is_current if step.kind == "synth" else track_is_current
+            if current(step.capture, step.argv):
                 rec.update(rc=0, ran=False, wall_s=time.perf_counter() - t0, note="capture already present")
                 return _keep_previous(rec, previous)
+            if step.kind == "track":
+                write_photo(Path(step.argv[1]))
             argv = list(step.argv) + (["--force"] if step.capture.exists() else [])
-            rec["command"] = command_line(argv)
-            return _run_cli(rec, argv, settings, step, poll_gpu, None)
-        if step.kind == "track":
-            assert step.capture is not None
-            photo = Path(step.argv[1])
-            if track_is_current(step.capture, step.argv):
-                rec.update(rc=0, ran=False, wall_s=time.perf_counter() - t0, note="capture already present")
-                return _keep_previous(rec, previous)
-            write_photo(photo)
-            argv = list(step.argv) + (["--force"] if step.capture.exists() else [])
-            rec["command"] = photo_command(photo) + " && " + command_line(argv)
+            rec["command"] = step_command(replace(step, argv=argv))
             return _run_cli(rec, argv, settings, step, poll_gpu, None)
         if step.kind == "cli":
             ws = settings.for_subject(step.subject).ws(step.row) if step.row else None
