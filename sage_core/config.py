@@ -185,6 +185,7 @@ class Phase1NeuSConfig(NeuSConfig):
     background_rays: float = _f(0.25, "Extra NeuS rays per step from background pixels within neus.background_band pixels of the silhouette, as a fraction of neus.rays_per_step (frames with masks only). Without them the SDF never sees where the head ends and its zero level set, which the surfel centres follow (L_pt), can sit outside the silhouette.", ge=0, le=4, alias="neus_background_rays")
     background_band: int = _f(6, "Width in pixels of the background band around the foreground mask from which the background NeuS rays are drawn.", ge=1, alias="neus_background_band")
     variance: float = _f(0.4, "Initial NeuS s-variance (inv_s = exp(10 var) per box half extent).", ge=-2, le=2, alias="neus_variance")
+    appearance_grad: bool = _f(True, "attributes=mlp: the NeuS colour loss also trains the appearance network and its hash table (true, as in the paper: one albedo from both renders); false: its gradient reaches the SDF (its geometry and feature z) and the s-variance only, and the appearance fields learn from the surfel render alone. With free attributes the appearance network serves NeuS alone and always learns from it. false on three photo-skinned tiny subjects: the val image +0.70, -0.05, +0.65 dB, held-out expressions within a rerun's spread, the back views -0.47 to +0.27 dB, and one subject's irises lost their colour (docs/results.md).", added=True)
 
 
 @dataclass

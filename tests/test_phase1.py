@@ -245,6 +245,30 @@ def test_polish_fraction_trains_on_the_photometric_loss_alone(init_ws, one_threa
         assert "rgb" in h and not set(geometric) & set(h), sorted(h)
 
 
+def _first_step_grads(ws, **over):
+    tr = _trainer(ws, "mlp", iterations=4, **over)
+    tr.step()
+    app = [p.grad.clone() for p in tr.avatar.appearance.parameters() if p.grad is not None]
+    sdf = [p.grad.clone() for p in tr.avatar.sdf.parameters() if p.grad is not None]
+    return app, sdf
+
+
+def test_neus_colour_leaves_the_appearance_fields_to_the_surfels_when_asked(init_ws, one_thread):
+    """neus.appearance_grad=false: the NeuS colour term's gradient reaches the SDF, never the
+    appearance network or its hash table; true (the paper's coupling) reaches both."""
+
+    def same(a, b):
+        return len(a) == len(b) and all(torch.equal(x, y) for x, y in zip(a, b))
+
+    app_on, sdf_on = _first_step_grads(init_ws, w_neus_rgb=1.0)
+    app_off, sdf_off = _first_step_grads(init_ws, w_neus_rgb=0.0)
+    assert app_on and not same(app_on, app_off)  # the paper's coupling: NeuS colour trains the appearance
+    app_on, sdf_on = _first_step_grads(init_ws, w_neus_rgb=1.0, **{"neus.appearance_grad": False})
+    app_off, sdf_off = _first_step_grads(init_ws, w_neus_rgb=0.0, **{"neus.appearance_grad": False})
+    assert app_on and same(app_on, app_off)
+    assert sdf_on and not same(sdf_on, sdf_off)
+
+
 def test_posed_mesh_is_kept_while_the_inputs_are_constant(init_ws, one_thread):
     """The trainer poses each timestep's mesh once, and not while a pose correction is learned."""
     tr = _trainer(init_ws, "mlp", iterations=4, pose_refine=True, pose_refine_from=2)

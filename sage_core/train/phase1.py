@@ -763,8 +763,12 @@ class Phase1Step:
             pix = torch.cat([pix, bg[tr._randint(bg.numel(), n_bg).to(bg.device)]])
         cr = tr.warp.map(av, {k: v.detach() for k, v in self.inputs.items()}, self.cam, pix, self.rigid)
         o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
+        # attribute networks: the surfel render may keep the appearance fields to itself (free
+        # surfels' appearance network serves NeuS alone and always learns from it)
+        frozen = av.attributes == "mlp" and not c.neus.appearance_grad
+        app = _without_parameter_grad(av.appearance) if frozen else av.appearance
         out = render_neus(
-            av.sdf, av.appearance, o_c, d_c, av.variance, c.neus.samples, c.neus.importance, c.neus.up_steps,
+            av.sdf, app, o_c, d_c, av.variance, c.neus.samples, c.neus.importance, c.neus.up_steps,
             1.0, c.background, length_unit=tr.length_unit, perturb=True, generator=tr.generator, return_samples=True,
         )  # fmt: skip
         gt = self.img.reshape(-1, 3)[pix]
@@ -1145,3 +1149,9 @@ def run_phase1(
         metrics["pseudo_views"] = len(trainer.pseudo_views)
     atomic_write_json(out_dir / "metrics.json", metrics)
     return metrics
+
+
+def _without_parameter_grad(module: torch.nn.Module) -> Callable[..., Any]:
+    """``module`` called with its parameters detached: gradients reach its inputs, never its weights."""
+    state = {**{k: v.detach() for k, v in module.named_parameters()}, **dict(module.named_buffers())}
+    return lambda *args: torch.func.functional_call(module, state, args)
