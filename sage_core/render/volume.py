@@ -17,10 +17,14 @@ Transmittance products run in float64.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Callable, Protocol
 
 import torch
 from torch import nn
+
+AppearanceFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+"""Colour of points: ``(x (M,3), view_dir (M,3), normal (M,3), feature (M,F)) -> (rgb (M,3), opacity (M,))``
+(the appearance network, or a call of it with its parameters detached)."""
 
 
 class SDFField(Protocol):
@@ -154,7 +158,7 @@ def _sample_pdf(
 
 def _render_hits(
     sdf_net: SDFField,
-    app_net: nn.Module,
+    app_net: AppearanceFn,
     o: torch.Tensor,
     d: torch.Tensor,
     near: torch.Tensor,
@@ -236,7 +240,7 @@ def _rows_of_all_rays(
 
 def render_neus(
     sdf_net: SDFField,
-    app_net: nn.Module,
+    app_net: AppearanceFn,
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
     inv_s: SVariance | torch.Tensor | float,
