@@ -71,25 +71,18 @@ def _stats(a: np.ndarray) -> dict:
     return {"shape": list(a.shape), "sums": [float(f.sum()), float((f * f).sum()), float((f * w).sum())]}
 
 
-def _numbers(x) -> list[float]:
+def _split_json(x) -> tuple[object, list[float]]:
+    """A JSON document as its skeleton (numbers replaced by 0: structure and strings) and its
+    numbers in a fixed order (dict keys sorted)."""
     if isinstance(x, bool) or x is None or isinstance(x, str):
-        return []
+        return x, []
     if isinstance(x, (int, float)):
-        return [float(x)]
+        return 0, [float(x)]
     if isinstance(x, dict):
-        return [v for k in sorted(x) for v in _numbers(x[k])]
-    return [v for item in x for v in _numbers(item)]
-
-
-def _skeleton(x):
-    """A JSON document with its numbers replaced by 0 (its structure and strings)."""
-    if isinstance(x, bool) or x is None or isinstance(x, str):
-        return x
-    if isinstance(x, (int, float)):
-        return 0
-    if isinstance(x, dict):
-        return {k: _skeleton(v) for k, v in x.items()}
-    return [_skeleton(v) for v in x]
+        parts = {k: _split_json(x[k]) for k in sorted(x)}
+        return {k: v[0] for k, v in parts.items()}, [n for v in parts.values() for n in v[1]]
+    items = [_split_json(v) for v in x]
+    return [v[0] for v in items], [n for v in items for n in v[1]]
 
 
 def _fingerprint(root: Path) -> dict:
@@ -115,9 +108,9 @@ def _fingerprint(root: Path) -> dict:
             with np.load(p, allow_pickle=False) as z:
                 out[rel] = {k: _stats(z[k]) if z[k].dtype.kind in "biuf" else z[k].tolist() for k in sorted(z.files)}
         elif p.suffix == ".json":
-            doc = json.loads(p.read_text(encoding="utf-8"))
-            out[rel] = {"numbers": _stats(np.array(_numbers(doc))),
-                        "skeleton": hashlib.sha256(json.dumps(_skeleton(doc), sort_keys=True).encode()).hexdigest()}
+            skeleton, numbers = _split_json(json.loads(p.read_text(encoding="utf-8")))
+            out[rel] = {"numbers": _stats(np.array(numbers)),
+                        "skeleton": hashlib.sha256(json.dumps(skeleton, sort_keys=True).encode()).hexdigest()}
         elif p.suffix == ".ply":
             m = trimesh.load(p, process=False)
             out[rel] = {"vertices": _stats(m.vertices), "faces": hashlib.sha256(np.ascontiguousarray(m.faces, np.int64).tobytes()).hexdigest()}

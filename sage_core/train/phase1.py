@@ -78,7 +78,7 @@ from ..flame.frames import surfel_frames
 from ..flame.regions import Regions
 from ..image_metrics import SSIMTarget, psnr, ssim, ssim_map, ssim_target
 from ..render import RenderCamera
-from ..render.volume import render_neus
+from ..render.volume import AppearanceFn, render_neus
 from ..workspace import rng_state, set_rng_state
 from . import losses as L
 from . import relocate
@@ -1151,7 +1151,7 @@ def run_phase1(
     return metrics
 
 
-def _without_parameter_grad(module: torch.nn.Module) -> Callable[..., Any]:
+def _without_parameter_grad(module: torch.nn.Module) -> AppearanceFn:
     """``module`` called with its parameters detached: gradients reach its inputs, never its weights."""
     state = {**{k: v.detach() for k, v in module.named_parameters()}, **dict(module.named_buffers())}
     return lambda *args: torch.func.functional_call(module, state, args)
