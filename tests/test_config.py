@@ -389,6 +389,7 @@ def test_one_flag_parser_for_stage_track_and_synth_configs():
         with pytest.raises(ValueError):
             parse_bool(bad)
     assert resolve_track_config("default", None, {"steady_depth": "yes"}).steady_depth is True
+    assert resolve_track_config("default", None, {"steady_pivot": "on"}).steady_pivot is True
     assert parse_sets(["novel_multiview=off"]) == {"novel_multiview": False}
     with pytest.raises(ConfigError, match="steady_depth"):
         resolve_track_config("default", None, {"steady_depth": "maybe"})

@@ -123,10 +123,17 @@ class TrackConfig:
                                      "from one image rests on its apparent size, which the outline and landmarks give to about "
                                      "1 %; the frames agreeing on it removes that jitter, but a head that really moves towards "
                                      "or away from the camera is then tracked worse (docs/track.md).")
-    w_steady_depth: float = _opt(1.0, "Weight of the steady-depth prior (robust, per frame).", ge=0)
-    steady_depth_scale: float = _opt(0.01, "Robust scale of the steady-depth prior: log-depth deviations from the frames' "
-                                           "common depth up to this (1 %) cost quadratically, larger ones (the camera or "
-                                           "the person really moved) only linearly.", gt=0)
+    steady_pivot: bool = _opt(False, "Hold the point the head turns about (FLAME's root joint, the pivot of its global rotation) in one "
+                                     "place in front of one uncalibrated camera over the frames of a video or a folder: its "
+                                     "distance, as steady_depth does, and its position across the image. For a person who "
+                                     "sits still and turns their head in front of a camera that stays put (a tripod): a "
+                                     "frame's pitch and depth then cannot trade against a shift of the whole head. A person "
+                                     "who leans or moves is tracked worse (docs/track.md).")
+    w_steady_depth: float = _opt(1.0, "Weight of the steady-depth and steady-pivot priors (robust, per frame).", ge=0)
+    steady_depth_scale: float = _opt(0.01, "Robust scale of the steady-depth and steady-pivot priors: deviations from the "
+                                           "frames' common value (log depth; the pivot's sideways and vertical position as a "
+                                           "share of its distance) up to this (1 %) cost quadratically, larger ones (the "
+                                           "camera or the person really moved) only linearly.", gt=0)
     w_focal: float = _opt(0.001, "Weight of the prior pulling the log focal length to its initial value.", ge=0)
     mask_colour_cut: str = _opt("auto", "Check the person pixels by colour (a graph cut on colour models: background the "
                                         "segmentation took for the person goes back), before the fit (the landmarks' hull kept) and "

@@ -110,6 +110,9 @@ class FitProblem:
             the smoothing weighs the difference of two neighbouring timesteps by 1 / gap².
         steady_depth: with ``camera_relative``, pull every timestep's depth towards the timesteps' common
             depth (a head turning in front of a camera that stays put).
+        steady_pivot: with ``camera_relative``, also pull every timestep's pivot (the root joint) towards
+            the timesteps' common position across the image, its depth held as with ``steady_depth``
+            (a person sitting still and turning their head in front of a camera that stays put).
     """
 
     cameras: list[FitCamera]
@@ -124,6 +127,7 @@ class FitProblem:
     camera_relative: bool = False
     times: np.ndarray | None = None
     steady_depth: bool = False
+    steady_pivot: bool = False
 
     def subset(self, rows: np.ndarray) -> FitProblem:
         """The problem restricted to the timesteps ``rows`` (sorted, renumbered 0..len-1, their images
@@ -273,6 +277,8 @@ class Fitter:
         self.z0 = 1.0  # reference depth of camera-relative head positions (set by init_rigid)
         # common log depth of a chunk's sequence (the keyframes'), None: the mean of this fitter's timesteps
         self.depth_anchor: torch.Tensor | None = None
+        # common pivot position across the image of a chunk's sequence (the keyframes'), None: the mean
+        self.xy_anchor: torch.Tensor | None = None
         self.losses: dict[str, float] = {}
         self.timings: dict[str, float] = {}
         self.keyframes: list[int] = list(range(T))
@@ -593,8 +599,10 @@ class Fitter:
         loss = loss + c.w_focal * (P["log_focal"] ** 2).sum()
         if self.p.smooth:
             loss = loss + c.w_smooth * self.smoothness()
-        if self.p.steady_depth and self.p.camera_relative and c.w_steady_depth > 0:
+        if (self.p.steady_depth or self.p.steady_pivot) and self.p.camera_relative and c.w_steady_depth > 0:
             loss = loss + c.w_steady_depth * self.steady_depth()
+        if self.p.steady_pivot and self.p.camera_relative and c.w_steady_depth > 0:
+            loss = loss + c.w_steady_depth * self.steady_position()
         if self.p.landmark_offsets:
             loss = loss + c.w_landmark_offset * (P["lmk_offset"] ** 2).sum(1).mean()
         if self.hair is not None:
@@ -611,6 +619,17 @@ class Fitter:
         logz = self.params["translation"][:, 2]
         ref = logz.mean() if self.depth_anchor is None else self.depth_anchor
         return charbonnier(logz - ref, self.cfg.steady_depth_scale).mean()
+
+    def steady_position(self) -> torch.Tensor:
+        """Mean robust deviation of the timesteps' pivot positions across the image (the first two
+        camera-relative translation parameters) from their common value (the mean over the timesteps,
+        or ``xy_anchor``, a chunk's), each measured as a share of the distance (pixels / focal length),
+        on the same robust scale as :meth:`steady_depth`."""
+        K, _ = self.cameras()
+        per_unit = (PIXEL_UNIT / torch.stack([K[0, 0, 0], K[0, 1, 1]])).detach()
+        xy = self.params["translation"][:, :2]
+        ref = xy.mean(0) if self.xy_anchor is None else self.xy_anchor
+        return charbonnier((xy - ref) * per_unit, self.cfg.steady_depth_scale).sum(-1).mean()
 
     def smoothness(self) -> torch.Tensor:
         """Sum over the per-timestep parameters of the mean squared difference of neighbouring timesteps,
@@ -833,6 +852,7 @@ class Fitter:
             ch = self._child(rows, None)
             ch.z0 = self.z0
             ch.depth_anchor = self.params["translation"][keys, 2].mean().detach().clone()
+            ch.xy_anchor = self.params["translation"][keys, :2].mean(0).detach().clone()
             with torch.no_grad():
                 for n in SHARED:
                     ch.params[n].copy_(self.params[n])

@@ -119,9 +119,10 @@ def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
 
 
 def steady_depth_rule(enabled: bool, kind: str, n_timesteps: int) -> bool:
-    """Whether the head's distance from the camera is held steady over the frames: when asked for
-    (``TrackConfig.steady_depth``), for a video or a folder of several frames from one camera (a rig
-    places the head itself; one image has nothing to agree with)."""
+    """Whether the head's distance from the camera (or with ``TrackConfig.steady_pivot`` its pivot's
+    whole position) is held steady over the frames: when asked for (``TrackConfig.steady_depth``,
+    ``steady_pivot``), for a video or a folder of several frames from one camera (a rig places the
+    head itself; one image has nothing to agree with)."""
     return enabled and _one_camera_sequence(kind, n_timesteps)
 
 
@@ -390,7 +391,8 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     several_views = source.kind == "multiview" or len(obs.kept) >= 3
     lmk_offsets = cfg.landmark_offsets == "on" or (cfg.landmark_offsets == "auto" and several_views)
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
-    steady = steady_depth_rule(cfg.steady_depth, source.kind, len(obs.kept))
+    steady = steady_depth_rule(cfg.steady_depth or cfg.steady_pivot, source.kind, len(obs.kept))
+    pivot = steady_depth_rule(cfg.steady_pivot, source.kind, len(obs.kept))
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
     inward = None
     face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
@@ -401,7 +403,8 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         inward = ~both
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
                          silhouette_exclude=exclude, silhouette_inward=inward, landmark_offsets=lmk_offsets,
-                         camera_relative=source.kind != "multiview", steady_depth=steady)
+                         camera_relative=source.kind != "multiview", steady_depth=steady,
+                         steady_pivot=pivot)
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
     fit = fitter.run()
     timings["fit"] = time.time() - t0
