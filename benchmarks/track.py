@@ -35,6 +35,7 @@ when they exist (delete the folder to start over).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -293,7 +294,9 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         meta["render_s"] = round(time.time() - t0, 1)
         meta_path.write_text(json.dumps(meta))
     meta = json.loads(meta_path.read_text())
-    out = work / f"tracked_video{sway}_{track_preset}"
+    # one folder per video and settings, so runs of the same video with other settings may overlap
+    tag = "" if not sets else "_" + hashlib.sha1("\n".join(sorted(sets)).encode()).hexdigest()[:8]
+    out = work / f"tracked_video{sway}_{track_preset}{tag}"
     args = ["track", str(video), str(out), "--flame-model", meta["model"], "--preset", track_preset, "--quiet", "--force"]
     for kv in sets or []:
         args += ["--set", kv]
