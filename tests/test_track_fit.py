@@ -479,11 +479,29 @@ def test_steady_position_term_and_its_anchor(head):
         fit.params["translation"][:, 2] = 0.0
         assert float(fit.steady_position()) == pytest.approx(before)  # the depth is steady_depth's
 
+    # in the priors: the depth option adds its term; the pivot alone adds both (its depth is held too)
+    from dataclasses import replace
+
+    def priors(depth: bool, pivot: bool) -> float:
+        f = Fitter(fm, emb, replace(problem, steady_depth=depth, steady_pivot=pivot), cfg)
+        with torch.no_grad():
+            f.params["translation"].copy_(fit.params["translation"])
+            return float(f.priors())
+
+    fit.xy_anchor = None
+    with torch.no_grad():
+        fit.params["translation"][:, 2] = torch.tensor([0.0, 0.0, 0.02, -0.02], dtype=fit.dtype)
+        depth_term, position_term = float(fit.steady_depth()), float(fit.steady_position())
+    assert depth_term > 0 and position_term > 0
+    plain = priors(False, False)
+    assert priors(True, False) - plain == pytest.approx(depth_term, rel=1e-5)
+    assert priors(False, True) - plain == pytest.approx(depth_term + position_term, rel=1e-5)
+
 
 def test_steady_pivot_holds_the_pivot_and_the_pitch(head, one_thread):
     """Noisy landmarks on a head turning and nodding about a pivot that stays put: holding the pivot
     keeps its fitted position across the image far steadier than the depth prior alone and brings the
-    meshes closer to the truth; the pipeline turns it on only for one camera's sequence."""
+    meshes closer to the truth."""
     from dataclasses import replace
 
     from sage_core.track.truth import similarity_fit

@@ -110,9 +110,10 @@ class FitProblem:
             the smoothing weighs the difference of two neighbouring timesteps by 1 / gap².
         steady_depth: with ``camera_relative``, pull every timestep's depth towards the timesteps' common
             depth (a head turning in front of a camera that stays put).
-        steady_pivot: with ``camera_relative``, also pull every timestep's pivot (the root joint) towards
-            the timesteps' common position across the image, its depth held as with ``steady_depth``
-            (a person sitting still and turning their head in front of a camera that stays put).
+        steady_pivot: with ``camera_relative``, pull every timestep's pivot (the root joint) towards the
+            timesteps' common position across the image and hold its depth as ``steady_depth`` does,
+            whether that is set or not (a person sitting still and turning their head in front of a
+            camera that stays put).
     """
 
     cameras: list[FitCamera]
@@ -599,10 +600,11 @@ class Fitter:
         loss = loss + c.w_focal * (P["log_focal"] ** 2).sum()
         if self.p.smooth:
             loss = loss + c.w_smooth * self.smoothness()
-        if (self.p.steady_depth or self.p.steady_pivot) and self.p.camera_relative and c.w_steady_depth > 0:
-            loss = loss + c.w_steady_depth * self.steady_depth()
-        if self.p.steady_pivot and self.p.camera_relative and c.w_steady_depth > 0:
-            loss = loss + c.w_steady_depth * self.steady_position()
+        if self.p.camera_relative and c.w_steady_depth > 0:
+            if self.p.steady_depth or self.p.steady_pivot:  # the pivot's depth is held as steady_depth holds it
+                loss = loss + c.w_steady_depth * self.steady_depth()
+            if self.p.steady_pivot:
+                loss = loss + c.w_steady_depth * self.steady_position()
         if self.p.landmark_offsets:
             loss = loss + c.w_landmark_offset * (P["lmk_offset"] ** 2).sum(1).mean()
         if self.hair is not None:

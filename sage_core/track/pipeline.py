@@ -391,7 +391,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     several_views = source.kind == "multiview" or len(obs.kept) >= 3
     lmk_offsets = cfg.landmark_offsets == "on" or (cfg.landmark_offsets == "auto" and several_views)
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
-    steady = steady_depth_rule(cfg.steady_depth or cfg.steady_pivot, source.kind, len(obs.kept))
+    steady = steady_depth_rule(cfg.steady_depth, source.kind, len(obs.kept))
     pivot = steady_depth_rule(cfg.steady_pivot, source.kind, len(obs.kept))
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
     inward = None
