@@ -21,6 +21,10 @@ captures hold (matched by the capture's timestep and camera). The one-shot photo
 frames per second for ``--video-seconds``, ``--video-size``) as an MP4 and tracks it: the time of the
 issue's "20-second 30-fps head-turn video" target, and its vertex error against the rendered truth.
 
+``--only-clip-seeds 0,1,2`` tracks the monocular clip once per tracking seed with the settings of
+``--clip-set`` (and the true focal length with ``--known-focal``) and records the runs under
+``--clip-label``: a setting's effect on one clip beside the spread of the seeds.
+
 ``--only-backgrounds coffee,rocket,chelsea`` puts the one-shot photo's head (its own mask) over
 photographs that ship with scikit-image, tracks each with the masks' colour cut on and off
 (``mask_colour_cut``), and scores the written mask against the capture's (intersection over union,
@@ -144,20 +148,33 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
             "psnr_difference_db": round(runs["tracked"]["common"]["psnr"] - runs["own"]["common"]["psnr"], 3)}
 
 
-def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int, known_focal: bool = False) -> dict:
+def _settings_tag(sets: list[str]) -> str:
+    """A short folder suffix for a list of ``--set`` items ("" for none)."""
+    return "_" + hashlib.sha1("\n".join(sorted(sets)).encode()).hexdigest()[:8] if sets else ""
+
+
+def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int, known_focal: bool = False,
+               seed: int | None = None, sets: list[str] | None = None) -> dict:
     """Synthesise (or reuse), track and compare one regime; ``known_focal`` gives one camera's true focal
-    length (``--set focal=...``), as a photo's EXIF would."""
+    length (``--set focal=...``), as a photo's EXIF would; ``seed`` is the tracking's ``--seed`` (None:
+    the command's default) and ``sets`` more ``--set`` items for it."""
     from sage_core.track.truth import compare_to_truth
 
+    sets = list(sets or [])
     cap = _capture(work, regime, synth_preset)
     inp, cams = _input(work, regime, synth_preset, cap)
-    out = work / f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}"
+    out = work / (f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}"
+                  f"{'' if seed is None else f'_seed{seed}'}{_settings_tag(sets)}")
     info = json.loads((cap / "gt" / "info.json").read_text())
     args = ["track", str(inp), str(out), "--flame-model", str(cap / "model" / "synth_flame.pkl"), "--preset", track_preset,
             "--quiet", "--force", "--set", _train_ratio(info)]
     if known_focal:
         frame = json.loads((cap / "transforms.json").read_text())["frames"][0]
         args += ["--set", f"focal={frame['fl_x']}"]
+    for kv in sets:
+        args += ["--set", kv]
+    if seed is not None:
+        args += ["--seed", str(seed)]
     if cams is not None:
         args += ["--cameras", str(cams)]
     wall, _ = _sage(args, threads)
@@ -165,13 +182,31 @@ def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, th
     report = json.loads((out / "track" / "report.json").read_text())
     return {
         "regime": regime, "track_regime": report["regime"], "synth_preset": synth_preset, "track_preset": track_preset,
-        "known_focal": known_focal, "image_size": [info["config"]["width"], info["config"]["height"]], "timesteps": report["timesteps"],
+        "known_focal": known_focal, "seed": seed, "sets": sets, "image_size": [info["config"]["width"], info["config"]["height"]], "timesteps": report["timesteps"],
         "images": report["images"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
         "focal_source": report["camera"]["focal_source"], "errors": err,
         "command": "sage " + " ".join(a if a != str(REPO) else "." for a in args),
         "capture_tracking_error": (info.get("tracking") or {}).get("error", {}).get("all"),
     }
+
+
+def clip_seed_run(work: Path, synth_preset: str, track_preset: str, threads: int, known_focal: bool, seeds: list[int],
+                  sets: list[str]) -> dict:
+    """The monocular clip tracked once per seed with the same settings: the spread a setting's effect has to
+    clear. Returns the per-seed cases (as :func:`track_case`) and the means of the main errors."""
+    cases = [track_case(work, "monocular", synth_preset, track_preset, threads, known_focal, seed=s, sets=sets)
+             for s in seeds]
+
+    def mean(get) -> float:
+        return round(float(np.mean([get(c["errors"]) for c in cases])), 3)
+
+    return {"known_focal": known_focal, "sets": list(sets), "seeds": seeds, "synth_preset": synth_preset,
+            "track_preset": track_preset, "cases": cases,
+            "mean": {"aligned_mm": mean(lambda e: e["aligned"]["mean_mm"]),
+                     "rigid_per_timestep_mm": mean(lambda e: e["rigid_per_timestep"]["mean_mm"]),
+                     "camera_mm": mean(lambda e: e["camera"]["mean_mm"]),
+                     "focal_rel_error": round(float(np.mean([c["errors"]["focal_rel_error"] for c in cases])), 4)}}
 
 
 BACKGROUNDS = ("coffee", "rocket", "chelsea")
@@ -295,8 +330,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         meta_path.write_text(json.dumps(meta))
     meta = json.loads(meta_path.read_text())
     # one folder per video and settings, so runs of the same video with other settings may overlap
-    tag = "" if not sets else "_" + hashlib.sha1("\n".join(sorted(sets)).encode()).hexdigest()[:8]
-    out = work / f"tracked_video{sway}_{track_preset}{tag}"
+    out = work / f"tracked_video{sway}_{track_preset}{_settings_tag(sets or [])}"
     args = ["track", str(video), str(out), "--flame-model", meta["model"], "--preset", track_preset, "--quiet", "--force"]
     for kv in sets or []:
         args += ["--set", kv]
@@ -403,6 +437,22 @@ def markdown(doc: dict) -> str:
                          + f" | {v['reprojection_px']:.2f} | {_fmt(e['camera'])} | {_fmt(e['aligned'])} | {e['focal_rel_error']:+.1%} |")
         if notes.get("video"):
             lines += ["", notes["video"]]
+    if doc.get("clip_runs"):
+        frames = sorted({c.get("timesteps") for r in doc["clip_runs"] for c in r["cases"]} - {None})
+        lines += ["", f"The monocular clip (a folder of {' or '.join(map(str, frames)) or 'its'} frames) tracked at several seeds "
+                      "with the settings given "
+                      "(`--only-clip-seeds`): aligned error per seed, and the means. Commands per seed in `track.json` "
+                      "(`clip_runs[].cases[].command`).", "",
+                  "| settings (`--set`) | focal length | aligned (mm) per seed | aligned mean (mm) | rigid per timestep mean (mm) "
+                  "| camera mean (mm) | focal error mean | run (UTC) |",
+                  "|---|---|---|---:|---:|---:|---:|---|"]
+        for r in doc["clip_runs"]:
+            per = ", ".join(f"{c['errors']['aligned']['mean_mm']:.2f} ({c['seed']})" for c in r["cases"])
+            m = r["mean"]
+            sets = " ".join(f"`{kv}`" for kv in r["sets"]) or "—"
+            lines.append(f"| {r['label']}: {sets} | {'given' if r['known_focal'] else 'fitted'} | {per} | {m['aligned_mm']:.2f} | "
+                         f"{m['rigid_per_timestep_mm']:.2f} | {m['camera_mm']:.2f} | {m['focal_rel_error']:+.1%} | "
+                         f"{r.get('machine', {}).get('date_utc', '—')} |")
     lines += ["", "Commands per case are in `track.json` (`cases[].command`)."]
     if doc.get("avatars"):
         a0 = doc["avatars"][0]
@@ -499,6 +549,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--only-backgrounds", default=None, metavar="NAMES",
                     help=f"run only the one-shot head over these scikit-image photographs (comma-separated, e.g. {','.join(BACKGROUNDS)}) "
                          "and put them into DOCS/track.json beside the cases already there")
+    ap.add_argument("--only-clip-seeds", default=None, metavar="SEEDS",
+                    help="track only the monocular clip, once per tracking seed (comma-separated, e.g. 0,1,2), with the "
+                         "--clip-set settings (and the true focal length with --known-focal), and put the runs into "
+                         "DOCS/track.json's clip_runs under --clip-label (replacing a run of the same label and focal)")
+    ap.add_argument("--clip-label", default="default", help="the label of an --only-clip-seeds run")
+    ap.add_argument("--clip-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a --set for the clip's tracking in --only-clip-seeds (repeatable)")
     ap.add_argument("--rescore", action="store_true",
                     help="recompute the errors of DOCS/track.json's tracked captures in WORK (no tracking; times kept)")
     a = ap.parse_args(argv)
@@ -524,6 +581,15 @@ def main(argv: list[str] | None = None) -> None:
             x["machine"] = machine
             x["benchmark_command"] = command
         doc["cases"] = [c for c in doc["cases"] if not c.get("known_focal")] + extra
+        _write(a.docs, doc)
+        return
+    if a.only_clip_seeds is not None:
+        doc = json.loads((a.docs / "track.json").read_text())
+        run = clip_seed_run(a.out, a.synth_preset, a.track_preset, a.threads, a.known_focal,
+                            [int(x) for x in a.only_clip_seeds.split(",")], a.clip_set)
+        run.update(label=a.clip_label, machine=machine, benchmark_command=command)
+        doc["clip_runs"] = [r for r in doc.get("clip_runs") or []
+                            if (r["label"], r["known_focal"]) != (a.clip_label, a.known_focal)] + [run]
         _write(a.docs, doc)
         return
     if a.only_backgrounds:

@@ -1,0 +1,60 @@
+"""benchmarks/track.py's seed runs of the monocular clip: folders per seed and settings, the record in
+track.json (replacing a run of the same label and focal length) and its table."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import track as bench  # noqa: E402
+
+
+def _errors(aligned: float) -> dict:
+    e = {"mean_mm": aligned, "max_mm": 3 * aligned, "worst_timestep_mean_mm": 2 * aligned}
+    return {"aligned": {**e, "scale": 1.0}, "camera": {**e, "mean_mm": 10 * aligned}, "world": e,
+            "rigid_per_timestep": {**e, "mean_mm": aligned / 2}, "focal_rel_error": -0.1 * aligned}
+
+
+def test_settings_tag_names_a_folder_per_set_of_settings_in_any_order():
+    assert bench._settings_tag([]) == ""
+    a = bench._settings_tag(["steady_pivot=true", "calib_pose_yaw_deg=60"])
+    assert a == bench._settings_tag(["calib_pose_yaw_deg=60", "steady_pivot=true"])
+    assert a != bench._settings_tag(["steady_pivot=true"]) and a.startswith("_") and len(a) == 9
+
+
+def test_clip_seed_runs_are_recorded_per_label_and_focal_length(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_case(work, regime, synth_preset, track_preset, threads, known_focal=False, seed=None, sets=None):
+        calls.append((regime, known_focal, seed, list(sets or [])))
+        return {"regime": regime, "known_focal": known_focal, "seed": seed, "sets": list(sets or []),
+                "timesteps": 11, "errors": _errors(1.0 + seed), "command": f"sage track ... --seed {seed}"}
+
+    monkeypatch.setattr(bench, "track_case", fake_case)
+    mean = {"aligned_mm": 9.0, "rigid_per_timestep_mm": 4.0, "camera_mm": 90.0, "focal_rel_error": -0.2}
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "track.json").write_text(json.dumps({
+        "command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"}, "threads": 1,
+        "load_after": [0, 0, 0], "cases": [],
+        "clip_runs": [{"label": "pivot", "known_focal": k, "sets": [], "seeds": [], "cases": [], "mean": mean}
+                      for k in (True, False)]}))
+    bench.main(["--only-clip-seeds", "0,2", "--known-focal", "--clip-label", "pivot", "--clip-set", "steady_pivot=true",
+                "--out", str(tmp_path / "work"), "--docs", str(docs), "--synth-preset", "small"])
+    assert calls == [("monocular", True, 0, ["steady_pivot=true"]), ("monocular", True, 2, ["steady_pivot=true"])]
+    doc = json.loads((docs / "track.json").read_text())
+    runs = doc["clip_runs"]
+    # the earlier run of the same label and focal length is replaced; the fitted-focal one is kept
+    assert [(r["label"], r["known_focal"]) for r in runs] == [("pivot", False), ("pivot", True)]
+    new = runs[1]
+    assert new["seeds"] == [0, 2] and new["sets"] == ["steady_pivot=true"]
+    assert new["mean"]["aligned_mm"] == 2.0 and new["mean"]["rigid_per_timestep_mm"] == 1.0
+    assert new["mean"]["camera_mm"] == 20.0 and abs(new["mean"]["focal_rel_error"] + 0.2) < 1e-9
+    assert "--only-clip-seeds 0,2" in new["benchmark_command"]
+    md = (docs / "track.md").read_text()
+    assert "The monocular clip (a folder of 11 frames) tracked at several seeds" in md
+    assert "| pivot: `steady_pivot=true` | given | 1.00 (0), 3.00 (2) | 2.00 | 1.00 | 20.00 | -20.0% |" in md
