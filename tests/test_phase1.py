@@ -269,6 +269,20 @@ def test_neus_colour_leaves_the_appearance_fields_to_the_surfels_when_asked(init
     assert sdf_on and not same(sdf_on, sdf_off)
 
 
+def test_neus_colour_reaches_the_appearance_fields_at_the_share_asked(init_ws, one_thread):
+    """neus.appearance_grad_scale=s: the appearance fields' gradient is the surfel render's plus s times
+    the NeuS colour term's; the SDF's is the same as at s = 1."""
+    app_1, sdf_1 = _first_step_grads(init_ws, w_neus_rgb=1.0)
+    app_0, _ = _first_step_grads(init_ws, w_neus_rgb=1.0, **{"neus.appearance_grad_scale": 0.0})
+    app_q, sdf_q = _first_step_grads(init_ws, w_neus_rgb=1.0, **{"neus.appearance_grad_scale": 0.25})
+    assert len(app_1) == len(app_0) == len(app_q) > 0
+    assert any(not torch.allclose(a, b) for a, b in zip(app_1, app_0))
+    for a1, a0, aq in zip(app_1, app_0, app_q):
+        torch.testing.assert_close(aq, a0 + 0.25 * (a1 - a0), rtol=1e-4, atol=1e-7)
+    for s1, sq in zip(sdf_1, sdf_q):
+        torch.testing.assert_close(sq, s1, rtol=1e-5, atol=1e-8)
+
+
 def test_posed_mesh_is_kept_while_the_inputs_are_constant(init_ws, one_thread):
     """The trainer poses each timestep's mesh once, and not while a pose correction is learned."""
     tr = _trainer(init_ws, "mlp", iterations=4, pose_refine=True, pose_refine_from=2)

@@ -763,10 +763,10 @@ class Phase1Step:
             pix = torch.cat([pix, bg[tr._randint(bg.numel(), n_bg).to(bg.device)]])
         cr = tr.warp.map(av, {k: v.detach() for k, v in self.inputs.items()}, self.cam, pix, self.rigid)
         o_c, d_c, ratio, rot, ok = cr.origins, cr.dirs, cr.scale, cr.rotation, cr.valid
-        # attribute networks: the surfel render may keep the appearance fields to itself (free
-        # surfels' appearance network serves NeuS alone and always learns from it)
-        frozen = av.attributes == "mlp" and not c.neus.appearance_grad
-        app = _without_parameter_grad(av.appearance) if frozen else av.appearance
+        # attribute networks: the surfel render may keep the appearance fields to itself, wholly or in
+        # part (free surfels' appearance network serves NeuS alone and always learns from it)
+        share = (c.neus.appearance_grad_scale if c.neus.appearance_grad else 0.0) if av.attributes == "mlp" else 1.0
+        app = av.appearance if share == 1.0 else _scaled_parameter_grad(av.appearance, share)
         out = render_neus(
             av.sdf, app, o_c, d_c, av.variance, c.neus.samples, c.neus.importance, c.neus.up_steps,
             1.0, c.background, length_unit=tr.length_unit, perturb=True, generator=tr.generator, return_samples=True,
@@ -1151,7 +1151,12 @@ def run_phase1(
     return metrics
 
 
-def _without_parameter_grad(module: torch.nn.Module) -> AppearanceFn:
-    """``module`` called with its parameters detached: gradients reach its inputs, never its weights."""
-    state = {**{k: v.detach() for k, v in module.named_parameters()}, **dict(module.named_buffers())}
+def _scaled_parameter_grad(module: torch.nn.Module, share: float) -> AppearanceFn:
+    """``module`` called with the same parameter values, whose gradients are scaled by ``share``
+    (0: detached, gradients reach its inputs only, never its weights)."""
+    if share == 0.0:
+        params = {k: v.detach() for k, v in module.named_parameters()}
+    else:
+        params = {k: v.detach() + share * (v - v.detach()) for k, v in module.named_parameters()}
+    state = {**params, **dict(module.named_buffers())}
     return lambda *args: torch.func.functional_call(module, state, args)
