@@ -275,7 +275,7 @@ def test_neus_colour_reaches_the_appearance_fields_at_the_share_asked(init_ws, o
     app_1, sdf_1 = _first_step_grads(init_ws, w_neus_rgb=1.0)
     app_0, _ = _first_step_grads(init_ws, w_neus_rgb=1.0, **{"neus.appearance_grad_scale": 0.0})
     app_q, sdf_q = _first_step_grads(init_ws, w_neus_rgb=1.0, **{"neus.appearance_grad_scale": 0.25})
-    assert len(app_1) == len(app_0) == len(app_q) > 0
+    assert len(app_1) == len(app_0) == len(app_q) > 0 and len(sdf_1) == len(sdf_q) > 0
     assert any(not torch.allclose(a, b) for a, b in zip(app_1, app_0))
     for a1, a0, aq in zip(app_1, app_0, app_q):
         torch.testing.assert_close(aq, a0 + 0.25 * (a1 - a0), rtol=1e-4, atol=1e-7)
