@@ -464,7 +464,7 @@ def test_steady_position_term_and_its_anchor(head):
     cfg = resolve_track_config("tiny", None, {"steady_depth_scale": 0.01})
     fit = Fitter(fm, emb, problem, cfg)
     K, _ = fit.cameras()
-    fx, fy = float(K[0, 0, 0]), float(K[0, 1, 1])
+    fx, fy = float(K[0, 0, 0].detach()), float(K[0, 1, 1].detach())
     with torch.no_grad():
         fit.params["translation"][:, :2] = torch.tensor([0.4, -0.2], dtype=fit.dtype)
         assert float(fit.steady_position()) == pytest.approx(0.0, abs=1e-9)
