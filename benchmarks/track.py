@@ -153,6 +153,13 @@ def _settings_tag(sets: list[str]) -> str:
     return "_" + hashlib.sha1("\n".join(sorted(sets)).encode()).hexdigest()[:8] if sets else ""
 
 
+def _tracked_dir(work: Path, regime: str, synth_preset: str, track_preset: str, known_focal: bool = False,
+                 seed: int | None = None, sets: list[str] | None = None) -> Path:
+    """The folder a case's tracking is written to (one per regime, presets, focal mode, seed and settings)."""
+    return work / (f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}"
+                   f"{'' if seed is None else f'_seed{seed}'}{_settings_tag(sets or [])}")
+
+
 def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int, known_focal: bool = False,
                seed: int | None = None, sets: list[str] | None = None) -> dict:
     """Synthesise (or reuse), track and compare one regime; ``known_focal`` gives one camera's true focal
@@ -163,8 +170,7 @@ def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, th
     sets = list(sets or [])
     cap = _capture(work, regime, synth_preset)
     inp, cams = _input(work, regime, synth_preset, cap)
-    out = work / (f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}"
-                  f"{'' if seed is None else f'_seed{seed}'}{_settings_tag(sets)}")
+    out = _tracked_dir(work, regime, synth_preset, track_preset, known_focal, seed, sets)
     info = json.loads((cap / "gt" / "info.json").read_text())
     args = ["track", str(inp), str(out), "--flame-model", str(cap / "model" / "synth_flame.pkl"), "--preset", track_preset,
             "--quiet", "--force", "--set", _train_ratio(info)]
@@ -198,15 +204,19 @@ def clip_seed_run(work: Path, synth_preset: str, track_preset: str, threads: int
     cases = [track_case(work, "monocular", synth_preset, track_preset, threads, known_focal, seed=s, sets=sets)
              for s in seeds]
 
-    def mean(get) -> float:
-        return round(float(np.mean([get(c["errors"]) for c in cases])), 3)
-
     return {"known_focal": known_focal, "sets": list(sets), "seeds": seeds, "synth_preset": synth_preset,
-            "track_preset": track_preset, "cases": cases,
-            "mean": {"aligned_mm": mean(lambda e: e["aligned"]["mean_mm"]),
-                     "rigid_per_timestep_mm": mean(lambda e: e["rigid_per_timestep"]["mean_mm"]),
-                     "camera_mm": mean(lambda e: e["camera"]["mean_mm"]),
-                     "focal_rel_error": round(float(np.mean([c["errors"]["focal_rel_error"] for c in cases])), 4)}}
+            "track_preset": track_preset, "cases": cases, "mean": _clip_means(cases)}
+
+
+def _clip_means(cases: list[dict]) -> dict:
+    """The means over a clip run's seeds of its cases' main errors."""
+    def mean(get, digits: int = 3) -> float:
+        return round(float(np.mean([get(c["errors"]) for c in cases])), digits)
+
+    return {"aligned_mm": mean(lambda e: e["aligned"]["mean_mm"]),
+            "rigid_per_timestep_mm": mean(lambda e: e["rigid_per_timestep"]["mean_mm"]),
+            "camera_mm": mean(lambda e: e["camera"]["mean_mm"]),
+            "focal_rel_error": mean(lambda e: e["focal_rel_error"], 4)}
 
 
 BACKGROUNDS = ("coffee", "rocket", "chelsea")
@@ -502,14 +512,23 @@ def _write(docs: Path, doc: dict) -> None:
 
 
 def rescore(work: Path, docs: Path) -> None:
-    """Recompute the vertex errors of the cases in ``docs/track.json`` from their tracked captures in
-    ``work`` (after a change of the error measures), keeping the measured times; rewrites both files."""
+    """Recompute the vertex errors of the cases and the clip's seed runs in ``docs/track.json`` from their
+    tracked captures in ``work`` (after a change of the error measures), keeping the measured times;
+    rewrites both files."""
     from sage_core.track.truth import compare_to_truth
+
+    def score(r: dict) -> None:
+        out = _tracked_dir(work, r["regime"], r["synth_preset"], r["track_preset"], bool(r.get("known_focal")),
+                           r.get("seed"), r.get("sets"))
+        r["errors"] = compare_to_truth(out, work / f"cap_{r['regime']}_{r['synth_preset']}")
 
     doc = json.loads((docs / "track.json").read_text())
     for r in doc["cases"]:
-        out = work / f"tracked_{r['regime']}_{r['synth_preset']}_{r['track_preset']}"
-        r["errors"] = compare_to_truth(out, work / f"cap_{r['regime']}_{r['synth_preset']}")
+        score(r)
+    for run in doc.get("clip_runs") or []:
+        for r in run["cases"]:
+            score(r)
+        run["mean"] = _clip_means(run["cases"])
     doc["rescored"] = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
     _write(docs, doc)
 
@@ -557,7 +576,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--clip-set", action="append", default=[], metavar="KEY=VALUE",
                     help="a --set for the clip's tracking in --only-clip-seeds (repeatable)")
     ap.add_argument("--rescore", action="store_true",
-                    help="recompute the errors of DOCS/track.json's tracked captures in WORK (no tracking; times kept)")
+                    help="recompute the errors of DOCS/track.json's tracked captures in WORK, the clip's seed runs "
+                         "included (no tracking; times kept)")
     a = ap.parse_args(argv)
     if a.rescore:
         rescore(a.out, a.docs)

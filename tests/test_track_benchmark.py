@@ -58,3 +58,35 @@ def test_clip_seed_runs_are_recorded_per_label_and_focal_length(tmp_path, monkey
     md = (docs / "track.md").read_text()
     assert "The monocular clip (a folder of 11 frames) tracked at several seeds" in md
     assert "| pivot: `steady_pivot=true` | given | 1.00 (0), 3.00 (2) | 2.00 | 1.00 | 20.00 | -20.0% |" in md
+
+
+def test_rescore_reads_each_case_from_the_folder_it_was_tracked_into(tmp_path, monkeypatch):
+    """--rescore: a known-focal case and a clip's seed run are scored from their own folders (the focal
+    mode, seed and settings are part of the name), and the clip run's means follow the new errors."""
+    import sage_core.track.truth as truth
+
+    seen = []
+
+    def fake_compare(out, cap):
+        seen.append((Path(out).name, Path(cap).name))
+        return _errors(4.0 if "seed1" in Path(out).name else 2.0)
+
+    monkeypatch.setattr(truth, "compare_to_truth", fake_compare)
+    case = {"regime": "monocular", "track_regime": "sv-hr", "synth_preset": "small", "track_preset": "default",
+            "images": 11, "image_size": [256, 372], "wall_s": 50.0, "reprojection_px": 2.5, "capture_tracking_error": None}
+    clip = [{**case, "known_focal": True, "seed": s, "sets": ["steady_pivot=true"], "timesteps": 11, "errors": _errors(9.0)}
+            for s in (0, 1)]
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "track.json").write_text(json.dumps({
+        "command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"}, "threads": 1,
+        "load_after": [0, 0, 0], "cases": [{**case, "known_focal": True, "errors": _errors(9.0)}],
+        "clip_runs": [{"label": "pivot", "known_focal": True, "sets": ["steady_pivot=true"], "seeds": [0, 1],
+                       "cases": clip, "mean": {}}]}))
+    bench.main(["--rescore", "--out", str(tmp_path / "work"), "--docs", str(docs)])
+    tag = bench._settings_tag(["steady_pivot=true"])
+    assert seen == [("tracked_monocular_small_default_focal", "cap_monocular_small"),
+                    (f"tracked_monocular_small_default_focal_seed0{tag}", "cap_monocular_small"),
+                    (f"tracked_monocular_small_default_focal_seed1{tag}", "cap_monocular_small")]
+    doc = json.loads((docs / "track.json").read_text())
+    assert doc["clip_runs"][0]["mean"]["aligned_mm"] == 3.0 and doc["cases"][0]["errors"]["aligned"]["mean_mm"] == 2.0
