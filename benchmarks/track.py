@@ -191,7 +191,7 @@ def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, th
         "known_focal": known_focal, "seed": seed, "sets": sets, "image_size": [info["config"]["width"], info["config"]["height"]], "timesteps": report["timesteps"],
         "images": report["images"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
-        "focal_source": report["camera"]["focal_source"], "errors": err,
+        "focal_source": report["camera"]["focal_source"], "steady_pivot": report.get("steady_pivot"), "errors": err,
         "command": "sage " + " ".join(a if a != str(REPO) else "." for a in args),
         "capture_tracking_error": (info.get("tracking") or {}).get("error", {}).get("all"),
     }
@@ -368,6 +368,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         "video": video.name, "seconds": seconds, "fps": fps, "size": list(size), "frames": meta["frames"], "sway_mm": sway_mm,
         "timesteps": report["timesteps"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
+        "steady_pivot": report.get("steady_pivot"),
         "errors": {"camera": error_summary(cam_err), "aligned": {**error_summary([(e.mean(), e.max()) for e in aligned]), "scale": round(s, 4)},
                    "focal_rel_error": round(focal / float(truth["K"][0, 0]) - 1, 4)},
         "command": "sage " + " ".join(args), "render_s": meta.get("render_s"),

@@ -389,7 +389,11 @@ def test_one_flag_parser_for_stage_track_and_synth_configs():
         with pytest.raises(ValueError):
             parse_bool(bad)
     assert resolve_track_config("default", None, {"steady_depth": "yes"}).steady_depth is True
-    assert resolve_track_config("default", None, {"steady_pivot": "on"}).steady_pivot is True
+    assert resolve_track_config("default", None, {}).steady_pivot == "auto"
+    assert [resolve_track_config("default", None, {"steady_pivot": v}).steady_pivot for v in ("on", "true", True, "no", "auto")] \
+        == ["on", "on", "on", "off", "auto"]
+    with pytest.raises(ConfigError, match="steady_pivot"):
+        resolve_track_config("default", None, {"steady_pivot": "sometimes"})
     assert parse_sets(["novel_multiview=off"]) == {"novel_multiview": False}
     with pytest.raises(ConfigError, match="steady_depth"):
         resolve_track_config("default", None, {"steady_depth": "maybe"})

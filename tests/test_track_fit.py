@@ -300,9 +300,10 @@ def test_calibrated_embedding_of_the_synthetic_head(head):
     assert 33 in k and 263 in k and pts[k[33], 0] < pts[k[263], 0]  # right eye's outer corner at -x (the head's right)
 
 
-def _turning_sequence(head, n: int):
+def _turning_sequence(head, n: int, drift: tuple[float, float, float] = (0.0, 0.0, 0.0)):
     """Landmarks on 160 random triangles of the tiny head turning from -40 to 40 degrees of yaw over
-    ``n`` frames (with a nod and a jaw opening and closing), seen by one camera, and the true meshes."""
+    ``n`` frames (with a nod and a jaw opening and closing), seen by one camera, and the true meshes.
+    ``drift``: the head also moves this far (metres, world axes) from the first frame to the last."""
     model, cap = head
     fm = FlameModel(model)
     rng = np.random.default_rng(1)
@@ -315,6 +316,7 @@ def _turning_sequence(head, n: int):
     truth.static_offset = None
     truth.rotation = rot.astype(np.float32)
     truth.jaw_pose = jaw.astype(np.float32)
+    truth.translation = (truth.translation + (s - 0.5)[:, None] * np.asarray(drift)[None]).astype(np.float32)
     with torch.no_grad():
         verts = fm(**truth.to_torch()).vertices
     cam = cap.cameras[8]
@@ -526,6 +528,41 @@ def test_steady_pivot_holds_the_pivot_and_the_pitch(head, one_thread):
         error[pivot] = float(np.linalg.norm(s * got @ R.T + t - true, axis=-1).mean() * 1000)
     assert spread[True] < 0.3 * spread[False], spread
     assert error[True] < error[False], error
+
+
+@pytest.mark.parametrize("keyframed", [False, True])
+def test_steady_pivot_auto_holds_a_still_pivot_and_leaves_a_moving_one(head, one_thread, keyframed):
+    """``steady_pivot=auto``: the frames (a long sequence's keyframes) fitted without the prior first. A
+    head turning about a pivot that stays put keeps it within the prior's scale: the pivot is held and
+    the fit is the one with the pivot on; a head that also moves 6 cm sideways and 8 cm in depth
+    spreads it far beyond: the fit is the one without (the first fit reused, not repeated)."""
+    from dataclasses import replace
+
+    n = 8
+    fm, emb, still, _ = _turning_sequence(head, n)
+    _, _, moving, _ = _turning_sequence(head, n, drift=(0.06, 0.0, 0.08))
+    overrides = {"rigid_steps": 60, "steps": 80, "refine_steps": 0, "w_shape": 1e-4, "w_expr": 1e-4, "w_pose": 1e-3,
+                 "keyframes": 5 if keyframed else 0, "track_chunk": 4, "track_steps": 10}
+    cfg = resolve_track_config("tiny", None, overrides)
+
+    def fit(problem, **kw):
+        f = Fitter(fm, emb, replace(problem, smooth=keyframed, **kw), cfg)
+        return f.run()
+
+    spread = {}
+    for problem, held in ((still, True), (moving, False)):
+        auto = fit(problem, steady_pivot_auto=True)
+        spread[held] = auto.pivot_check["spread"]
+        assert auto.pivot_check["held"] is held
+        assert (auto.pivot_check["spread"] <= 0.01) is held, auto.pivot_check
+        assert auto.keyframes == ([0, 2, 4, 5, 7] if keyframed else list(range(n)))
+        same = fit(problem, steady_pivot=held)
+        assert same.pivot_check == {}
+        for k in ("translation", "rotation", "expr", "shape"):
+            np.testing.assert_allclose(getattr(auto.params, k), getattr(same.params, k), atol=1e-6, err_msg=k)
+    # the moving head's spread is its motion (a standard deviation of 2 cm sideways at 0.7 m): over
+    # twice the scale; the still head's what the fit leaves, clearly under it
+    assert spread[True] < 0.8 * 0.01 and spread[False] > 2 * 0.01, spread
 
 
 def test_steady_depth_holds_a_noisy_sequence_together(head, one_thread):

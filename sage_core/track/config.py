@@ -123,12 +123,17 @@ class TrackConfig:
                                      "from one image rests on its apparent size, which the outline and landmarks give to about "
                                      "1 %; the frames agreeing on it removes that jitter, but a head that really moves towards "
                                      "or away from the camera is then tracked worse (docs/track.md).")
-    steady_pivot: bool = _opt(False, "Hold the point the head turns about (FLAME's root joint, the pivot of its global rotation) in one "
+    steady_pivot: str = _opt("auto", "Hold the point the head turns about (FLAME's root joint, the pivot of its global rotation) in one "
                                      "place in front of one uncalibrated camera over the frames of a video or a folder: its "
                                      "distance, as steady_depth does, and its position across the image. For a person who "
                                      "sits still and turns their head in front of a camera that stays put (a tripod): a "
                                      "frame's pitch and depth then cannot trade against a shift of the whole head. A person "
-                                     "who leans or moves is tracked worse (docs/track.md).")
+                                     "who leans or moves is tracked worse (docs/track.md). on, off (true / false are read as "
+                                     "on / off), or auto: the frames (a video's keyframes) are fitted without it first, and the "
+                                     "pivot is held when they already agree on it, its spread over the frames (standard "
+                                     "deviation of its log depth and of its position across the image as a share of its "
+                                     "distance) within steady_depth_scale; the fit is then run again with it held.",
+                                choices=("auto", "on", "off"))
     w_steady_depth: float = _opt(1.0, "Weight of the steady-depth and steady-pivot priors (robust, per frame).", ge=0)
     steady_depth_scale: float = _opt(0.01, "Robust scale of the steady-depth and steady-pivot priors: deviations from the "
                                            "frames' common value (log depth; the pivot's sideways and vertical position as a "
@@ -177,6 +182,18 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         raise ConfigError(f"track config: {key} = {value!r} is not a valid {getattr(tp, '__name__', tp)}") from None
 
 
+def _on_off(value: Any, key: str) -> Any:
+    """A boolean spelling (true / false, yes / no, 1 / 0) of a field whose choices are on / off (/ auto)
+    read as on / off; every other value unchanged."""
+    choices = TrackConfig.__dataclass_fields__[key].metadata.get("choices", ())
+    if "on" in choices and "off" in choices and (isinstance(value, bool) or isinstance(value, str)) and value not in choices:
+        try:
+            return "on" if parse_bool(value) else "off"
+        except (TypeError, ValueError):
+            return value
+    return value
+
+
 def resolve_track_config(preset: str = "default", file_data: dict[str, Any] | None = None,
                          flags: dict[str, Any] | None = None) -> TrackConfig:
     """Dataclass defaults < preset < file (a flat mapping, or its ``track:`` section) < flags.
@@ -199,7 +216,7 @@ def resolve_track_config(preset: str = "default", file_data: dict[str, Any] | No
                 continue
             if key not in hints:
                 raise ConfigError(f"{source}: unknown track option '{key}' (known: {', '.join(sorted(hints))})")
-            values[key] = _coerce(value, hints[key], key)
+            values[key] = _on_off(_coerce(value, hints[key], key), key)
     cfg = TrackConfig(**values)
     validate_config(cfg, "track config")
     return cfg

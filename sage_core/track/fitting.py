@@ -114,6 +114,10 @@ class FitProblem:
             timesteps' common position across the image and hold its depth as ``steady_depth`` does,
             whether that is set or not (a person sitting still and turning their head in front of a
             camera that stays put).
+        steady_pivot_auto: with ``camera_relative`` and ``steady_pivot`` off: fit the timesteps (a long
+            sequence's keyframes) without the pivot held first, and hold it (fitting again) when their
+            pivots already agree, their spread (:meth:`Fitter.pivot_spread`) within
+            ``cfg.steady_depth_scale``, the scale the steady-pivot prior itself allows.
     """
 
     cameras: list[FitCamera]
@@ -129,6 +133,7 @@ class FitProblem:
     times: np.ndarray | None = None
     steady_depth: bool = False
     steady_pivot: bool = False
+    steady_pivot_auto: bool = False
 
     def subset(self, rows: np.ndarray) -> FitProblem:
         """The problem restricted to the timesteps ``rows`` (sorted, renumbered 0..len-1, their images
@@ -155,6 +160,8 @@ class FitResult:
         rig_scale: the fitted scale (1 when fixed).
         timings: pass -> seconds (``joint``, or ``keyframes`` and ``track``).
         keyframes: the timestep rows fitted with the full schedule (all of them without keyframes).
+        pivot_check: with ``steady_pivot_auto``: the pivot's spread over the timesteps fitted without it
+            held (``spread``) and whether it was then held (``held``); empty otherwise.
     """
 
     params: FlameParams
@@ -165,6 +172,7 @@ class FitResult:
     rig_scale: float = 1.0
     timings: dict[str, float] = field(default_factory=dict)
     keyframes: list[int] = field(default_factory=list)
+    pivot_check: dict[str, float | bool] = field(default_factory=dict)
 
 
 def interpolate_rotations(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -283,6 +291,7 @@ class Fitter:
         self.losses: dict[str, float] = {}
         self.timings: dict[str, float] = {}
         self.keyframes: list[int] = list(range(T))
+        self.pivot_check: dict[str, float | bool] = {}
         # fixed neighbours of the first and last row for the smoothing (a chunk of a longer sequence):
         # name -> (1, d) tensors, or None
         self.smooth_before: dict[str, torch.Tensor] | None = None
@@ -633,6 +642,18 @@ class Fitter:
         ref = xy.mean(0) if self.xy_anchor is None else self.xy_anchor
         return charbonnier((xy - ref) * per_unit, self.cfg.steady_depth_scale).sum(-1).mean()
 
+    def pivot_spread(self) -> float:
+        """Largest standard deviation over the timesteps of the pivot's camera-relative position: its log
+        depth, and its position across the image as a share of its distance (the measures of
+        :meth:`steady_depth` and :meth:`steady_position`); 0 for one timestep."""
+        tr = self.params["translation"].detach()
+        if tr.shape[0] < 2:
+            return 0.0
+        K, _ = self.cameras()
+        per_unit = (PIXEL_UNIT / torch.stack([K[0, 0, 0], K[0, 1, 1]])).detach()
+        spread = torch.cat([tr[:, 2:3], tr[:, :2] * per_unit], 1).std(0, unbiased=False)
+        return float(spread.max())
+
     def smoothness(self) -> torch.Tensor:
         """Sum over the per-timestep parameters of the mean squared difference of neighbouring timesteps,
         each pair weighted by 1 / gap² (``problem.times``), the fixed neighbours ``smooth_before`` /
@@ -804,13 +825,43 @@ class Fitter:
         ``smooth_sequences``) with more timesteps than ``cfg.keyframes`` (> 0) is fitted on keyframes and
         then tracked chunk by chunk (module docstring): interpolating between keyframes is a start only
         where neighbouring timesteps are close in time. Anything else is fitted jointly."""
-        if self.p.smooth and 0 < self.cfg.keyframes < self.p.n_timesteps:
-            self.run_keyframes()
+        T = self.p.n_timesteps
+        keyframed = self.p.smooth and 0 < self.cfg.keyframes < T
+        keys = self.keyframe_rows() if keyframed else np.arange(T)
+        free = self.check_pivot(keys) if self.p.steady_pivot_auto and not self.p.steady_pivot and self.p.camera_relative else None
+        if keyframed:
+            self.run_keyframes(free)
+        elif free is not None:  # the fit without the pivot held is the fit
+            out = free.result()
+            out.timings = {**out.timings, **{k: round(v, 2) for k, v in self.timings.items()}}
+            out.pivot_check = dict(self.pivot_check)
+            return out
         else:
             t0 = time.time()
             self.run_joint()
             self.timings["joint"] = time.time() - t0
         return self.result()
+
+    def keyframe_rows(self) -> np.ndarray:
+        """The rows of a long sequence fitted with the full schedule: ``cfg.keyframes`` evenly spaced."""
+        return np.unique(np.linspace(0, self.p.n_timesteps - 1, self.cfg.keyframes).round().astype(np.int64))
+
+    def check_pivot(self, rows: np.ndarray) -> Fitter | None:
+        """``steady_pivot_auto``: fit the timesteps ``rows`` without the pivot held; when their pivots'
+        spread (:meth:`pivot_spread`) is within ``cfg.steady_depth_scale`` hold it from now on (this
+        fitter's problem) and return None (fit again), else return that fit (the fitter of ``rows``).
+        Records ``pivot_check`` and the time it took (``pivot_check`` in ``timings``)."""
+        t0 = time.time()
+        free = self._child(rows, self.progress)
+        free.run_joint()
+        spread = free.pivot_spread()
+        held = spread <= self.cfg.steady_depth_scale
+        self.pivot_check = {"spread": round(spread, 5), "held": held}
+        self.timings["pivot_check"] = time.time() - t0
+        if held:
+            self.p = replace(self.p, steady_pivot=True)
+            return None
+        return free
 
     def run_joint(self) -> None:
         """The three stages on every timestep at once."""
@@ -830,14 +881,17 @@ class Fitter:
         """A fitter of the timesteps ``rows`` sharing this one's model, embedding, config and seed."""
         return Fitter(self.flame, self.emb, self.p.subset(rows), self.cfg, progress, seed=int(self.gen.initial_seed()))
 
-    def run_keyframes(self) -> None:
-        """Keyframes with the full schedule, then every timestep tracked with the shared parameters frozen."""
+    def run_keyframes(self, fitted: Fitter | None = None) -> None:
+        """Keyframes with the full schedule (``fitted``: a fitter of the keyframe rows that has run
+        already), then every timestep tracked with the shared parameters frozen."""
         c = self.cfg
         T = self.p.n_timesteps
-        keys = np.unique(np.linspace(0, T - 1, c.keyframes).round().astype(np.int64))
+        keys = self.keyframe_rows()
         t0 = time.time()
-        kf = self._child(keys, self.progress)
-        kf.run_joint()
+        kf = fitted
+        if kf is None:
+            kf = self._child(keys, self.progress)
+            kf.run_joint()
         self.z0 = kf.z0
         with torch.no_grad():
             for n in SHARED:
@@ -934,4 +988,5 @@ class Fitter:
                 params=params, cameras=cams, reprojection_px=rep, reprojection_max_px=rep_max, losses=dict(self.losses),
                 rig_scale=float(torch.exp(P["log_rig_scale"][0])) if self.p.fit_rig_scale else 1.0,
                 timings={k: round(v, 2) for k, v in self.timings.items()}, keyframes=list(self.keyframes),
+                pivot_check=dict(self.pivot_check),
             )

@@ -58,6 +58,9 @@ class TrackResult:
         cameras: one dict per camera: index, name, crop window in input pixels (x0, y0, w, h), output
             size, focal length in input pixels.
         rig_scale: the fitted scale of a calibrated rig (1 when fixed); losses: the fit's final losses.
+        steady_pivot: whether the head's pivot was held steady (``TrackConfig.steady_pivot``): mode
+            ("on", "off", "auto"; "off" where it does not apply: one image, a rig), held (bool), and for
+            auto the pivot's spread over the frames fitted without it and the scale it was held within.
     """
 
     out_dir: Path
@@ -80,6 +83,7 @@ class TrackResult:
     rig_scale: float = 1.0
     losses: dict[str, float] = field(default_factory=dict)
     cameras: list[dict[str, Any]] = field(default_factory=list)
+    steady_pivot: dict[str, Any] = field(default_factory=dict)
 
     def rows(self) -> list[tuple[str, str]]:
         """(label, value) lines for the closing panel."""
@@ -120,8 +124,8 @@ def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
 
 def steady_depth_rule(enabled: bool, kind: str, n_timesteps: int) -> bool:
     """Whether the head's distance from the camera (or with ``TrackConfig.steady_pivot`` its pivot's
-    whole position) is held steady over the frames: when asked for (``TrackConfig.steady_depth``,
-    ``steady_pivot``), for a video or a folder of several frames from one camera (a rig places the
+    whole position; for its auto mode, whether the fit decides) is held steady over the frames: when
+    asked for (``TrackConfig.steady_depth``, ``steady_pivot``), for a video or a folder of several frames from one camera (a rig places the
     head itself; one image has nothing to agree with)."""
     return enabled and _one_camera_sequence(kind, n_timesteps)
 
@@ -392,7 +396,8 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     lmk_offsets = cfg.landmark_offsets == "on" or (cfg.landmark_offsets == "auto" and several_views)
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     steady = steady_depth_rule(cfg.steady_depth, source.kind, len(obs.kept))
-    pivot = steady_depth_rule(cfg.steady_pivot, source.kind, len(obs.kept))
+    pivot = steady_depth_rule(cfg.steady_pivot == "on", source.kind, len(obs.kept))
+    pivot_auto = steady_depth_rule(cfg.steady_pivot == "auto", source.kind, len(obs.kept))
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
     inward = None
     face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
@@ -404,7 +409,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
                          silhouette_exclude=exclude, silhouette_inward=inward, landmark_offsets=lmk_offsets,
                          camera_relative=source.kind != "multiview", steady_depth=steady,
-                         steady_pivot=pivot)
+                         steady_pivot=pivot, steady_pivot_auto=pivot_auto)
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
     fit = fitter.run()
     timings["fit"] = time.time() - t0
@@ -499,6 +504,8 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         reprojection_max_px=float(rep_max.max()) if rep_max.size else float("nan"), focal_px=focal,
         focal_source=focal_source, masks=dict(mask_kinds), calibration=calibration, timings=timings, wall_time_s=0.0,
         warnings=warnings, rig_scale=fit.rig_scale, losses=fit.losses,
+        steady_pivot={"mode": cfg.steady_pivot if pivot or pivot_auto else "off", "held": pivot or bool(fit.pivot_check.get("held")),
+                      **({"spread": fit.pivot_check["spread"], "scale": cfg.steady_depth_scale} if fit.pivot_check else {})},
         cameras=[{"index": c.index, "name": c.name, "crop": [win.x0, win.y0, win.w, win.h], "output_size": [win.out_w, win.out_h],
                   "focal_input_px": round(float(c.K[0, 0] * win.w / win.out_w), 3)} for c, win in zip(cams, windows)],
         per_image=[
@@ -542,6 +549,7 @@ def _write_report(root: Path, r: TrackResult, source: Any, cfg: TrackConfig, mod
                             "definition": "per image: mean (max) distance in output pixels between the detected landmarks "
                                           "and the fitted mesh's, over landmarks on triangles facing the camera"},
         "camera": {"focal_px": r.focal_px, "focal_source": r.focal_source, "rig_scale": r.rig_scale, "cameras": r.cameras},
+        "steady_pivot": r.steady_pivot,
         "masks": r.masks,
         "losses": r.losses,
         "timings_s": {k: round(v, 2) for k, v in r.timings.items()},
