@@ -158,9 +158,8 @@ def test_a_distant_face_in_a_large_photo(tmp_path, model, embedding):
 
 
 @pytest.mark.slow
-def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
-    """A clip of the frontal camera with one blank frame: that frame is dropped and reported. Fitted
-    on 3 keyframes, then tracked in chunks of 2 frames."""
+def _clip(tmp_path: Path, tiny_capture: Path) -> Path:
+    """An MP4 of the frontal camera's first 6 timesteps with a blank frame inserted after the third."""
     from sage_core.data.imageio import read_image
     from sage_core.export.video import VideoWriter
 
@@ -170,6 +169,14 @@ def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
     with VideoWriter(clip, fps=5, width=frames[0].shape[1], height=frames[0].shape[0]) as vw:
         for f in frames:
             vw.write(f)
+    return clip
+
+
+def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
+    """A clip of the frontal camera with one blank frame: that frame is dropped and reported. Fitted
+    on 3 keyframes, then tracked in chunks of 2 frames; the head's pivot held or not as the keyframes
+    fitted without it decide (steady_pivot=auto)."""
+    clip = _clip(tmp_path, tiny_capture)
     out = tmp_path / "cap"
     res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--landmark-embedding", embedding, "--set", "steps=100",
                   "--set", "keyframes=3", "--set", "track_chunk=2", "--set", "track_steps=10"])
@@ -182,6 +189,32 @@ def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
     ids = [f["timestep_id"] for f in json.loads((out / "transforms.json").read_text())["frames"]]
     assert "frame_00003" not in ids and len(ids) == 6
     assert report["calibration"] is None and "from" in report["landmark_embedding"]
+    pivot = report["steady_pivot"]
+    assert pivot["mode"] == "auto" and pivot["held"] is (pivot["spread"] <= pivot["scale"] == 0.01)
+    assert ("fit_pivot_check" in report["timings_s"]) is pivot["held"]
+
+
+def test_a_held_pivot_uses_the_wider_pose_table(tmp_path, tiny_capture, model):
+    """With the pivot held the calibration continues the pose table out to ``pivot_pose_yaw_deg``
+    (the tiny preset's yaw steps of 30° to ±60°) and the capture keeps that table; without it, the
+    table ends at ``calib_pose_yaw_deg`` (±30°)."""
+    from sage_core.flame import load_flame_model
+    from sage_core.track.embedding import load_embedding
+
+    n_faces = load_flame_model(model).n_faces
+    clip = _clip(tmp_path, tiny_capture)
+    yaws = {}
+    for pivot in ("on", "off"):
+        out = tmp_path / f"cap_{pivot}"
+        res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--set", "steps=60", "--set", "keyframes=0",
+                      "--set", f"steady_pivot={pivot}", "--set", "pivot_pose_yaw_deg=60"])
+        assert res.exit_code == 0, res.output
+        report = json.loads((out / "track" / "report.json").read_text())
+        assert report["steady_pivot"] == {"mode": pivot, "held": pivot == "on"}
+        assert ("pivot_pose_views" in report["calibration"]) is (pivot == "on")
+        emb = load_embedding(out / "track" / "landmark_embedding.npz", n_faces)
+        yaws[pivot] = emb.pose.yaws
+    assert yaws["on"].max() == pytest.approx(60.0) and yaws["off"].max() == pytest.approx(30.0)
 
 
 @pytest.mark.slow

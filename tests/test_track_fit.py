@@ -545,13 +545,20 @@ def test_steady_pivot_auto_holds_a_still_pivot_and_leaves_a_moving_one(head, one
                  "keyframes": 5 if keyframed else 0, "track_chunk": 4, "track_steps": 10}
     cfg = resolve_track_config("tiny", None, overrides)
 
+    # the embedding of a held pivot: the same landmarks with a pose table (offsets 0: the same fit)
+    wide = replace(emb, pose=PoseTable(np.array([-60.0, 0.0, 60.0]), np.array([0.0]), np.zeros((1, 3, len(emb), 2))))
+    used = {}
+
     def fit(problem, **kw):
-        f = Fitter(fm, emb, replace(problem, smooth=keyframed, **kw), cfg)
-        return f.run()
+        f = Fitter(fm, emb, replace(problem, smooth=keyframed, **kw), cfg, pivot_embedding=wide)
+        out = f.run()
+        used[kw.get("steady_pivot_auto", False)] = f.emb
+        return out
 
     spread = {}
     for problem, held in ((still, True), (moving, False)):
         auto = fit(problem, steady_pivot_auto=True)
+        assert used[True] is (wide if held else emb)
         spread[held] = auto.pivot_check["spread"]
         assert auto.pivot_check["held"] is held
         assert (auto.pivot_check["spread"] <= 0.01) is held, auto.pivot_check
@@ -563,6 +570,9 @@ def test_steady_pivot_auto_holds_a_still_pivot_and_leaves_a_moving_one(head, one
     # the moving head's spread is its motion (a standard deviation of 2 cm sideways at 0.7 m): over
     # twice the scale; the still head's what the fit leaves, clearly under it
     assert spread[True] < 0.8 * 0.01 and spread[False] > 2 * 0.01, spread
+    other = replace(emb, bary=np.roll(emb.bary, 1, axis=1))
+    with pytest.raises(ValueError, match="same landmarks"):
+        Fitter(fm, emb, still, cfg, pivot_embedding=other)
 
 
 def test_steady_depth_holds_a_noisy_sequence_together(head, one_thread):

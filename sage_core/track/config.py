@@ -70,6 +70,10 @@ class TrackConfig:
                                       "holds the pose by itself and one photo showed no gain, docs/track.md).",
                               choices=("auto", "on", "off"))
     calib_pose_yaw_deg: float = _opt(45.0, "Calibration: the pose table's views continue the yaw steps out to this yaw (degrees).", ge=0, le=75)
+    pivot_pose_yaw_deg: float = _opt(60.0, "Calibration: with the head's pivot held (steady_pivot on, or auto when the frames agree "
+                                           "on it) the pose table continues out to this yaw instead (degrees; at most "
+                                           "calib_pose_yaw_deg: no wider table). With the pivot free a wider table traded against "
+                                           "the head's depth and focal length (docs/track.md).", ge=0, le=75)
     calib_pose_pitch_deg: float = _opt(24.0, "Calibration: ... and the pitch steps out to this pitch (degrees).", ge=0, le=45)
     calib_spread: float = _opt(0.035, "Calibration: keep a landmark whose back-projections agree within this fraction of the head height.", gt=0)
     calib_min_views: float = _opt(0.6, "Calibration: keep a landmark seen on the surface in at least this fraction of the views.", gt=0, le=1)
@@ -155,7 +159,7 @@ PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "default": {},
     "tiny": {"calib_views": 3, "calib_size": 256, "rigid_steps": 60, "steps": 200, "refine_steps": 20, "refine_batch": 4,
              "fit_height": 160, "max_height": 400, "keyframes": 12, "track_steps": 20,
-             "calib_pose_yaw_deg": 30.0, "calib_pose_pitch_deg": 12.0},
+             "calib_pose_yaw_deg": 30.0, "calib_pose_pitch_deg": 12.0, "pivot_pose_yaw_deg": 30.0},
 }
 """What each preset changes against the dataclass defaults (tiny: tests, seconds per capture)."""
 

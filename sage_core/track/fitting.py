@@ -200,9 +200,16 @@ class Fitter:
     """Runs the three stages on a :class:`FitProblem` (see the module docstring)."""
 
     def __init__(self, flame: FlameModel, emb: LandmarkEmbedding, problem: FitProblem, cfg: TrackConfig,
-                 progress: Progress | None = None, seed: int = 0) -> None:
+                 progress: Progress | None = None, seed: int = 0, pivot_embedding: LandmarkEmbedding | None = None) -> None:
+        """``pivot_embedding``: the embedding the fit uses once ``steady_pivot_auto`` holds the pivot (the
+        same landmarks with a wider pose table; None: ``emb`` throughout)."""
         self.flame = flame
         self.emb = emb
+        if pivot_embedding is not None and not (np.array_equal(pivot_embedding.landmark_ids, emb.landmark_ids)
+                                                and np.array_equal(pivot_embedding.faces, emb.faces)
+                                                and np.allclose(pivot_embedding.bary, emb.bary)):
+            raise ValueError("pivot_embedding must embed the same landmarks as the embedding (it may differ in its pose table)")
+        self.pivot_embedding = pivot_embedding
         self.p = problem
         self.cfg = cfg
         self.progress = progress
@@ -243,9 +250,7 @@ class Fitter:
         self.tri = self.faces[torch.as_tensor(emb.faces, dtype=torch.long, device=self.device)]  # (K, 3)
         self.bary = self._t(emb.bary)
         # the detector's pose bias: (P, Y, K, 2) offsets over a pitch × yaw grid (radians), or None
-        self.pose_table = None
-        if emb.pose is not None:
-            self.pose_table = (self._t(np.deg2rad(emb.pose.pitches)), self._t(np.deg2rad(emb.pose.yaws)), self._t(emb.pose.offsets))
+        self.pose_table = self._pose_tensors(emb)
         # scalp offsets
         self.hair = None if problem.hair is None else torch.as_tensor(problem.hair, dtype=torch.long, device=self.device)
         if self.hair is not None:
@@ -312,6 +317,12 @@ class Fitter:
         return self._sdt, self._sdt_size
 
     # -- model and cameras -------------------------------------------------------------------------
+
+    def _pose_tensors(self, emb: LandmarkEmbedding) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The embedding's pose table as (pitches (P,), yaws (Y,) in radians, offsets (P, Y, K, 2)), or None."""
+        if emb.pose is None:
+            return None
+        return self._t(np.deg2rad(emb.pose.pitches)), self._t(np.deg2rad(emb.pose.yaws)), self._t(emb.pose.offsets)
 
     def _t(self, a: np.ndarray) -> torch.Tensor:
         """A float tensor of the fit's dtype on its device."""
@@ -833,7 +844,6 @@ class Fitter:
             self.run_keyframes(free)
         elif free is not None:  # the fit without the pivot held is the fit
             out = free.result()
-            out.timings = {**out.timings, **{k: round(v, 2) for k, v in self.timings.items()}}
             out.pivot_check = dict(self.pivot_check)
             return out
         else:
@@ -850,16 +860,21 @@ class Fitter:
         """``steady_pivot_auto``: fit the timesteps ``rows`` without the pivot held; when their pivots'
         spread (:meth:`pivot_spread`) is within ``cfg.steady_depth_scale`` hold it from now on (this
         fitter's problem) and return None (fit again), else return that fit (the fitter of ``rows``).
-        Records ``pivot_check`` and the time it took (``pivot_check`` in ``timings``)."""
+        Records ``pivot_check``, and when it fits again the first fit's time (``pivot_check`` in ``timings``)."""
         t0 = time.time()
         free = self._child(rows, self.progress)
         free.run_joint()
         spread = free.pivot_spread()
         held = spread <= self.cfg.steady_depth_scale
         self.pivot_check = {"spread": round(spread, 5), "held": held}
-        self.timings["pivot_check"] = time.time() - t0
+        # the check's own cost when it leads to a second fit; otherwise its fit is the fit's first pass
+        free.timings["joint"] = time.time() - t0
         if held:
+            self.timings["pivot_check"] = free.timings["joint"]
             self.p = replace(self.p, steady_pivot=True)
+            if self.pivot_embedding is not None:
+                self.emb = self.pivot_embedding
+                self.pose_table = self._pose_tensors(self.emb)
             return None
         return free
 
@@ -892,6 +907,8 @@ class Fitter:
         if kf is None:
             kf = self._child(keys, self.progress)
             kf.run_joint()
+        else:
+            t0 -= kf.timings.get("joint", 0.0)
         self.z0 = kf.z0
         with torch.no_grad():
             for n in SHARED:

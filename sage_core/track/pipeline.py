@@ -366,22 +366,32 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     t0 = time.time()
     calibration = None
     pose_on = landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept))
+    pivot = steady_depth_rule(cfg.steady_pivot == "on", source.kind, len(obs.kept))
+    pivot_auto = steady_depth_rule(cfg.steady_pivot == "auto", source.kind, len(obs.kept))
+    pivot_emb = None
     if emb_given is not None:
         emb = emb_given
     else:
         with torch.no_grad():
             neutral = flame(jaw_pose=torch.tensor([[cfg.calib_jaw, 0.0, 0.0]], device=flame.v_template.device)).vertices[0]
-        emb, rep = calibrate_embedding(neutral.cpu(), flame.faces.cpu(), observer, size=cfg.calib_size,
+
+        def calibrate(pose_yaw_deg: float) -> tuple[Any, Any]:
+            return calibrate_embedding(neutral.cpu(), flame.faces.cpu(), observer, size=cfg.calib_size,
                                        yaw_deg=cfg.calib_yaw_deg, pitch_deg=cfg.calib_pitch_deg, n_yaw=cfg.calib_views,
                                        spread_frac=cfg.calib_spread, min_views_frac=cfg.calib_min_views,
-                                       pose_yaw_deg=cfg.calib_pose_yaw_deg, pose_pitch_deg=cfg.calib_pose_pitch_deg,
-                                       pose_table=pose_on,
-                                       progress=progress)
+                                       pose_yaw_deg=pose_yaw_deg, pose_pitch_deg=cfg.calib_pose_pitch_deg,
+                                       pose_table=pose_on, progress=progress)
+
+        emb, rep = calibrate(cfg.calib_pose_yaw_deg)
         calibration = rep.to_dict()
+        if pose_on and (pivot or pivot_auto) and cfg.pivot_pose_yaw_deg > cfg.calib_pose_yaw_deg:
+            # the wider table of a held pivot: the same landmarks (the embedding comes from the narrower views)
+            wide, wide_rep = calibrate(cfg.pivot_pose_yaw_deg)
+            calibration["pivot_pose_views"] = wide_rep.pose_views
+            emb, pivot_emb = (wide, None) if pivot else (emb, wide)
     if emb.pose is not None and not pose_on:
         emb = replace(emb, pose=None)
     (root / "track").mkdir(exist_ok=True)
-    save_embedding(root / "track" / "landmark_embedding.npz", emb)
     timings["embedding"] = time.time() - t0
 
     # -- fit
@@ -396,8 +406,6 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     lmk_offsets = cfg.landmark_offsets == "on" or (cfg.landmark_offsets == "auto" and several_views)
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     steady = steady_depth_rule(cfg.steady_depth, source.kind, len(obs.kept))
-    pivot = steady_depth_rule(cfg.steady_pivot == "on", source.kind, len(obs.kept))
-    pivot_auto = steady_depth_rule(cfg.steady_pivot == "auto", source.kind, len(obs.kept))
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
     inward = None
     face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
@@ -410,8 +418,9 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
                          silhouette_exclude=exclude, silhouette_inward=inward, landmark_offsets=lmk_offsets,
                          camera_relative=source.kind != "multiview", steady_depth=steady,
                          steady_pivot=pivot, steady_pivot_auto=pivot_auto)
-    fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
+    fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
     fit = fitter.run()
+    save_embedding(root / "track" / "landmark_embedding.npz", fitter.emb)  # the one the fit ended with
     timings["fit"] = time.time() - t0
     timings.update({f"fit_{k}": v for k, v in fit.timings.items()})
 
