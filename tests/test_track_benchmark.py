@@ -90,3 +90,29 @@ def test_rescore_reads_each_case_from_the_folder_it_was_tracked_into(tmp_path, m
                     (f"tracked_monocular_small_default_focal_seed1{tag}", "cap_monocular_small")]
     doc = json.loads((docs / "track.json").read_text())
     assert doc["clip_runs"][0]["mean"]["aligned_mm"] == 3.0 and doc["cases"][0]["errors"]["aligned"]["mean_mm"] == 2.0
+
+
+def test_a_full_run_keeps_what_it_did_not_measure(tmp_path, monkeypatch):
+    """A run of the regimes replaces the cases and keeps the clip's seed runs, the backgrounds, the
+    video runs and the notes of earlier runs (each with its own command)."""
+    def fake_case(work, regime, synth_preset, track_preset, threads, known_focal=False, seed=None, sets=None):
+        return {"regime": regime, "track_regime": "one-shot", "synth_preset": synth_preset, "track_preset": track_preset,
+                "known_focal": known_focal, "seed": seed, "sets": [], "images": 1, "image_size": [256, 372], "timesteps": 1,
+                "wall_s": 1.0, "reprojection_px": 1.0, "errors": {**_errors(2.0), "regions": None}, "command": "sage track ...",
+                "capture_tracking_error": None}
+
+    monkeypatch.setattr(bench, "track_case", fake_case)
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    kept = {"clip_runs": [{"label": "pivot", "known_focal": True, "sets": [], "seeds": [0], "cases": [],
+                           "mean": {"aligned_mm": 9.0, "rigid_per_timestep_mm": 4.0, "camera_mm": 90.0, "focal_rel_error": 0.0},
+                           "machine": {"date_utc": "d"}}],
+            "backgrounds": [], "video_runs": [], "notes": {"cases": "earlier notes"}}
+    (docs / "track.json").write_text(json.dumps({
+        "command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"}, "threads": 1,
+        "load_after": [0, 0, 0], "cases": [{"regime": "old"}], **kept}))
+    bench.main(["--regimes", "oneshot", "--out", str(tmp_path / "work"), "--docs", str(docs), "--synth-preset", "small"])
+    doc = json.loads((docs / "track.json").read_text())
+    assert [c["regime"] for c in doc["cases"]] == ["oneshot"]
+    for key, value in kept.items():
+        assert doc[key] == value, key

@@ -233,3 +233,15 @@ def test_calibrated_rig(tmp_path, tiny_capture, model, embedding):
     err = compare_to_truth(out, sub)
     assert err["world"]["mean_mm"] < 5.0, err["world"]
     assert set(err["regions"]) == {"face", "neck", "scalp"} and err["regions"]["face"]["world_mm"] < 5.0, err["regions"]
+
+
+def test_the_closing_panel_says_whether_the_pivot_was_held(tmp_path):
+    from sage_core.track.pipeline import TrackResult
+
+    base = dict(out_dir=tmp_path, regime="sv-hr", kind="video", timesteps=6, images=6, splits={"train": 4}, dropped=[],
+                reprojection_px=1.0, reprojection_max_px=2.0, focal_px=900.0, focal_source="fitted", masks={"segmented": 6},
+                calibration=None, timings={}, wall_time_s=1.0)
+    rows = dict(TrackResult(**base, steady_pivot={"mode": "auto", "held": True, "spread": 0.0058, "scale": 0.01}).rows())
+    assert rows["head's pivot"] == "held, auto (spread 0.58 % of its distance, held within 1 %)"
+    assert dict(TrackResult(**base, steady_pivot={"mode": "on", "held": True}).rows())["head's pivot"] == "held, on"
+    assert "head's pivot" not in dict(TrackResult(**base, steady_pivot={"mode": "off", "held": False}).rows())

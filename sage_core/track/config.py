@@ -71,8 +71,8 @@ class TrackConfig:
                               choices=("auto", "on", "off"))
     calib_pose_yaw_deg: float = _opt(45.0, "Calibration: the pose table's views continue the yaw steps out to this yaw (degrees).", ge=0, le=75)
     pivot_pose_yaw_deg: float = _opt(60.0, "Calibration: with the head's pivot held (steady_pivot on, or auto when the frames agree "
-                                           "on it) the pose table continues out to this yaw instead (degrees; at most "
-                                           "calib_pose_yaw_deg: no wider table). With the pivot free a wider table traded against "
+                                           "on it) the pose table continues out to this yaw instead (degrees; a value no wider than "
+                                           "calib_pose_yaw_deg adds nothing). With the pivot free a wider table traded against "
                                            "the head's depth and focal length (docs/track.md).", ge=0, le=75)
     calib_pose_pitch_deg: float = _opt(24.0, "Calibration: ... and the pitch steps out to this pitch (degrees).", ge=0, le=45)
     calib_spread: float = _opt(0.035, "Calibration: keep a landmark whose back-projections agree within this fraction of the head height.", gt=0)

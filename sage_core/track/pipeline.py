@@ -99,6 +99,10 @@ class TrackResult:
             ("masks", ", ".join(f"{k} {n}" for k, n in self.masks.items())),
             ("wall time", f"{self.wall_time_s:.1f} s"),
         ]
+        sp = self.steady_pivot
+        if sp.get("mode", "off") != "off":
+            spread = f" (spread {100 * sp['spread']:.2f} % of its distance, held within {100 * sp['scale']:g} %)" if "spread" in sp else ""
+            rows.insert(len(rows) - 2, ("head's pivot", ("held" if sp["held"] else "free") + f", {sp['mode']}{spread}"))
         if self.calibration is not None:
             c = self.calibration
             rows.insert(6, ("landmark embedding", f"calibrated: {c['kept']} landmarks from {c['views_with_face']}/{c['views']} views"))
@@ -125,8 +129,8 @@ def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
 def steady_depth_rule(enabled: bool, kind: str, n_timesteps: int) -> bool:
     """Whether the head's distance from the camera (or with ``TrackConfig.steady_pivot`` its pivot's
     whole position; for its auto mode, whether the fit decides) is held steady over the frames: when
-    asked for (``TrackConfig.steady_depth``, ``steady_pivot``), for a video or a folder of several frames from one camera (a rig places the
-    head itself; one image has nothing to agree with)."""
+    asked for (``TrackConfig.steady_depth``, ``steady_pivot``), for a video or a folder of several
+    frames from one camera (a rig places the head itself; one image has nothing to agree with)."""
     return enabled and _one_camera_sequence(kind, n_timesteps)
 
 
