@@ -414,6 +414,7 @@ def test_every_regimes_stage_configs_hash_and_the_single_camera_ones_cover_the_u
             assert from_dict(type(cfg), canonical_form(cfg)) == cfg
         p2 = resolve_config("phase2", "tiny", regime=regime)
         single = regime in ("sv-hr", "one-shot")
-        assert p2.unseen_fill.enabled == p2.unseen_fill.cover_neck == single
+        assert p2.unseen_fill.enabled == p2.unseen_fill.cover_neck == p2.unseen_fill.cover_away == single
         assert canonical_form(p2).get("unseen_fill_cover_neck", False) == single
+        assert canonical_form(p2).get("unseen_fill_cover_away", False) == single
     assert hashes[("one-shot", "phase2")] != hashes[("mv-sf", "phase2")]

@@ -857,6 +857,22 @@ def test_unseen_fill_continues_each_groups_seen_surfels_and_keeps_the_back_cover
     geo = canon.scales.detach().double().prod(-1).sqrt()
     grown = res3.filled & (floor3[:, 1] > 1)
     assert bool((geo[grown] * floor3[grown, 1].double() <= d_edge[grown] / 3.0 + 1e-9).all())
+    # with cover_away the seen hair surfels that no view faces get the floor too, their colours kept
+    away = seen & hair & (torch.arange(len(seen)) % 2 == 0)
+    toward = torch.where(away, -0.5, 0.5).double()
+
+    def weights_and_toward(self):
+        self.view_toward = toward.clone()
+        return weights.clone()
+
+    monkeypatch.setattr(Phase2Trainer, "surfel_view_weights", weights_and_toward)
+    tr4 = _trainer(phase1_avatar_path, p2_data, p2_init_dir, mouth_prior=False, unseen_fill=True, unseen_fill_hair=True,
+                   **{"unseen_fill.cover_away": True})
+    res4, floor4 = tr4.unseen_fill_result, tr4.avatar.surfels.unseen_floor
+    assert bool(away.any()) and torch.equal(res4.filled, res.filled) and torch.equal(res4.covered, res.covered | away)
+    assert torch.equal(tr4.avatar.surfels.color_prior[:, 3] > 0, res4.filled)
+    hair_floor = next(v["opacity_floor"] for k, v in res4.per_group.items() if str(REGION_HAIR) in k.split("+"))
+    assert bool((floor4[away, 0] >= hair_floor - 1e-6).all()) and bool((floor4[seen & ~away, 0] == 0).all())
 
 
 def test_view_toward_is_the_largest_cosine_of_each_surfels_triangle_to_the_training_cameras(phase1_avatar_path, p2_data, p2_init_dir):

@@ -273,3 +273,29 @@ def test_surfels_seen_edge_on_do_not_hold_back_the_cover() -> None:
     front = res.filled & (x[:, 2] > -0.02)
     torch.testing.assert_close(res.scale_gain[front], base.scale_gain[front])
     assert res.per_group[str(REGION_HAIR)]["seen_facing_away"] == float(rim.sum())
+
+
+def test_cover_facing_away_covers_the_grazed_rim_too() -> None:
+    """``cover_facing_away``: the seen surfels that no view faces (the grazed rim on the back) get the
+    opacity floor and grow like the unseen ones, their colours kept; without it they are left as they
+    are; the filled surfels and every colour are the same either way."""
+    x, c, w, r, op = _head(1500, 3)
+    scales = torch.full((x.shape[0], 2), 0.002)
+    rim = (x[:, 2] < -0.05) & (r == REGION_HAIR) & (torch.arange(x.shape[0]) % 2 == 0)
+    w = torch.where(rim, torch.full_like(w, 0.8), w)
+    op = torch.where(rim, torch.full_like(op, 0.1), op)
+    away = x[:, 2] < -0.02
+    kw = dict(groups=((REGION_HAIR,),), hair_regions=(REGION_HAIR,), skin_regions=(REGION_FACE,), cover_regions=(REGION_HAIR,),
+              facing_away=away)
+    base = fill_unseen(x, c, w, r, op, scales, **kw)
+    res = fill_unseen(x, c, w, r, op, scales, cover_facing_away=True, **kw)
+    assert bool(rim.any()) and not bool(base.covered[rim].any())
+    assert torch.equal(base.covered, base.filled)
+    assert torch.equal(res.filled, base.filled) and torch.equal(res.colors, base.colors)
+    assert bool(res.covered[rim].all()) and torch.equal(res.covered, res.filled | rim)
+    floor = res.per_group[str(REGION_HAIR)]["opacity_floor"]
+    assert floor > 0.1 and bool((res.opacity[rim] == floor).all()) and bool((base.opacity[rim] == 0.1).all())
+    assert float(res.scale_gain[rim].mean()) > 1.5 and bool((base.scale_gain[rim] == 1).all())
+    # the seen surfels some view faces are untouched
+    faced = (w >= 0.5) & ~rim
+    assert bool((res.scale_gain[faced] == 1).all()) and torch.equal(res.opacity[faced], op[faced].to(res.opacity))

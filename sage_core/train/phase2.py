@@ -330,8 +330,10 @@ class Phase2Trainer:
             rgb[fill] = fill_rgb.to(rgb)
             on = on | fill
             res = self.unseen_fill_result
-            if cfg.unseen_fill.cover and res.opacity is not None and bool(fill.any()):
-                floor = torch.stack([torch.where(fill, res.opacity, torch.zeros_like(res.opacity)), res.scale_gain.to(res.opacity)], -1)
+            cov = fill.to(res.filled.device) | res.covered  # filled surfels keep their opacity at the fill as a floor
+            if cfg.unseen_fill.cover and res.opacity is not None and bool(cov.any()):
+                cov = cov.to(res.opacity.device)
+                floor = torch.stack([torch.where(cov, res.opacity, torch.zeros_like(res.opacity)), res.scale_gain.to(res.opacity)], -1)
                 avatar.surfels.set_unseen_floor(floor)
         if bool(mouth_faces.any()) or bool(on.any()):
             avatar.surfels.set_color_prior(torch.cat([rgb, on.to(rgb)[:, None]], -1))
@@ -441,6 +443,7 @@ class Phase2Trainer:
             cover_regions=(REGION_HAIR, REGION_OTHER) + ((REGION_NECK,) if c.cover_neck else ()), taken=taken,
             seen_min=SEEN_MIN_WEIGHT, source_min=c.source_min, neighbours=int(k), grazing_cos=c.grazing_cos,
             boundary=(verts[edge[:, 0]], verts[edge[:, 1]]), facing_away=None if toward is None else toward < 0,
+            cover_facing_away=c.cover_away,
         )  # fmt: skip
         self.unseen_fill_result = res
         return res.filled, res.colors[res.filled]

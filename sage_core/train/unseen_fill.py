@@ -72,7 +72,9 @@ class FillResult:
         colors: (N, 3) their colours (rows of other surfels are their input colours).
         opacity: (N,) opacities with the floor applied to the filled surfels (others unchanged); None
             without input opacities.
-        scale_gain: (N,) gain (≥ 1) on the in-plane scales of the filled surfels (1 elsewhere).
+        scale_gain: (N,) gain (≥ 1) on the in-plane scales of the covered surfels (1 elsewhere).
+        covered: (N,) bool surfels given the opacity floor and scale gain: the filled surfels of the
+            covered groups, and with ``cover_facing_away`` their seen surfels that no view faces.
         sources: (N,) bool surfels whose colours were propagated.
         skin_like: (N,) bool hair-region sources left out as skin coloured.
         per_group: plain-data counts per group ("4+0": the labels joined; surfels, targets, filled,
@@ -85,6 +87,7 @@ class FillResult:
     scale_gain: torch.Tensor
     sources: torch.Tensor
     skin_like: torch.Tensor
+    covered: torch.Tensor
     per_group: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
@@ -208,6 +211,7 @@ def fill_unseen(
     boundary: tuple[np.ndarray, np.ndarray] | None = None,
     boundary_ratio: float = 1.0 / 3.0,
     facing_away: torch.Tensor | None = None,
+    cover_facing_away: bool = False,
 ) -> FillResult:
     """Colours (and opacities) of the unseen surfels of ``groups``, continued from their group's sources.
 
@@ -233,7 +237,10 @@ def fill_unseen(
     arrays of end points, in the space of ``points``) of the mesh's open boundary, which caps that
     geometric mean at ``boundary_ratio`` times the distance to the nearest segment (None or B = 0:
     no cap); facing_away: (N,) bool surfels that no training view faces, left out of the seen
-    surfels that limit the growth (None: none). Seen surfels are returned unchanged.
+    surfels that limit the growth (None: none); cover_facing_away: in the covered groups, the seen
+    surfels of ``facing_away`` get the opacity floor and the scale gain too, their colours kept (a
+    head-turn clip sees the back of the head only edge-on, so nothing trained those surfels to
+    cover it from behind). Other seen surfels are returned unchanged.
     """
     dev = colors.device
     x = points.detach().double().cpu().numpy()
@@ -259,6 +266,7 @@ def fill_unseen(
     skin_ref = np.median(col[skin_src], axis=0) if skin_src.any() else None
     skin_like = np.zeros(n, dtype=bool)
     filled = np.zeros(n, dtype=bool)
+    covered_all = np.zeros(n, dtype=bool)
     out_col = col.copy()
     out_op = op.copy() if op is not None else None
     stats: dict[str, dict[str, float]] = {}
@@ -303,24 +311,30 @@ def fill_unseen(
         s["filled"] = float(t.sum())
         s["unreached"] = float((t & ~reached).sum())
         covered = cover_ids is None or bool(cover_ids & set(ids))
+        cov = nodes[t]
+        if covered and cover_facing_away:
+            cov = np.union1d(cov, np.nonzero(in_g & seen & away & ~tk & ~filled)[0])
+        if covered:
+            covered_all[cov] = True
+            s["covered"] = float(cov.size)
         if out_op is not None and covered:
             floor = float(np.median(op[sources]))
-            out_op[nodes[t]] = np.maximum(op[nodes[t]], floor)
+            out_op[cov] = np.maximum(op[cov], floor)
             s["opacity_floor"] = floor
         if sg is not None and covered and nodes.size > cover_neighbours:
             from scipy.spatial import cKDTree
 
-            d, _ = cKDTree(x[nodes]).query(x[nodes[t]], k=int(cover_neighbours) + 1)
+            d, _ = cKDTree(x[nodes]).query(x[cov], k=int(cover_neighbours) + 1)
             want = float(cover_ratio) * d[:, -1]
             kept = seen & ~filled & ~away  # the seen surface some view faces
             if kept.any():  # near the seen surface the seen surfels cover: grow only away from it
-                d_seen, _ = cKDTree(x[kept]).query(x[nodes[t]], k=1)
+                d_seen, _ = cKDTree(x[kept]).query(x[cov], k=1)
                 want = np.minimum(want, float(seen_ratio) * d_seen)
             if boundary is not None and len(boundary[0]):  # the disc ends where the surface does
-                want = np.minimum(want, float(boundary_ratio) * distance_to_segments(x[nodes[t]], boundary[0], boundary[1]))
-            geo = np.sqrt(np.maximum(sg[nodes[t], 0] * sg[nodes[t], 1], 1e-30))
-            gain[nodes[t]] = np.clip(want / geo, 1.0, float(max_gain))
-            s["scale_gain_median"] = float(np.median(gain[nodes[t]]))
+                want = np.minimum(want, float(boundary_ratio) * distance_to_segments(x[cov], boundary[0], boundary[1]))
+            geo = np.sqrt(np.maximum(sg[cov, 0] * sg[cov, 1], 1e-30))
+            gain[cov] = np.clip(want / geo, 1.0, float(max_gain))
+            s["scale_gain_median"] = float(np.median(gain[cov]))
             s["seen_facing_away"] = float((seen & away & in_g).sum())
     all_sources = src_all & ~skin_like & np.isin(reg, [int(v) for g in groups for v in g])
     return FillResult(
@@ -328,6 +342,7 @@ def fill_unseen(
         colors=torch.as_tensor(out_col, dtype=colors.dtype, device=dev),
         opacity=torch.as_tensor(out_op, dtype=opacity.dtype, device=dev) if (out_op is not None and opacity is not None) else None,
         scale_gain=torch.as_tensor(gain, dtype=colors.dtype, device=dev),
+        covered=torch.as_tensor(covered_all, device=dev),
         sources=torch.as_tensor(all_sources, device=dev),
         skin_like=torch.as_tensor(skin_like, device=dev),
         per_group=stats,
