@@ -419,7 +419,8 @@ class Phase2Trainer:
         continuation over its group's surfel graph (``k`` neighbours) of the albedos of the group's
         seen surfels (eyes, face, neck, mouth each alone; the hair with the rest of the scalp, its
         skin-coloured sources left out, and those of them seen only at grazing angles filled too). Sets :attr:`unseen_fill_result` (with the opacity floor and
-        scale gain of ``unseen_fill.cover`` for the hair group, and the neck with ``unseen_fill.cover_neck``;
+        scale gain of ``unseen_fill.cover`` for the hair group, and the neck with ``unseen_fill.cover_neck``,
+        given with ``unseen_fill.cover_away`` also to their seen surfels that no training view faces;
         the growth is limited near the seen surfels that some training view faces (:attr:`view_toward`
         at least 0) and by the canonical mesh's open boundary).
         Returns ((N,) bool surfels filled, (M, 3) their colours)."""

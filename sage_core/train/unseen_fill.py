@@ -40,8 +40,10 @@ what was seen, region by region (docs/method.md, "The unseen back and sides"):
    clip of head turns sees the back of the head only that way and its unseen surfels there would
    otherwise keep the gaps that show the face from behind. A surfel near the mesh's open boundary (the cut
    at the bottom of the neck) grows no further than the disc of three standard deviations reaching
-   that boundary (``boundary``), so the cover never stands out of the surface's edge. Both are
-   stored in the surfel set (:meth:`SurfelSet.set_unseen_floor`).
+   that boundary (``boundary``), so the cover never stands out of the surface's edge. With
+   ``cover_facing_away`` the seen surfels of a covered group that no view faces get the floor and
+   the gain too (colours kept): a clip trained them only edge-on. Both are stored in the surfel set
+   (:meth:`SurfelSet.set_unseen_floor`).
 
 Inputs are per-surfel tensors (N surfels): canonical centres (N, 3), albedo colours (N, 3), view
 weights (N,), region labels (N,) (:data:`sage_core.avatar.init.REGION_NAMES`), opacities (N,),
@@ -70,7 +72,7 @@ class FillResult:
     Attributes:
         filled: (N,) bool surfels given a colour (the targets that some source reached).
         colors: (N, 3) their colours (rows of other surfels are their input colours).
-        opacity: (N,) opacities with the floor applied to the filled surfels (others unchanged); None
+        opacity: (N,) opacities with the floor applied to the covered surfels (others unchanged); None
             without input opacities.
         scale_gain: (N,) gain (≥ 1) on the in-plane scales of the covered surfels (1 elsewhere).
         covered: (N,) bool surfels given the opacity floor and scale gain: the filled surfels of the
