@@ -146,6 +146,13 @@ def _read_pose(p: Path, arrays: dict[str, np.ndarray], K: int) -> PoseTable | No
     return PoseTable(yaws, pitches, off)
 
 
+def same_landmarks(a: LandmarkEmbedding, b: LandmarkEmbedding) -> bool:
+    """Whether two embeddings place the same landmarks at the same points (ids, triangles and
+    barycentrics; their pose tables may differ)."""
+    return (np.array_equal(a.landmark_ids, b.landmark_ids) and np.array_equal(a.faces, b.faces)
+            and a.bary.shape == b.bary.shape and bool(np.allclose(a.bary, b.bary)))
+
+
 def save_embedding(path: str | Path, emb: LandmarkEmbedding, extra: dict[str, Any] | None = None) -> Path:
     """Write ``emb`` in FLAME's MediaPipe-embedding layout (plus ``spread``, ``format``), atomically."""
     arrays: dict[str, np.ndarray] = {

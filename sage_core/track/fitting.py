@@ -43,7 +43,7 @@ from ..geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ..geometry.topology import edges
 from ..render.mesh_raster import rasterize_mesh
 from .config import TrackConfig
-from .embedding import LandmarkEmbedding
+from .embedding import LandmarkEmbedding, same_landmarks
 from .flame_subset import FlameSubset, JointBasis
 from .losses import (charbonnier, facing, pixel_barycentrics, project, sample_map, signed_distance, triangle_normals,
                      triangle_plane_frame, visibility_weight)
@@ -205,9 +205,7 @@ class Fitter:
         same landmarks with a wider pose table; None: ``emb`` throughout)."""
         self.flame = flame
         self.emb = emb
-        if pivot_embedding is not None and not (np.array_equal(pivot_embedding.landmark_ids, emb.landmark_ids)
-                                                and np.array_equal(pivot_embedding.faces, emb.faces)
-                                                and np.allclose(pivot_embedding.bary, emb.bary)):
+        if pivot_embedding is not None and not same_landmarks(pivot_embedding, emb):
             raise ValueError("pivot_embedding must embed the same landmarks as the embedding (it may differ in its pose table)")
         self.pivot_embedding = pivot_embedding
         self.p = problem

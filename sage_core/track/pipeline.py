@@ -289,7 +289,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     from ..data.cameras import Camera
     from ..data.imageio import write_image
     from .capture_writer import OutFrame, write_flame_params, write_transforms
-    from .embedding import calibrate_embedding, save_embedding
+    from .embedding import calibrate_embedding, same_landmarks, save_embedding
     from .fitting import FitCamera, FitImage, FitProblem, Fitter
     from .masks import neck_line_mask, person_colour_cut, person_probability, refine_mask, wants_colour_cut
     from .mesh_utils import boundary_loops, hair_region, neck_line_vertices, ring
@@ -391,8 +391,11 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         if pose_on and (pivot or pivot_auto) and cfg.pivot_pose_yaw_deg > cfg.calib_pose_yaw_deg:
             # the wider table of a held pivot: the same landmarks (the embedding comes from the narrower views)
             wide, wide_rep = calibrate(cfg.pivot_pose_yaw_deg)
-            calibration["pivot_pose_views"] = wide_rep.pose_views
-            emb, pivot_emb = (wide, None) if pivot else (emb, wide)
+            if same_landmarks(wide, emb):
+                calibration["pivot_pose_views"] = wide_rep.pose_views
+                emb, pivot_emb = (wide, None) if pivot else (emb, wide)
+            else:  # never seen: the wider grid's calibration kept other landmarks
+                warnings.append("the wider pose table of a held pivot kept other landmarks than the embedding; not used")
     if emb.pose is not None and not pose_on:
         emb = replace(emb, pose=None)
     (root / "track").mkdir(exist_ok=True)
