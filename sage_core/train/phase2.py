@@ -330,9 +330,8 @@ class Phase2Trainer:
             rgb[fill] = fill_rgb.to(rgb)
             on = on | fill
             res = self.unseen_fill_result
-            cov = fill.to(res.filled.device) | res.covered  # filled surfels keep their opacity at the fill as a floor
+            cov = fill | res.covered.to(fill.device)  # filled surfels keep their opacity at the fill as a floor
             if cfg.unseen_fill.cover and res.opacity is not None and bool(cov.any()):
-                cov = cov.to(res.opacity.device)
                 floor = torch.stack([torch.where(cov, res.opacity, torch.zeros_like(res.opacity)), res.scale_gain.to(res.opacity)], -1)
                 avatar.surfels.set_unseen_floor(floor)
         if bool(mouth_faces.any()) or bool(on.any()):

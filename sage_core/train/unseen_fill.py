@@ -315,7 +315,7 @@ def fill_unseen(
         covered = cover_ids is None or bool(cover_ids & set(ids))
         cov = nodes[t]
         if covered and cover_facing_away:
-            cov = np.union1d(cov, np.nonzero(in_g & seen & away & ~tk & ~filled)[0])
+            cov = np.union1d(cov, np.nonzero(in_g & seen & away & ~tk)[0])
         if covered:
             covered_all[cov] = True
             s["covered"] = float(cov.size)
