@@ -103,6 +103,12 @@ def _test_scores(ws: Path, capture_timestep: dict[int, int] | None = None) -> di
     return out
 
 
+def _phase2_finished(ws: Path) -> str | None:
+    """When the workspace's phase 2 finished (its manifest's ``finished_at``; None: not yet)."""
+    manifest = ws / "phase2" / "manifest.json"
+    return json.loads(manifest.read_text()).get("finished_at") if manifest.is_file() else None
+
+
 def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, avatar_preset: str, avatar_sets: list[str],
                 threads: int) -> dict:
     """Train an avatar on the tracked capture and one on the capture's own parameters; compare them on
@@ -126,10 +132,10 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
                 "--seed", "0", "--quiet"]
         for kv in avatar_sets:
             args += ["--set", kv]
-        reused = (ws / "eval" / "phase2" / "test" / "metrics.json").is_file()
+        before = _phase2_finished(ws)
         wall, _ = _sage(args, threads)
         runs[name] = {"workspace": ws.name, "wall_s": round(wall, 1), "command": "sage " + " ".join(args)}
-        if reused:  # an earlier run of the same command trained it: its stages' own times
+        if before is not None and _phase2_finished(ws) == before:  # nothing retrained: its stages' own times
             runs[name]["reused"] = True
             runs[name]["wall_s"] = round(sum(json.loads(m.read_text()).get("wall_time_s") or 0.0
                                              for m in ws.glob("*/manifest.json")), 1)

@@ -214,7 +214,7 @@ class SurfelLayoutConfig:
     scale_factor: float = _f(1.5, "Initial in-plane scale relative to the disk radius that covers the triangle's share of area.", gt=0, alias="init_scale_factor")
     face_weight: float = _f(3.0, "Surfel density multiplier on the face and eyes.", ge=0, alias="face_weight")
     mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.", ge=0, alias="mouth_weight")
-    hair_weight: float = _f(0.5, "Surfel density multiplier on the hair (the scalp outside the face and neck, the back of the head included). 1.0 spreads it by area like the ears; on five detailed benchmark subjects that lifted the val image by 0.22 to 0.46 dB at the tiny size and by -0.12 and +0.17 dB at the small size, while held-out expressions moved by -0.07 to +0.05 dB, or by -0.22 and -0.38 dB where the registration's decision flipped with it, so 0.5 stays (docs/results.md).", ge=0, alias="hair_weight")
+    hair_weight: float = _f(0.5, "Surfel density multiplier on the hair (the scalp outside the face and neck, the back of the head included). 1.0 spreads it by area like the ears; on five detailed benchmark subjects that lifted the val image by 0.22 to 0.46 dB at the tiny size and by -0.12 and +0.17 dB at the small size, while held-out expressions moved by -0.07 to +0.05 dB, or by -0.22 and -0.38 dB where the registration's decision flipped with it, so 0.5 stays. Regime default for sv-hr: 1.0 (a head-turn clip sees the back of the head only edge-on; at 6,000 surfels the face showed from behind in 6.3 % of the back views' pixels instead of 10.8 %, and on two photo-skinned SV-HR subjects at 25,000 held-out expressions +0.16 and +0.38 dB and held-out views +0.07 and +0.11 dB with lower LPIPS, the side views -0.45 dB; one-shot stays at 0.5: -0.5 dB at 6,000 surfels) (docs/results.md).", ge=0, alias="hair_weight")
     neck_weight: float = _f(0.5, "Surfel density multiplier on the neck.", ge=0, alias="neck_weight")
     camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera.", ge=0, alias="camera_weight")
 
@@ -725,7 +725,7 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
     "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,
-                         "relocate.enabled": False},
+                         "relocate.enabled": False, "surfels.hair_weight": 1.0},
               "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True, "unseen_fill.cover_neck": True,
                          "unseen_fill.cover_away": True}},
     "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,

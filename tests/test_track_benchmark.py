@@ -116,3 +116,38 @@ def test_a_full_run_keeps_what_it_did_not_measure(tmp_path, monkeypatch):
     assert [c["regime"] for c in doc["cases"]] == ["oneshot"]
     for key, value in kept.items():
         assert doc[key] == value, key
+
+
+def test_an_avatar_its_run_trained_again_is_not_reported_as_reused(tmp_path, monkeypatch):
+    """An avatar counts as reused only when its run left the finished phase 2 as it was; a run that
+    retrained it (a changed default) reports its own wall time."""
+    work = tmp_path
+    cap = work / "cap"
+    (cap / "gt").mkdir(parents=True)
+    (cap / "gt" / "info.json").write_text(json.dumps({"config": {"train_timesteps": 2}, "counts": {"timesteps": 3}}))
+    tracked = work / "tracked_monocular_small_default_uncropped"
+    tracked.mkdir()
+    (tracked / "transforms.json").write_text(json.dumps({"frames": [{"timestep_index": 0, "timestep_id": "0"}]}))
+    monkeypatch.setattr(bench, "_capture", lambda w, r, p: cap)
+    monkeypatch.setattr(bench, "_input", lambda w, r, p, c: (work / "in", None))
+    retrain = {"own": False, "tracked": True}
+
+    def fake_sage(args, threads):
+        ws = Path(args[2])
+        name = "own" if "_own_" in ws.name else "tracked"
+        for stage, done in (("phase1", "t0"), ("phase2", "t1")):
+            m = ws / stage / "manifest.json"
+            if retrain[name] or not m.is_file():
+                m.parent.mkdir(parents=True, exist_ok=True)
+                m.write_text(json.dumps({"finished_at": done + ("b" if m.is_file() else ""), "wall_time_s": 5.0}))
+        metrics = ws / "eval" / "phase2" / "test" / "metrics.json"
+        metrics.parent.mkdir(parents=True, exist_ok=True)
+        metrics.write_text(json.dumps({"images": [{"timestep": 0, "camera": 0, "psnr": 20.0, "ssim": 0.8, "lpips": 0.2}]}))
+        return 42.0, ""
+
+    monkeypatch.setattr(bench, "_sage", fake_sage)
+    first = bench.avatar_case(work, "monocular", "small", "default", "tiny", [], 1)
+    assert not any(r.get("reused") for r in first["runs"].values()) and first["runs"]["own"]["wall_s"] == 42.0
+    again = bench.avatar_case(work, "monocular", "small", "default", "tiny", [], 1)
+    assert again["runs"]["own"].get("reused") is True and again["runs"]["own"]["wall_s"] == 10.0
+    assert "reused" not in again["runs"]["tracked"] and again["runs"]["tracked"]["wall_s"] == 42.0
