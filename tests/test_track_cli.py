@@ -217,6 +217,34 @@ def test_a_held_pivot_uses_the_wider_pose_table(tmp_path, tiny_capture, model):
     assert yaws["on"].max() == pytest.approx(60.0) and yaws["off"].max() == pytest.approx(30.0)
 
 
+def test_a_wider_pose_table_with_other_landmarks_is_not_used(tmp_path, tiny_capture, model, monkeypatch):
+    """Should the wider calibration of a held pivot keep other landmarks than the embedding's, the
+    capture keeps the narrower table (the embedding's own), still holds the pivot, and says why."""
+    import sage_core.track.embedding as embedding_mod
+    from sage_core.flame import load_flame_model
+    from sage_core.track.embedding import load_embedding
+
+    calls = []
+
+    def differs(a, b):
+        calls.append((a, b))
+        return False
+
+    monkeypatch.setattr(embedding_mod, "same_landmarks", differs)
+    clip = _clip(tmp_path, tiny_capture)
+    out = tmp_path / "cap"
+    res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--set", "steps=60", "--set", "keyframes=0",
+                  "--set", "steady_pivot=on", "--set", "pivot_pose_yaw_deg=60"])
+    assert res.exit_code == 0, res.output
+    assert len(calls) == 1
+    report = json.loads((out / "track" / "report.json").read_text())
+    assert report["steady_pivot"] == {"mode": "on", "held": True}
+    assert "pivot_pose_views" not in report["calibration"]
+    assert any("wider pose table" in w and "not used" in w for w in report["warnings"]), report["warnings"]
+    emb = load_embedding(out / "track" / "landmark_embedding.npz", load_flame_model(model).n_faces)
+    assert emb.pose.yaws.max() == pytest.approx(30.0)
+
+
 @pytest.mark.slow
 def test_calibrated_rig(tmp_path, tiny_capture, model, embedding):
     """Three cameras of the tiny multiview capture at two timesteps, with its transforms.json."""
