@@ -216,7 +216,7 @@ class SurfelLayoutConfig:
     mouth_weight: float = _f(2.0, "Surfel density multiplier on the mouth interior and teeth.", ge=0, alias="mouth_weight")
     hair_weight: float = _f(0.5, "Surfel density multiplier on the hair (the scalp outside the face and neck, the back of the head included). 1.0 spreads it by area like the ears; on five detailed benchmark subjects that lifted the val image by 0.22 to 0.46 dB at the tiny size and by -0.12 and +0.17 dB at the small size, while held-out expressions moved by -0.07 to +0.05 dB, or by -0.22 and -0.38 dB where the registration's decision flipped with it, so 0.5 stays. Regime default for sv-hr: 1.0 (a head-turn clip sees the back of the head only edge-on; at 6,000 surfels the face showed from behind in 6.3 % of the back views' pixels instead of 10.8 %, and on the suite's three photo-skinned SV-HR subjects at 25,000 held-out expressions +0.04, +0.31 and +0.09 dB and held-out views 22.33 -> 22.40 dB with LPIPS 0.0730 -> 0.0702 (mean), the side views about -0.45 dB; one-shot stays at 0.5: -0.5 dB at 6,000 surfels) (docs/results.md).", ge=0, alias="hair_weight")
     neck_weight: float = _f(0.5, "Surfel density multiplier on the neck.", ge=0, alias="neck_weight")
-    camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera.", ge=0, alias="camera_weight")
+    camera_weight: float = _f(2.0, "Extra density (up to 1 + camera_weight) on triangles facing a nearby training camera. Regime default for sv-hr: 1.0 (a head-turn clip's cameras face all of the head but its back, so the extra density mostly takes surfels from the back: at 6,000 surfels, two phase-1 seeds, the face showed from behind in 4.6 and 3.7 % of the back views' pixels instead of 6.3 and 5.8 %, held-out views +0.11 and +0.10 dB, held-out expressions -0.16 and +0.11 dB; at 25,000 on two photo-skinned subjects held-out expressions -0.08 and +0.13 dB and LPIPS lower on every view group) (docs/results.md).", ge=0, alias="camera_weight")
 
 
 @dataclass
@@ -725,7 +725,7 @@ PRESET_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 # workspace's ingested regime is known. mv-sf and mv-mf keep the plain defaults.
 REGIME_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
     "sv-hr": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,
-                         "relocate.enabled": False, "surfels.hair_weight": 1.0},
+                         "relocate.enabled": False, "surfels.hair_weight": 1.0, "surfels.camera_weight": 1.0},
               "phase2": {"unseen_fill.enabled": True, "unseen_fill.hair": True, "unseen_fill.cover_neck": True,
                          "unseen_fill.cover_away": True}},
     "one-shot": {"phase1": {"appearance.sh_degree": 0, "free.sh_degree": 0, "exposure": "gain", "loss.sym_sdf": 0.1, "loss.sym_color": 0.05,

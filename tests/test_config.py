@@ -419,4 +419,5 @@ def test_every_regimes_stage_configs_hash_and_the_single_camera_ones_cover_the_u
         assert canonical_form(p2).get("unseen_fill_cover_away", False) == single
         # a head-turn clip's avatar spreads its surfels over the hair by area like the ears
         assert resolve_config("phase1", "tiny", regime=regime).surfels.hair_weight == (1.0 if regime == "sv-hr" else 0.5)
+        assert resolve_config("phase1", "tiny", regime=regime).surfels.camera_weight == (1.0 if regime == "sv-hr" else 2.0)
     assert hashes[("one-shot", "phase2")] != hashes[("mv-sf", "phase2")]
