@@ -12,10 +12,13 @@ as a folder of frames, the camera folders with the rig's transforms.json), track
 and after one similarity alignment of the whole sequence; focal length error).
 
 ``--avatars`` also trains an avatar (``sage run``, ``--avatar-preset``) on the tracked capture and one
-on the capture's own parameters, for the monocular and multiview regimes, and compares them on the
-same held-out images: the tracking is rerun with ``crop=false`` and ``neck_line=false`` so the tracked
-capture's images are the capture's own pixels, and the scores are taken over the test images both
-captures hold (matched by the capture's timestep and camera). The one-shot photo holds nothing out.
+on the capture's own parameters, and compares them on the same held-out images: the tracking is
+rerun with ``crop=false`` and ``neck_line=false`` so the tracked capture's images are the capture's
+own pixels, and the scores are taken over the test images both captures hold (matched by the
+capture's timestep and camera). The one-shot photo holds no test image: both avatars are scored on
+the synthetic capture's held-out set (``gt/novel``: the photo's expression from 14 cameras around
+the head, three novel expressions from the six in front), which
+:func:`sage_core.track.truth.held_out_for_tracked` moves into the tracked capture's world.
 
 ``--video`` also renders a head-turn video of a synthetic head (yaw ±60°, some pitch, ``--video-fps``
 frames per second for ``--video-seconds``, ``--video-size``) as an MP4 and tracks it: the time of the
@@ -92,10 +95,16 @@ def _input(work: Path, regime: str, synth_preset: str, cap: Path) -> tuple[Path,
     return inp, (inp_dir / "transforms.json" if (inp_dir / "transforms.json").is_file() else None)
 
 
-def _test_scores(ws: Path, capture_timestep: dict[int, int] | None = None) -> dict[tuple[int, int], dict]:
-    """Per-image test metrics of a workspace's phase-2 evaluation, keyed by (capture timestep, camera);
-    ``capture_timestep`` maps a tracked capture's timestep index to the synthetic capture's."""
-    doc = json.loads((ws / "eval" / "phase2" / "test" / "metrics.json").read_text())
+def _means(m: dict) -> dict:
+    """PSNR / SSIM / LPIPS of an evaluation's mean block, rounded (LPIPS when measured)."""
+    return {k: round(float(m[k]), 4) for k in ("psnr", "ssim", "lpips") if m.get(k) is not None}
+
+
+def _test_scores(ws: Path, capture_timestep: dict[int, int] | None = None, split: str = "test") -> dict[tuple[int, int], dict]:
+    """Per-image metrics of a workspace's phase-2 evaluation of ``split`` (test; novel: the held-out
+    set), keyed by (capture timestep, camera); ``capture_timestep`` maps a tracked capture's timestep
+    index to the synthetic capture's."""
+    doc = json.loads((ws / "eval" / "phase2" / split / "metrics.json").read_text())
     out = {}
     for m in doc["images"]:
         t = m["timestep"] if capture_timestep is None else capture_timestep[m["timestep"]]
@@ -125,6 +134,11 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
             args += ["--cameras", str(cams)]
         _sage(args, threads)
     ids = {f["timestep_index"]: int(f["timestep_id"]) for f in json.loads((tracked / "transforms.json").read_text())["frames"]}
+    held_out = None
+    if regime == "oneshot":  # the photo holds nothing out: the truth's held-out set, moved into the tracked world
+        from sage_core.track.truth import held_out_for_tracked
+
+        held_out = held_out_for_tracked(tracked, cap)
     runs = {}
     for name, capture in (("own", cap), ("tracked", tracked)):
         ws = work / f"avatar_{regime}_{synth_preset}_{name}_{avatar_preset}"
@@ -139,8 +153,11 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
             runs[name]["reused"] = True
             runs[name]["wall_s"] = round(sum(json.loads(m.read_text()).get("wall_time_s") or 0.0
                                              for m in ws.glob("*/manifest.json")), 1)
-    own = _test_scores(work / runs["own"]["workspace"])
-    trk = _test_scores(work / runs["tracked"]["workspace"], ids)
+    if held_out is None:
+        own = _test_scores(work / runs["own"]["workspace"])
+        trk = _test_scores(work / runs["tracked"]["workspace"], ids)
+    else:
+        own, trk = (_test_scores(work / runs[k]["workspace"], split="novel") for k in ("own", "tracked"))
     common = sorted(set(own) & set(trk))
     if not common:
         raise RuntimeError(f"{regime}: the two captures share no test image")
@@ -148,8 +165,14 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
         runs[name]["test_images"] = len(scores)
         runs[name]["common"] = {k: round(sum(float(scores[c][k]) for c in common) / len(common), 4)
                                 for k in ("psnr", "ssim", "lpips") if all(scores[c].get(k) is not None for c in common)}
+    if held_out is not None:
+        for name in ("own", "tracked"):
+            doc = json.loads((work / runs[name]["workspace"] / "eval" / "phase2" / "novel" / "metrics.json").read_text())
+            runs[name]["novel_groups"] = {
+                **{f"subset_{k}": _means(v["overall"]) for k, v in doc.get("subsets", {}).items()},
+                **{f"views_{k}": _means(v["overall"]) for k, v in doc.get("view_groups", {}).items()}}
     return {"regime": regime, "track_regime": REGIME_OF[regime], "synth_preset": synth_preset, "avatar_preset": avatar_preset,
-            "avatar_sets": avatar_sets, "common_images": len(common),
+            "avatar_sets": avatar_sets, "common_images": len(common), "held_out_alignment": held_out,
             "common_timesteps": sorted({t for t, _ in common}), "runs": runs,
             "psnr_difference_db": round(runs["tracked"]["common"]["psnr"] - runs["own"]["common"]["psnr"], 3)}
 
@@ -489,6 +512,16 @@ def markdown(doc: dict) -> str:
             lines.append(f"| {a['regime']} ({a['track_regime']}) | {a['common_images']} | {o['psnr']:.2f} / {o['ssim']:.4f} / "
                          f"{o.get('lpips', float('nan')):.4f} | {t['psnr']:.2f} / {t['ssim']:.4f} / {t.get('lpips', float('nan')):.4f} | "
                          f"{a['psnr_difference_db']:+.2f} | {a.get('machine', {}).get('date_utc', '—')} | {walls} |")
+        for a in doc["avatars"]:
+            o, t = (a["runs"][k].get("novel_groups") for k in ("own", "tracked"))
+            if o and t:
+                lines += ["", f"{a['regime']}: the held-out set by group, own / `sage track`'s, PSNR / SSIM / LPIPS: "
+                          + "; ".join(f"{k.replace('subset_', '').replace('views_', 'views ')} {o[k]['psnr']:.2f} / "
+                                      f"{o[k]['ssim']:.4f} / {o[k].get('lpips', float('nan')):.4f} against {t[k]['psnr']:.2f} / "
+                                      f"{t[k]['ssim']:.4f} / {t[k].get('lpips', float('nan')):.4f}"
+                                      for k in o if k in t)
+                          + f" (the held-out cameras moved by the similarity of scale {a['held_out_alignment']['scale']:.3f} "
+                          "that maps the tracked mesh onto the true one)."]
         lines += ["", "A regime's row is replaced only when `--only-avatars` trains it again."]
         if any(r.get("reused") for a in doc["avatars"] for r in a["runs"].values()):
             lines[-1] += (" (reused): the avatar of an earlier run of the same command, whose workspace the benchmark "
@@ -596,7 +629,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.avatars or a.only_avatars:
         avatars = [avatar_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset,
                                a.track_preset, a.avatar_preset, a.avatar_set, a.threads)
-                   for r in a.regimes.split(",") if r in ("monocular", "multiview")]
+                   for r in a.regimes.split(",") if r in ("monocular", "multiview", "oneshot")]
         for x in avatars:
             x["machine"] = machine
             x["benchmark_command"] = command

@@ -212,3 +212,117 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         "per_timestep": per,
         "truth_tracking_error": json.loads((Path(truth) / "gt" / "info.json").read_text()).get("tracking", {}).get("error"),
     }
+
+
+def held_out_for_tracked(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
+    """Give a one-image ``sage track`` capture of a synthetic photo the truth's held-out set.
+
+    The synthetic one-shot capture holds its novel views and expressions in ``gt/novel`` (its own
+    world); an avatar trained on the tracked capture lives in the tracker's world, with the tracked
+    shape and pose. This writes ``tracked/gt/novel`` (and the ``novel`` block of ``tracked/gt/info.json``)
+    so that ``sage eval --split novel`` scores that avatar on the same images:
+
+    - cameras: each held-out camera moved into the tracked world by the similarity that best maps the
+      tracked mesh of the photo onto the true mesh (all vertices; :func:`similarity_fit`): with
+      ``x_true = s·R·x + t`` the camera ``(R_c, t_c)`` becomes ``(R_c·R, (R_c·t + t_c)/s)``, which
+      projects every point as before (a single uncalibrated photo fixes neither the head's size nor
+      its distance, so this is the alignment the ``aligned`` error uses);
+    - FLAME parameters: the tracked parameters of the photo with the capture's own change from its
+      training parameters to the held-out timestep's: expression coefficients, jaw, eyes and neck
+      added, the head rotation composed in the head's frame and the translation moved into the
+      tracked world (``R^T·Δt / s``), so that both avatars are driven by the same change (the views
+      of the training expression change only by the own parameters' per-timestep tracking noise);
+    - images and masks: copied.
+
+    Returns the alignment (rotation, translation, scale) and the number of frames written. Raises
+    InputError when the tracked capture has more than one timestep or the truth no ``gt/novel``.
+    """
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from ..atomic import atomic_write_text
+    from ..data.cameras import camera_from_nerf_frame, camera_to_nerf_frame
+    from ..data.capture import read_capture
+    from ..flame import FlameModel, load_flame_model
+    from ..flame.params import load_param_npz, save_param_npz
+
+    tracked, truth = Path(tracked), Path(truth)
+    src = truth / "gt" / "novel"
+    if not (src / "transforms_val.json").is_file() and not (src / "transforms_test.json").is_file():
+        raise InputError(src, "holds no held-out set (transforms_val.json / transforms_test.json)")
+    tr = read_capture(tracked, check_images=False)
+    gt = read_capture(truth, check_images=False)
+    if tr.params.n_timesteps != 1 or gt.params.n_timesteps != 1:
+        raise InputError(tracked, "the held-out set is moved only for a one-image capture of a one-image truth")
+    model = FlameModel(load_flame_model(truth / "model" / "synth_flame.npz"), dtype=torch.float64)
+    with torch.no_grad():
+        kw = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in tr.params.to_torch(dtype=torch.float64).items()}
+        mine = model(**kw).vertices.numpy()[0]
+    true_t = int(gt.params.timesteps[0])
+    R, t, s = similarity_fit(mine, _read_ply_vertices(truth / "gt" / "meshes" / f"{true_t:05d}.ply"))
+    own0, trk = gt.params, tr.params
+
+    dst = tracked / "gt" / "novel"
+    if dst.exists():
+        shutil.rmtree(dst)
+    (dst / "flame_param").mkdir(parents=True)
+    written: dict[int, str] = {}
+    count = 0
+    for split in ("val", "test"):
+        jpath = src / f"transforms_{split}.json"
+        if not jpath.is_file():
+            continue
+        doc = json.loads(jpath.read_text(encoding="utf-8"))
+        frames = []
+        for fr in doc["frames"]:
+            cam = camera_from_nerf_frame(fr)
+            Rc, tc = cam.w2c[:3, :3], cam.w2c[:3, 3]
+            cam.w2c = np.eye(4)
+            cam.w2c[:3, :3] = Rc @ R
+            cam.w2c[:3, 3] = (Rc @ t + tc) / s
+            out = {k: v for k, v in fr.items() if k not in ("transform_matrix", "fl_x", "fl_y", "cx", "cy", "w", "h",
+                                                               "camera_angle_x", "camera_angle_y")}
+            out.update(camera_to_nerf_frame(cam))
+            for key in ("file_path", "fg_mask_path"):
+                if fr.get(key):
+                    rel = Path(fr[key])
+                    (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copyfile(jpath.parent / rel, dst / rel)
+            ti = int(fr["timestep_index"])
+            if ti not in written:
+                nov = load_param_npz(jpath.parent / fr["flame_param_path"])
+                p = _row(trk, 0)
+                e = min(p.expr.shape[1], nov.expr.shape[1], own0.expr.shape[1])
+                p.expr[:, :e] += nov.expr[:, :e] - own0.expr[:, :e]
+                for key in ("jaw_pose", "eyes_pose", "neck_pose"):
+                    getattr(p, key)[:] += getattr(nov, key) - getattr(own0, key)
+                d = Rotation.from_rotvec(own0.rotation[0]).inv() * Rotation.from_rotvec(nov.rotation[0])
+                p.rotation[0] = (Rotation.from_rotvec(p.rotation[0]) * d).as_rotvec()
+                p.translation[0] += R.T @ (nov.translation[0] - own0.translation[0]) / s
+                name = f"flame_param/{ti:05d}.npz"
+                save_param_npz(dst / name, p, 0)
+                written[ti] = name
+            out["flame_param_path"] = written[ti]
+            frames.append(out)
+            count += 1
+        atomic_write_text(dst / jpath.name, json.dumps({**{k: v for k, v in doc.items() if k != "frames"}, "frames": frames},
+                                                       indent=2))
+    info_path = truth / "gt" / "info.json"
+    block = json.loads(info_path.read_text(encoding="utf-8")).get("novel", {}) if info_path.is_file() else {}
+    alignment = {"rotation": R.tolist(), "translation": t.tolist(), "scale": s}
+    block = {**block, "moved_from": "the synthetic capture's gt/novel", "alignment": alignment}
+    atomic_write_text(tracked / "gt" / "info.json", json.dumps({"novel": block}, indent=2))
+    return {"frames": count, **alignment}
+
+
+def _row(params: Any, i: int) -> Any:
+    """Row ``i`` of stacked FLAME parameters as a one-row copy."""
+    from dataclasses import replace
+
+    sl = slice(i, i + 1)
+    return replace(params, expr=params.expr[sl].copy(), rotation=params.rotation[sl].copy(),
+                   neck_pose=params.neck_pose[sl].copy(), jaw_pose=params.jaw_pose[sl].copy(),
+                   eyes_pose=params.eyes_pose[sl].copy(), translation=params.translation[sl].copy(),
+                   dynamic_offset=None if params.dynamic_offset is None else params.dynamic_offset[sl].copy(),
+                   timesteps=params.timesteps[sl].copy())
+
