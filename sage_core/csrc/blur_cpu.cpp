@@ -9,7 +9,8 @@
 // Planes are independent: one OpenMP task per plane, each with its own scratch row buffer, so the
 // result does not depend on the thread count.
 
-#include <torch/extension.h>
+#include <torch/all.h>
+#include <torch/library.h>
 
 #include <vector>
 

@@ -72,7 +72,7 @@ def find_lpips_weights(explicit: str | Path | None = None) -> Path | None:
 
 
 def load_lpips_state_dict(path: str | Path, check_sha256: bool = False) -> dict[str, torch.Tensor]:
-    """Load and validate the LPIPS AlexNet state dict (weights README: 15 float tensors).
+    """Load and validate the LPIPS AlexNet state dict (docs/formats.md §8.1: 15 float tensors).
 
     Raises :class:`InputError` naming the file when it cannot be read, is not a state dict, lacks
     or adds keys, or has a wrong shape; with ``check_sha256`` also when its hash differs from
