@@ -44,6 +44,7 @@ def _register() -> None:
     app.command("phase1")(phase1.phase1)
     app.command("phase2")(phase2.phase2)
     app.command("eval")(eval_cmd.eval_)
+    app.command("lpips-weights")(eval_cmd.lpips_weights)
     app.command("reenact")(reenact_cmd.reenact)
     app.command("export")(export_cmd.export)
     app.command("run")(run_cmd.run)

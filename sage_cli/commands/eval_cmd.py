@@ -1,4 +1,5 @@
-"""``sage eval WS``: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (docs/formats.md §8).
+"""``sage eval WS``: PSNR / SSIM / LPIPS of the avatar on the evaluation splits (docs/formats.md §8);
+``sage lpips-weights``: build the LPIPS weights file it uses.
 
 Every frame of a split is rendered with that frame's FLAME parameters and camera on the dataset
 background and compared with its ground truth. ``WS/eval/`` is a workspace stage that accumulates
@@ -43,7 +44,7 @@ from .._stage import StageDisplay
 if TYPE_CHECKING:
     from sage_core.stages import EvalResult
 
-_LPIPS_HINT = "unavailable: no weights (give --lpips-weights, set $SAGE_LPIPS_WEIGHTS or place ~/.cache/sage/lpips_alex_v0.1.pth)"
+_LPIPS_HINT = "unavailable: no weights (give --lpips-weights, set $SAGE_LPIPS_WEIGHTS or place ~/.cache/sage/lpips_alex_v0.1.pth; `sage lpips-weights` builds it)"
 
 
 def _fmt(v: Any, digits: int) -> str:
@@ -83,7 +84,7 @@ def eval_(
     ws: Annotated[Path, typer.Argument(help="Workspace folder (after `sage phase1` or `sage phase2`).")],
     split: Annotated[Optional[str], typer.Option("--split", help="test (self-reenactment), val (novel view), all (both) or novel (the capture's held-out gt/novel views and expressions).")] = None,
     stage: Annotated[Optional[str], typer.Option("--stage", help="Avatar to evaluate: auto (latest finished of phase2, phase1), phase1 or phase2.")] = None,
-    lpips_weights: Annotated[Optional[Path], typer.Option("--lpips-weights", help="LPIPS AlexNet v0.1 weights (default: $SAGE_LPIPS_WEIGHTS, then ~/.cache/sage/lpips_alex_v0.1.pth; without them LPIPS is reported unavailable).")] = None,
+    lpips_weights: Annotated[Optional[Path], typer.Option("--lpips-weights", help="LPIPS AlexNet v0.1 weights (default: $SAGE_LPIPS_WEIGHTS, then ~/.cache/sage/lpips_alex_v0.1.pth, which `sage lpips-weights` builds; without them LPIPS is reported unavailable).")] = None,
     samples: Annotated[Optional[int], typer.Option("--samples", help="Sample strips (GT | render | error) written per split.")] = None,
     preset: PresetOpt = "default",
     config: ConfigOpt = None,
@@ -157,3 +158,17 @@ def show(r: EvalResult, ws: Path) -> None:
     rows += notes
     rows.append(("wall time", f"{r.wall_time_s:.1f} s"))
     summary_panel("sage eval", rows, paths + [("results index", out_dir / "results.json")])
+
+
+def lpips_weights(
+    heads: Annotated[Optional[Path], typer.Option("--heads", help="LPIPS v0.1 linear heads: the lpips package's weights/v0.1/alex.pth, or an lpips 0.1.4 wheel (.whl) holding it (default: fetch the wheel with pip).")] = None,
+    alexnet: Annotated[Optional[Path], typer.Option("--alexnet", help="torchvision's ImageNet AlexNet checkpoint alexnet-owt-7be5be79.pth (default: torchvision's copy in ~/.cache/torch/hub/checkpoints/, or $TORCH_HOME/hub/checkpoints/).")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="File to write (default: ~/.cache/sage/lpips_alex_v0.1.pth, where `sage eval` looks).")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace an existing file.")] = False,
+) -> None:
+    """Build the LPIPS weights file `sage eval` uses from the lpips package's linear heads and torchvision's AlexNet, checking keys, shapes and SHA-256."""
+    with cli_errors():
+        from sage_core.evaluate.lpips_weights import build_lpips_weights
+
+        r = build_lpips_weights(heads, alexnet, out, force)
+        summary_panel("sage lpips-weights", r.rows(), [("file", r.path)])
