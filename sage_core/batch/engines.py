@@ -222,7 +222,7 @@ def run_ray(
     try:
         import ray
     except ImportError:
-        raise ConfigError("the ray engine needs Ray: pip install 'ray>=2.9' (or pip install 'sage-avatar[batch]')") from None
+        raise ConfigError("the ray engine needs Ray: pip install 'ray>=2.9' (from a checkout: pip install -e '.[batch]')") from None
     if cpus_per_subject < 1 or gpus_per_subject < 0 or (max_parallel is not None and max_parallel < 1):
         raise ConfigError("--cpus-per-subject and --max-parallel must be at least 1, --gpus-per-subject at least 0")
     started = False

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import ConfigError
 
-INSTALL_HINT = "pip install 'sage-avatar[track]' (the LiteRT interpreter, PyPI ai-edge-litert)"
+INSTALL_HINT = "pip install 'ai-edge-litert>=2.3' (the LiteRT interpreter; from a checkout: pip install -e '.[track]')"
 
 
 def litert_available() -> str | None:
