@@ -214,28 +214,39 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
     }
 
 
-def held_out_for_tracked(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
+def held_out_for_tracked(tracked: str | Path, truth: str | Path, anchor: str = "photo") -> dict[str, Any]:
     """Give a one-image ``sage track`` capture of a synthetic photo the truth's held-out set.
 
     The synthetic one-shot capture holds its novel views and expressions in ``gt/novel`` (its own
     world); an avatar trained on the tracked capture lives in the tracker's world, with the tracked
-    shape and pose. This writes ``tracked/gt/novel`` (and the ``novel`` block of ``tracked/gt/info.json``)
-    so that ``sage eval --split novel`` scores that avatar on the same images:
+    shape, pose and camera. This writes ``tracked/gt/novel`` (and the ``novel`` block of
+    ``tracked/gt/info.json``) so that ``sage eval --split novel`` scores that avatar on the same
+    images. A similarity ``x_true = s·R·x + t`` from the tracked world to the truth's moves every
+    held-out camera ``(R_c, t_c)`` to ``(R_c·R, (R_c·t + t_c)/s)``, which projects every point as
+    before. ``anchor`` chooses it:
 
-    - cameras: each held-out camera moved into the tracked world by the similarity that best maps the
-      tracked mesh of the photo onto the true mesh (all vertices; :func:`similarity_fit`): with
-      ``x_true = s·R·x + t`` the camera ``(R_c, t_c)`` becomes ``(R_c·R, (R_c·t + t_c)/s)``, which
-      projects every point as before (a single uncalibrated photo fixes neither the head's size nor
-      its distance, so this is the alignment the ``aligned`` error uses);
-    - FLAME parameters: the tracked parameters of the photo with the capture's own change from its
-      training parameters to the held-out timestep's: expression coefficients, jaw, eyes and neck
-      added, the head rotation composed in the head's frame and the translation moved into the
-      tracked world (``R^T·Δt / s``), so that both avatars are driven by the same change (the views
-      of the training expression change only by the own parameters' per-timestep tracking noise);
-    - images and masks: copied.
+    - ``photo`` (default): the held-out cameras keep their place relative to the photo's camera, as a
+      user orbits the head from their photo: the similarity maps the tracked camera's frame onto the
+      true camera's, scaled by the ratio of the two heads' depths in them (the mean vertex's; one
+      uncalibrated photo fixes neither the head's size nor its distance), and every held-out focal
+      length is scaled by the ratio of the tracked focal length to the true one. The held-out camera
+      at the photo's place then renders exactly what the tracked camera saw; the error of the tracked
+      head's shape and pose shows in the views away from it;
+    - ``mesh``: the similarity that best maps the tracked mesh onto the true mesh (all vertices,
+      :func:`similarity_fit`, the ``aligned`` error's alignment), focal lengths unchanged: the
+      held-out views see the tracked head where the true head is, so the photo's own view is off by
+      the tracked camera's error.
 
-    Returns the alignment (rotation, translation, scale) and the number of frames written. Raises
-    InputError when the tracked capture has more than one timestep or the truth no ``gt/novel``.
+    FLAME parameters: the tracked parameters of the photo with the capture's own change from its
+    training parameters to the held-out timestep's: expression coefficients, jaw, eyes and neck added,
+    the head rotation composed in the head's frame and the translation moved into the tracked world
+    (``R^T·Δt / s``), so that both avatars are driven by the same change (the views of the training
+    expression change only by the own parameters' per-timestep tracking noise). Images and masks are
+    copied.
+
+    Returns the alignment (rotation, translation, scale, focal ratio, anchor) and the number of frames
+    written. Raises InputError when the tracked capture has more than one timestep or the truth no
+    ``gt/novel``, ValueError for an unknown anchor.
     """
     import torch
     from scipy.spatial.transform import Rotation
@@ -258,8 +269,20 @@ def held_out_for_tracked(tracked: str | Path, truth: str | Path) -> dict[str, An
     with torch.no_grad():
         kw = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in tr.params.to_torch(dtype=torch.float64).items()}
         mine = model(**kw).vertices.numpy()[0]
-    true_t = int(gt.params.timesteps[0])
-    R, t, s = similarity_fit(mine, _read_ply_vertices(truth / "gt" / "meshes" / f"{true_t:05d}.ply"))
+    true_v = _read_ply_vertices(truth / "gt" / "meshes" / f"{int(gt.params.timesteps[0]):05d}.ply")
+    cam_t, cam_r = gt.frames[0].camera, tr.frames[0].camera
+    if anchor == "mesh":
+        R, t, s = similarity_fit(mine, true_v)
+        focal_ratio = 1.0
+    elif anchor == "photo":
+        depth_t = float((cam_t.w2c[:3, :3] @ true_v.mean(0) + cam_t.w2c[:3, 3])[2])
+        depth_r = float((cam_r.w2c[:3, :3] @ mine.mean(0) + cam_r.w2c[:3, 3])[2])
+        s = depth_t / depth_r
+        sim = np.linalg.inv(cam_t.w2c) @ np.diag([s, s, s, 1.0]) @ cam_r.w2c  # tracked world -> true world
+        R, t = sim[:3, :3] / s, sim[:3, 3]
+        focal_ratio = float(cam_r.K[0, 0] / cam_t.K[0, 0])
+    else:
+        raise ValueError(f"anchor must be 'photo' or 'mesh', not {anchor!r}")
     own0, trk = gt.params, tr.params
 
     dst = tracked / "gt" / "novel"
@@ -280,6 +303,9 @@ def held_out_for_tracked(tracked: str | Path, truth: str | Path) -> dict[str, An
             cam.w2c = np.eye(4)
             cam.w2c[:3, :3] = Rc @ R
             cam.w2c[:3, 3] = (Rc @ t + tc) / s
+            cam.K = cam.K.copy()
+            cam.K[0, 0] *= focal_ratio
+            cam.K[1, 1] *= focal_ratio
             out = {k: v for k, v in fr.items() if k not in ("transform_matrix", "fl_x", "fl_y", "cx", "cy", "w", "h",
                                                                "camera_angle_x", "camera_angle_y")}
             out.update(camera_to_nerf_frame(cam))
@@ -309,7 +335,7 @@ def held_out_for_tracked(tracked: str | Path, truth: str | Path) -> dict[str, An
                                                        indent=2))
     info_path = truth / "gt" / "info.json"
     block = json.loads(info_path.read_text(encoding="utf-8")).get("novel", {}) if info_path.is_file() else {}
-    alignment = {"rotation": R.tolist(), "translation": t.tolist(), "scale": s}
+    alignment = {"anchor": anchor, "rotation": R.tolist(), "translation": t.tolist(), "scale": s, "focal_ratio": focal_ratio}
     block = {**block, "moved_from": "the synthetic capture's gt/novel", "alignment": alignment}
     atomic_write_text(tracked / "gt" / "info.json", json.dumps({"novel": block}, indent=2))
     return {"frames": count, **alignment}
