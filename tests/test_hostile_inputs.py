@@ -162,6 +162,28 @@ def test_broken_npz_files_are_named_without_tracebacks(small_capture, tmp_path):
         load_flame_model(Path("/dev/null"))
 
 
+def test_a_model_file_too_large_for_memory_is_named_not_blamed_on_the_image_height(small_capture, tmp_path, monkeypatch):
+    import sage_core.flame.model_io as model_io
+    from test_flame_io import _sparse_pickle
+
+    model = tmp_path / "huge_sparse.pkl"
+    model.write_bytes(_sparse_pickle(200_000, 200_000))  # a J_regressor of 298 GiB once dense
+    res = invoke("ingest", small_capture, tmp_path / "ws", "--flame-model", model, "--preset", "tiny", "--quiet")
+    assert res.exit_code == 2, text(res)
+    assert f"{model}: not a readable FLAME pickle: sparse matrix of shape 200000x200000 is too large" in text(res)
+    assert "image height" not in text(res) and not (tmp_path / "ws" / "data").exists()
+
+    def out_of_memory(path):
+        raise MemoryError()
+
+    genuine = small_capture / "model" / "synth_flame.npz"
+    monkeypatch.setattr(model_io, "_from_npz", out_of_memory)
+    res = invoke("ingest", small_capture, tmp_path / "ws2", "--flame-model", genuine, "--preset", "tiny", "--quiet")
+    assert res.exit_code == 2, text(res)
+    assert f"{genuine}: the FLAME model's arrays do not fit in memory" in text(res)
+    assert "image height" not in text(res) and not (tmp_path / "ws2" / "data").exists()
+
+
 def test_cli_names_folders_and_devices_given_as_files(small_capture, tmp_path):
     res = invoke("ingest", small_capture, tmp_path / "ws", "--flame-model", tmp_path, "--preset", "tiny", "--quiet")
     assert res.exit_code == 2 and "is a folder, expected a FLAME model file" in text(res), text(res)
