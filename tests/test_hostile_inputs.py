@@ -214,6 +214,49 @@ def test_an_avatar_file_nested_200000_deep_is_damaged_not_a_recursion_error(tmp_
         load_file(path, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
 
 
+def _rewrite_header(path: Path, header_text) -> None:
+    """Replace the JSON header of a safetensors file by ``header_text(header dict)``, data kept."""
+    import struct
+
+    from sage_core.serialization import _read_header
+
+    data = path.read_bytes()
+    header, start = _read_header(data)
+    text = header_text(header).encode("utf-8")
+    path.write_bytes(struct.pack("<Q", len(text)) + text + data[start:])
+
+
+@pytest.mark.parametrize("case,problem", [
+    ("deep", "unreadable header (nested too deeply)"),
+    ("metadata list", "unreadable header (its __metadata__ is not a map of strings)"),
+    ("format list", "unreadable header (its __metadata__ is not a map of strings)"),
+    ("format text", "unreadable format version"),
+])
+def test_a_hostile_safetensors_header_is_damaged_not_a_traceback(tmp_path, case, problem):
+    import torch
+
+    from sage_core.errors import InputError
+    from sage_core.serialization import AVATAR_FORMAT, AVATAR_KIND, inspect_file, load_file, save_file
+
+    path = save_file(tmp_path / "avatar.pt", {"kind": AVATAR_KIND, "x": torch.zeros(2)}, AVATAR_KIND, AVATAR_FORMAT)
+
+    def edit(header: dict) -> str:
+        if case == "deep":
+            return json.dumps(header)[:-1] + ', "nest": ' + "[" * 100_000 + "]" * 100_000 + "}"
+        if case == "metadata list":
+            header["__metadata__"] = [1, 2]
+        else:
+            header["__metadata__"]["sage.format"] = [AVATAR_FORMAT] if case == "format list" else f"{AVATAR_FORMAT}x"
+        return json.dumps(header)
+
+    _rewrite_header(path, edit)
+    with pytest.raises(InputError) as ei:
+        load_file(path, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
+    assert ei.value.path == path and problem in ei.value.problem
+    check = inspect_file(path)
+    assert check.status == "corrupt" and problem.split(" (")[0] in check.reason
+
+
 def test_a_full_disk_names_the_file_being_written(small_capture, tmp_path, monkeypatch):
     real_fsync = os.fsync
 
