@@ -1002,7 +1002,12 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
 
     p = Path(path)
     require_file(p, "config file")
-    text = p.read_text()
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(p, f"cannot read config: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    except OSError as e:
+        raise InputError(p, f"cannot read config: {e.strerror or e}") from None
     try:
         if p.suffix.lower() == ".json":
             data = json.loads(text)

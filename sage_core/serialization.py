@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
+import reprlib
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -265,8 +267,13 @@ def _read_header(data: bytes) -> tuple[dict[str, Any], int]:
         header = json.loads(data[8 : 8 + n].decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ValueError(f"unreadable header ({e})") from None
+    except RecursionError:
+        raise ValueError("unreadable header (nested too deeply)") from None
     if not isinstance(header, dict):
         raise ValueError("unreadable header (not an object)")
+    meta = header.get("__metadata__")
+    if meta is not None and not (isinstance(meta, dict) and all(isinstance(v, str) for v in meta.values())):
+        raise ValueError("unreadable header (its __metadata__ is not a map of strings)")
     end = 0
     for name, info in header.items():
         if name == "__metadata__":
@@ -274,10 +281,19 @@ def _read_header(data: bytes) -> tuple[dict[str, Any], int]:
         try:
             end = max(end, int(info["data_offsets"][1]))
         except (KeyError, TypeError, ValueError, IndexError):
-            raise ValueError(f"unreadable header entry {name!r}") from None
+            raise ValueError(f"unreadable header entry {reprlib.repr(name)}") from None
     if 8 + n + end != len(data):
         raise ValueError(f"file is truncated or padded ({len(data)} bytes, the header describes {8 + n + end})")
     return header, 8 + n
+
+
+def _format_version(meta: dict[str, str]) -> int:
+    """The ``sage.format`` of a header's metadata (0 when absent); ValueError unless it is a
+    string of decimal digits."""
+    text = meta.get(META_FORMAT, "0")
+    if not re.fullmatch(r"[0-9]{1,9}", text):
+        raise ValueError(f"unreadable format version {reprlib.repr(text)}")
+    return int(text)
 
 
 def inspect_file(path: str | Path) -> FileCheck:
@@ -297,7 +313,7 @@ def inspect_file(path: str | Path) -> FileCheck:
         return FileCheck(p, "corrupt", reason=str(e))
     meta = header.get("__metadata__") or {}
     try:
-        version = int(meta.get(META_FORMAT, "0"))
+        version = _format_version(meta)
     except ValueError:
         return FileCheck(p, "corrupt", reason="unreadable format version")
     return FileCheck(p, "ok", kind=str(meta.get(META_KIND, "")), version=version)
@@ -337,9 +353,9 @@ def load_file(
         raise InputError(p, f"damaged {what}: {e}") from None
     meta = header.get("__metadata__") or {}
     if meta.get(META_KIND) != kind:
-        raise InputError(p, f"not a sage {what} (kind {meta.get(META_KIND)!r}, expected {kind!r})")
+        raise InputError(p, f"not a sage {what} (kind {reprlib.repr(meta.get(META_KIND))}, expected {kind!r})")
     try:
-        version = int(meta.get(META_FORMAT, "0"))
+        version = _format_version(meta)
     except ValueError:
         raise InputError(p, f"damaged {what}: unreadable format version") from None
     if version > max_version:

@@ -127,6 +127,37 @@ def test_load_subjects_forms_and_errors(tmp_path):
         load_subjects(tmp_path / "capB")
 
 
+def test_hostile_yaml_subjects_are_refused_quickly(tmp_path):
+    from sage_core.batch import load_subjects
+    from sage_core.errors import InputError
+
+    (tmp_path / "capA").mkdir()
+    y = tmp_path / "s.yaml"
+    levels = ["&a0 [lol,lol,lol,lol,lol,lol,lol,lol,lol]"]
+    levels += [f"&a{i} [{','.join([f'*a{i - 1}'] * 9)}]" for i in range(1, 4)]  # each level 9 times the last
+    y.write_text(f"- {{id: a, capture: capA, set: [{', '.join(levels)}]}}\n")
+    with pytest.raises(InputError, match=r"invalid YAML: aliases \(\*name\) are not accepted") as e:
+        load_subjects(y)
+    assert e.value.path == y
+
+    y.write_text("- id: " + "[" * 20_000 + "]" * 20_000 + "\n")
+    with pytest.raises(InputError, match="invalid YAML: nested too deeply"):
+        load_subjects(y)
+
+    for text, needle in {
+        "- {id: a, capture: capA, set: [[phase1.iterations=3]]}\n": "entry 1: 'set' items must be strings",
+        "- {id: a, capture: capA, set: [{phase1.iterations: 3}]}\n": "entry 1: 'set' items must be strings",
+        "- {id: [a, b], capture: capA}\n": "entry 1: 'id' must be a single value, not a list",
+        "- {id: a, capture: {path: capA}}\n": "entry 1: 'capture' must be a single value, not a mapping",
+    }.items():
+        y.write_text(text)
+        with pytest.raises(InputError) as e:
+            load_subjects(y)
+        assert e.value.path == y and needle in e.value.problem, (text, e.value.problem)
+    y.write_text("- {id: a, capture: capA, set: [phase1.iterations=3, 'eval.samples=2']}\n")
+    assert load_subjects(y)[0].sets == ("phase1.iterations=3", "eval.samples=2")
+
+
 def test_status_writer_and_missing_ray(tmp_path, monkeypatch):
     from sage_core.batch import StatusWriter, read_status, run_ray
     from sage_core.errors import ConfigError

@@ -177,3 +177,23 @@ def test_absent_mask_folder_is_a_warning(tmp_path: Path) -> None:
     cap = read_capture(root)
     assert all(f.mask_path is None for f in cap.frames)
     assert any("mask" in w for w in cap.warnings)
+
+
+def test_numbers_beyond_float_range_and_deep_nesting_are_named_problems(tmp_path: Path) -> None:
+    root = make_fake_capture(tmp_path / "seq")
+    split = root / "transforms_train.json"
+    doc = json.loads(split.read_text())
+    doc["frames"][0]["fl_x"] = 10**400  # valid JSON; float() of it overflows
+    doc["frames"][1]["cx"] = [[[[[[[[[[1]]]]]]]]]]
+    split.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as info:
+        read_capture(root)
+    msg = str(info.value)
+    assert str(split) in msg and "fl_x=100000" in msg and "(expected a finite positive number)" in msg
+    assert "cx=[[[[[[[...]]]]]]] (expected a finite number)" in msg  # shortened past six levels
+    assert len(msg) < 1000  # the 401-digit number is shortened
+
+    split.write_text('{"frames": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    with pytest.raises(InputError, match="invalid JSON: nested too deeply to read") as info:
+        read_capture(root)
+    assert info.value.path == split

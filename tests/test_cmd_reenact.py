@@ -147,3 +147,44 @@ def test_orbit_with_exr_frames(ws, tmp_path):
     assert np.abs(imgs[0] - imgs[3]).max() > 0.1  # -45 deg vs +45 deg
     assert np.abs(imgs[0][:, ::-1] - imgs[3]).mean() < np.abs(imgs[0] - imgs[3]).mean()  # roughly mirrored views
     assert not (ws / "reenact" / "orbit" / "video.mp4").exists()
+
+
+def test_an_out_folder_of_other_files_is_refused_unless_forced(ws, tmp_path):
+    from sage_core.data.dataset import IngestedData
+
+    data = IngestedData.open(ws / "data")
+    motion = _motion_npz(tmp_path / "still.npz", 2, n_expr=data.params.n_expr,
+                         translation=np.repeat(data.params.translation[:1], 2, 0))  # fmt: skip
+    out = tmp_path / "mine"
+    (out / "frames").mkdir(parents=True)
+    (out / "frames" / "keep.txt").write_text("mine")
+    (out / "video.mp4").write_text("my video")
+    args = ["reenact", ws, "--flame-seq", motion, "--out", out, "--device", "cpu", "--quiet"]
+    res = invoke(args)
+    assert res.exit_code == 3, res.output
+    assert "holds files and no reenact.json" in " ".join(res.output.split()) and "--force" in res.output
+    assert (out / "frames" / "keep.txt").read_text() == "mine" and (out / "video.mp4").read_text() == "my video"
+    assert sorted(p.name for p in out.iterdir()) == ["frames", "video.mp4"]
+
+    res = invoke([*args, "--force"])
+    assert res.exit_code == 0, res.output
+    assert (out / "reenact.json").is_file() and not (out / "frames" / "keep.txt").exists()
+    assert len(list((out / "frames").glob("*.png"))) == 2
+    res = invoke([*args, "--no-video"])  # an earlier reenactment's folder is reused without --force
+    assert res.exit_code == 0, res.output
+
+
+def test_a_name_too_long_for_a_folder_is_refused_before_anything_is_written(ws, tmp_path):
+    motion = _motion_npz(tmp_path / "m.npz", 2)
+    res = invoke(["reenact", ws, "--flame-seq", motion, "--name", "n" * 300, "--device", "cpu", "--quiet"])
+    assert res.exit_code == 3, res.output
+    assert "--name is 300 bytes long; a folder name holds at most 255" in " ".join(res.output.split())
+    assert not (ws / "reenact").exists()
+    res = invoke(["reenact", ws, "--flame-seq", motion, "--name", "é" * 128, "--device", "cpu", "--quiet"])
+    assert res.exit_code == 3 and "256 bytes long" in res.output, res.output
+    from pathlib import Path
+
+    from sage_core.stages.reenact import seq_label
+
+    label = seq_label(Path("é" * 120 + ".npz"))  # a name derived from a long motion file still fits with its camera
+    assert 0 < len(label.encode("utf-8")) <= 200 and set(label) == {"é"}

@@ -87,6 +87,24 @@ def test_bad_config_file_names_the_file(tmp_path):
         load_config_file(tmp_path / "missing.yaml")
 
 
+def test_a_config_file_that_is_not_utf8_names_the_file(tmp_path):
+    from typer.testing import CliRunner
+
+    from sage_cli.app import app
+
+    f = tmp_path / "latin1.yaml"
+    f.write_bytes("phase1: {iterations: 5}  # réglages\n".encode("latin-1"))
+    with pytest.raises(InputError) as e:
+        load_config_file(f)
+    assert e.value.path == f and e.value.problem.startswith("cannot read config: not UTF-8 text")
+    f.write_bytes(b"\xff\xfe\x00bad")  # a UTF-16 byte-order mark
+    res = CliRunner().invoke(app, ["config", "phase1", "--config", str(f)], env={"COLUMNS": "400"})
+    assert res.exit_code == 2, res.output
+    assert f"{f}: cannot read config: not UTF-8 text" in " ".join(res.output.split())
+    f.write_text("phase1: {iterations: 5}  # réglages\n", encoding="utf-8")  # the same text in UTF-8 reads
+    assert load_config_file(f) == {"phase1": {"iterations": 5}}
+
+
 def test_plain_data_round_trip_and_hash():
     cfg = resolve_config("init-mesh", "tiny")
     d = to_dict(cfg)

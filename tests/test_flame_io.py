@@ -5,6 +5,7 @@ from __future__ import annotations
 import copyreg
 import json
 import pickle
+import struct
 import subprocess
 import sys
 import types
@@ -417,3 +418,122 @@ def test_unsupported_chumpy_expression_is_named(tmp_path: Path, monkeypatch: pyt
         pickle.dump(arrays, fh, protocol=2)
     with pytest.raises(InputError, match="chumpy.ch_ops.add"):
         load_flame_model(path)
+
+
+# --- pickles built to exhaust memory, time or the stack ---
+
+_PROTO2, _STOP = b"\x80\x02", b"."
+
+
+def _unicode(s: str) -> bytes:
+    """BINUNICODE."""
+    b = s.encode("utf-8")
+    return b"X" + len(b).to_bytes(4, "little") + b
+
+
+def _array_ops(a: np.ndarray) -> bytes:
+    """The opcodes that push ``a`` (protocol 2, without PROTO and STOP)."""
+    return pickle.dumps(a, protocol=2)[2:-1]
+
+
+def _laughs(levels: int) -> bytes:
+    """{"v_template": L} with L0 = [] and Li = [L(i-1), L(i-1)] through the memo: a file of a few
+    hundred bytes that expands to 2**(levels+1) - 1 lists."""
+    out = bytearray(_PROTO2 + b"}" + _unicode("v_template") + b"]q\x01")
+    for i in range(1, levels + 1):
+        out += b"0](h" + bytes([i]) + b"h" + bytes([i]) + b"eq" + bytes([i + 1])  # POP, [GET i, GET i], PUT i+1
+    return bytes(out + b"s" + _STOP)
+
+
+def test_shared_memo_entries_are_not_expanded_exponentially(tmp_path: Path) -> None:
+    import time
+
+    from sage_core.flame._unpickle import MAX_NODES
+
+    path = tmp_path / "laughs.pkl"
+    path.write_bytes(_laughs(20))  # 2**21 - 1 lists, just past the cap
+    assert 2 ** 21 - 1 > MAX_NODES and len(path.read_bytes()) < 300
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=r"laughs\.pkl: .*expands to more than"):
+        load_flame_model(path)
+    path.write_bytes(_laughs(50))  # unbounded without the cap: 2**51 lists
+    with pytest.raises(InputError, match="expands to more than"):
+        load_flame_model(path)
+    assert time.perf_counter() - t0 < 10
+
+
+def test_an_array_shared_by_several_keys_is_read_once_for_each(tmp_path: Path) -> None:
+    from sage_core.flame._unpickle import load_flame_pickle
+
+    arrays = random_arrays()
+    shared = arrays["J"]
+    d = {**arrays, "J_copy": shared, "twice": [shared, shared]}  # pickle writes one array and memo references
+    path = tmp_path / "shared.pkl"
+    with open(path, "wb") as fh:
+        pickle.dump(d, fh, protocol=2)
+    import pickletools
+
+    gets = [op.name for op, _arg, _pos in pickletools.genops(path.read_bytes()) if op.name.endswith("GET")]
+    assert len(gets) >= 3
+    out = load_flame_pickle(path)
+    np.testing.assert_array_equal(out["J_copy"], shared)
+    assert out["twice"].shape == (2, *shared.shape)
+    np.testing.assert_array_equal(out["twice"][1], shared)
+    _check_matches(load_flame_model(path), arrays)
+
+
+def _sparse_pickle(rows: int, cols: int) -> bytes:
+    """{"J_regressor": csc_matrix} with no entries and the declared shape (rows, cols)."""
+    out = bytearray(_PROTO2 + b"}" + _unicode("J_regressor") + b"cscipy.sparse.csc\ncsc_matrix\n)\x81}(")
+    for key, a in (("data", np.zeros(0)), ("indices", np.zeros(0, np.int32)), ("indptr", np.zeros(cols + 1, np.int32))):
+        out += _unicode(key) + _array_ops(a)
+    out += _unicode("_shape") + b"J" + rows.to_bytes(4, "little") + b"J" + cols.to_bytes(4, "little") + b"\x86ub"
+    return bytes(out + b"s" + _STOP)
+
+
+def test_a_sparse_matrix_too_large_to_densify_is_refused(tmp_path: Path) -> None:
+    from sage_core.flame._unpickle import MAX_DENSE_ELEMENTS, load_flame_pickle
+
+    small = tmp_path / "small.pkl"
+    small.write_bytes(_sparse_pickle(5, 5143))  # FLAME's J_regressor with teeth
+    assert load_flame_pickle(small)["J_regressor"].shape == (5, 5143)
+    path = tmp_path / "huge_sparse.pkl"
+    path.write_bytes(_sparse_pickle(200_000, 200_000))  # 298 GiB dense
+    assert 200_000 ** 2 > MAX_DENSE_ELEMENTS
+    with pytest.raises(InputError, match=r"huge_sparse\.pkl: .*sparse matrix of shape 200000x200000 is too large"):
+        load_flame_model(path)
+
+
+def _reshape_pickle(shape_item: float) -> bytes:
+    """{"v_template": chumpy Reshape(a=zeros(3), shape=[shape_item])}."""
+    out = bytearray(_PROTO2 + b"}" + _unicode("v_template") + b"cchumpy.reordering\nReshape\n)\x81}(")
+    out += _unicode("a") + _array_ops(np.zeros(3))
+    out += _unicode("shape") + b"]G" + struct.pack(">d", shape_item) + b"aub"
+    return bytes(out + b"s" + _STOP)
+
+
+@pytest.mark.parametrize("item", [float("inf"), float("nan")])
+def test_a_chumpy_shape_out_of_range_is_malformed(tmp_path: Path, item: float) -> None:
+    from sage_core.flame.regions import load_masks
+
+    path = tmp_path / "reshape.pkl"
+    path.write_bytes(_reshape_pickle(item))
+    with pytest.raises(InputError, match=r"reshape\.pkl: .*malformed Reshape shape"):
+        load_flame_model(path)
+    with pytest.raises(InputError, match=r"reshape\.pkl: not a readable mask pickle: malformed Reshape shape"):
+        load_masks(path)
+
+
+def test_an_array_shape_nested_100000_deep_is_malformed_not_a_recursion_error(tmp_path: Path) -> None:
+    n = 100_000
+    out = bytearray(_PROTO2 + b"}" + _unicode("v_template"))
+    out += b"cnumpy.core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87R"  # an array builder
+    out += b"(K\x01" + b"]" * n + b"a" * (n - 1)  # state: version 1, shape [[[...]]] (APPEND n-1 times)
+    out += b"cnumpy\ndtype\n" + _unicode("f8") + b"K\x00K\x01\x87R"
+    out += b"(K\x03" + _unicode("<") + b"NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb"  # the dtype's state
+    out += b"\x89C\x00tb"  # not Fortran, no bytes; BUILD
+    path = tmp_path / "deep_shape.pkl"
+    path.write_bytes(bytes(out + b"s" + _STOP))
+    with pytest.raises(InputError, match=r"deep_shape\.pkl: .*malformed array shape \[\[\[") as ei:
+        load_flame_model(path)
+    assert len(str(ei.value)) < 400

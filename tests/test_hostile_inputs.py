@@ -162,6 +162,28 @@ def test_broken_npz_files_are_named_without_tracebacks(small_capture, tmp_path):
         load_flame_model(Path("/dev/null"))
 
 
+def test_a_model_file_too_large_for_memory_is_named_not_blamed_on_the_image_height(small_capture, tmp_path, monkeypatch):
+    import sage_core.flame.model_io as model_io
+    from test_flame_io import _sparse_pickle
+
+    model = tmp_path / "huge_sparse.pkl"
+    model.write_bytes(_sparse_pickle(200_000, 200_000))  # a J_regressor of 298 GiB once dense
+    res = invoke("ingest", small_capture, tmp_path / "ws", "--flame-model", model, "--preset", "tiny", "--quiet")
+    assert res.exit_code == 2, text(res)
+    assert f"{model}: not a readable FLAME pickle: sparse matrix of shape 200000x200000 is too large" in text(res)
+    assert "image height" not in text(res) and not (tmp_path / "ws" / "data").exists()
+
+    def out_of_memory(path):
+        raise MemoryError()
+
+    genuine = small_capture / "model" / "synth_flame.npz"
+    monkeypatch.setattr(model_io, "_from_npz", out_of_memory)
+    res = invoke("ingest", small_capture, tmp_path / "ws2", "--flame-model", genuine, "--preset", "tiny", "--quiet")
+    assert res.exit_code == 2, text(res)
+    assert f"{genuine}: the FLAME model's arrays do not fit in memory" in text(res)
+    assert "image height" not in text(res) and not (tmp_path / "ws2" / "data").exists()
+
+
 def test_cli_names_folders_and_devices_given_as_files(small_capture, tmp_path):
     res = invoke("ingest", small_capture, tmp_path / "ws", "--flame-model", tmp_path, "--preset", "tiny", "--quiet")
     assert res.exit_code == 2 and "is a folder, expected a FLAME model file" in text(res), text(res)
@@ -190,6 +212,49 @@ def test_an_avatar_file_nested_200000_deep_is_damaged_not_a_recursion_error(tmp_
     path.write_bytes(save(load(data), metadata=meta))
     with pytest.raises(InputError, match="nested deeper than"):
         load_file(path, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
+
+
+def _rewrite_header(path: Path, header_text) -> None:
+    """Replace the JSON header of a safetensors file by ``header_text(header dict)``, data kept."""
+    import struct
+
+    from sage_core.serialization import _read_header
+
+    data = path.read_bytes()
+    header, start = _read_header(data)
+    text = header_text(header).encode("utf-8")
+    path.write_bytes(struct.pack("<Q", len(text)) + text + data[start:])
+
+
+@pytest.mark.parametrize("case,problem", [
+    ("deep", "unreadable header (nested too deeply)"),
+    ("metadata list", "unreadable header (its __metadata__ is not a map of strings)"),
+    ("format list", "unreadable header (its __metadata__ is not a map of strings)"),
+    ("format text", "unreadable format version"),
+])
+def test_a_hostile_safetensors_header_is_damaged_not_a_traceback(tmp_path, case, problem):
+    import torch
+
+    from sage_core.errors import InputError
+    from sage_core.serialization import AVATAR_FORMAT, AVATAR_KIND, inspect_file, load_file, save_file
+
+    path = save_file(tmp_path / "avatar.pt", {"kind": AVATAR_KIND, "x": torch.zeros(2)}, AVATAR_KIND, AVATAR_FORMAT)
+
+    def edit(header: dict) -> str:
+        if case == "deep":
+            return json.dumps(header)[:-1] + ', "nest": ' + "[" * 100_000 + "]" * 100_000 + "}"
+        if case == "metadata list":
+            header["__metadata__"] = [1, 2]
+        else:
+            header["__metadata__"]["sage.format"] = [AVATAR_FORMAT] if case == "format list" else f"{AVATAR_FORMAT}x"
+        return json.dumps(header)
+
+    _rewrite_header(path, edit)
+    with pytest.raises(InputError) as ei:
+        load_file(path, AVATAR_KIND, AVATAR_FORMAT, "avatar file")
+    assert ei.value.path == path and problem in ei.value.problem
+    check = inspect_file(path)
+    assert check.status == "corrupt" and problem.split(" (")[0] in check.reason
 
 
 def test_a_full_disk_names_the_file_being_written(small_capture, tmp_path, monkeypatch):
@@ -307,3 +372,80 @@ def test_info_verify_finds_outputs_changed_after_completion(init_mesh_ws, tmp_pa
     assert res.exit_code == 4, text(res)
     assert "changed" in text(res) and "cameras.json" in text(res)
     assert "complete" in text(invoke("info", ws))  # without --verify only sizes are checked
+
+
+# --------------------------------------------------------------------------------------------
+# bundle.json fields of the wrong type
+# --------------------------------------------------------------------------------------------
+
+
+def _bundle_meta() -> dict:
+    """The fields of a format-3 bundle.json that loading a bundle reads, with valid values."""
+    return {
+        "kind": "sage-avatar-bundle", "format": 3,
+        "files": {"avatar": "avatar.safetensors", "flame_params": "flame_param.npz"},
+        "flame": {"n_vertices": 4434, "model": {"included": False, "file": "m.npz", "file_sha256": "0" * 64,
+                                                "file_sha256_prefix": "0" * 16, "base_sha256": "1" * 64,
+                                                "mouth_interior": {"lips": [1, 2, 3], "cavity": True, "tongue": True}}},
+        "surfels": {"count": 600},
+        "render": {"near": 0.2, "far": 3.0, "background": 1.0, "correction": None},
+        "reference_camera": {"K": [[400.0, 0.0, 64.0], [0.0, 400.0, 90.0], [0.0, 0.0, 1.0]],
+                             "w2c": [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 0.0, 1.0]],
+                             "width": 128, "height": 186, "index": 8, "name": "222200296"},
+        "head_center": [0.0, -0.02, 0.0],
+    }
+
+
+def _set_path(d: dict, path: str, value) -> None:
+    *parents, last = path.split("/")
+    for key in parents:
+        d = d[key]
+    d[last] = value
+
+
+@pytest.mark.parametrize("field,value,problem", [
+    ("format", "x", "'format' is 'x', expected a whole number"),
+    ("surfels/count", "many", "'surfels' → 'count' is 'many', expected a whole number"),
+    ("head_center", [1, 2], "'head_center' is [1, 2], expected three finite numbers"),
+    ("render/near", "x", "'render' → 'near' is 'x', expected a finite number"),
+    ("render/far", 10**400, "'render' → 'far' is"),
+    ("flame/model", [1], "'flame' → 'model' is not an object"),
+    ("flame/model/included", "no", "'included' is not true or false"),
+    ("flame/model/mouth_interior/lips", ["a"], "'lips' is not a list of vertex ids"),
+    ("files/avatar", ["avatar.safetensors"], "'files' → 'avatar' is ['avatar.safetensors'], expected a file name"),
+    ("reference_camera/K", [[1, 2], [3, 4]], "'reference_camera' → 'K' is not a 3x3 list of finite numbers"),
+    ("reference_camera/width", "wide", "'reference_camera' → 'width' is 'wide'"),
+])
+def test_bundle_metadata_fields_of_the_wrong_type_are_named(tmp_path, field, value, problem):
+    from sage_core.errors import InputError
+    from sage_core.export.bundle import read_bundle_metadata
+
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    meta = _bundle_meta()
+    (bundle / "bundle.json").write_text(json.dumps(meta))
+    assert read_bundle_metadata(bundle)["surfels"]["count"] == 600  # the valid document reads
+    _set_path(meta, field, value)
+    (bundle / "bundle.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError) as ei:
+        read_bundle_metadata(bundle)
+    assert ei.value.path == bundle / "bundle.json"
+    assert ei.value.problem.startswith("malformed bundle metadata: ") and problem in ei.value.problem
+
+
+def test_reenact_names_a_malformed_or_too_deep_bundle_json(tmp_path):
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    meta = _bundle_meta()
+    meta["render"]["background"] = None
+    (bundle / "bundle.json").write_text(json.dumps(meta))
+    motion = tmp_path / "motion.npz"
+    np.savez(motion, expr=np.zeros((1, 10), np.float32))
+    res = invoke("reenact", "--bundle", bundle, "--flame-seq", motion, "--out", tmp_path / "out", "--device", "cpu", "--quiet")
+    assert res.exit_code == 2, text(res)
+    assert f"{bundle / 'bundle.json'}: malformed bundle metadata: 'render' → 'background' is None" in text(res)
+    (bundle / "bundle.json").write_text('{"kind": "sage-avatar-bundle", "a": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    res = invoke("reenact", "--bundle", bundle, "--flame-seq", motion, "--out", tmp_path / "out", "--device", "cpu", "--quiet")
+    assert res.exit_code == 2, text(res)
+    assert f"{bundle / 'bundle.json'}: cannot read bundle metadata: nested too deeply" in text(res)
+    assert not (tmp_path / "out").exists()

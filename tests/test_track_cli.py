@@ -273,3 +273,23 @@ def test_the_closing_panel_says_whether_the_pivot_was_held(tmp_path):
     assert rows["head's pivot"] == "held, auto (spread 0.58 % of its distance, held within 1 %)"
     assert dict(TrackResult(**base, steady_pivot={"mode": "on", "held": True}).rows())["head's pivot"] == "held, on"
     assert "head's pivot" not in dict(TrackResult(**base, steady_pivot={"mode": "off", "held": False}).rows())
+
+
+def test_an_out_that_is_the_current_folder_or_holds_the_input_is_refused(tmp_path, monkeypatch):
+    """Before any model is read: the finished capture takes OUT's place as a whole."""
+    here = tmp_path / "here"
+    (here / "photos").mkdir(parents=True)
+    photo = write_png(here / "photos" / "me.png", astronaut()[::4, ::4])
+    model = tmp_path / "model.npz"  # never read: the output folder is checked first
+    monkeypatch.chdir(here)
+    for out in (".", "..", str(here)):
+        res = invoke(["track", photo, out, "--flame-model", model, *TINY])
+        assert res.exit_code == 3, res.output
+        assert f"the output folder {out} is the current folder or holds it" in " ".join(res.output.split())
+    res = invoke(["track", "photos/me.png", here, "--flame-model", model, "--force", *TINY])
+    assert res.exit_code == 3 and "is the current folder" in " ".join(res.output.split()), res.output
+    monkeypatch.chdir(tmp_path)
+    res = invoke(["track", "here/photos/me.png", "here", "--flame-model", model, "--force", *TINY])
+    assert res.exit_code == 3, res.output
+    assert "the output folder here holds the input here/photos/me.png" in " ".join(res.output.split())
+    assert sorted(p.name for p in here.rglob("*")) == ["me.png", "photos"]

@@ -40,6 +40,7 @@ def reenact(
     bundle: Annotated[Optional[Path], typer.Option("--bundle", help="Avatar bundle folder from `sage export --bundle` (no workspace needed).")] = None,
     flame_model: Annotated[Optional[Path], typer.Option("--flame-model", help="With --bundle: the FLAME model file the bundle names (a bundle does not carry the licensed model unless exported with --include-flame-model); checked by SHA-256 before it is read.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Output folder (default: WS/reenact/<name>, or <bundle>/reenact/<name>).")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Write into an --out folder that holds other files and no reenact.json (its frames/ and video.mp4 are replaced); without it such a folder is refused.")] = False,
     size: Annotated[Optional[str], typer.Option("--size", help="Output size: WIDTHxHEIGHT, or a HEIGHT (the width follows the camera's aspect ratio); the camera's intrinsics are rescaled (default: the camera's own size).")] = None,
     device: DeviceOpt = "auto",
     verbose: VerboseOpt = True,
@@ -47,20 +48,22 @@ def reenact(
 ) -> None:
     """Drive the avatar with a FLAME sequence (self- or cross-reenactment) and write frames and an MP4."""
     with cli_errors():
-        from sage_core.stages.reenact import check_output_name, check_reenact_options
+        from sage_core.stages.reenact import check_output_folder, check_output_name, check_reenact_options
 
         check_reenact_options(ws=ws, bundle=bundle, flame_seq=flame_seq, camera=camera, cameras_from=cameras_from, orbit=orbit,
                               frame_format=frame_format, video=video, fps=fps, max_frames=max_frames, size=size)  # fmt: skip
         if ws is not None:
             require_workspace(ws)
         check_output_name(name)
+        if out is not None:
+            check_output_folder(out, force)
         from sage_core.stages import reenact_stage
 
         with StageDisplay(verbose) as display:
             r = reenact_stage(ws=ws, flame_seq=flame_seq, camera=camera, cameras_from=cameras_from, orbit=orbit, orbit_arc=orbit_arc,
                               orbit_elevation=orbit_elevation, frame_format=frame_format, video=video, name=name, stage=stage, fps=fps,
                               max_frames=max_frames, bundle=bundle, out=out, device=device, size=size, threads=threads, flame_model=flame_model,
-                              on_event=display)  # fmt: skip
+                              force=force, on_event=display)  # fmt: skip
         show(r)
 
 

@@ -97,13 +97,31 @@ def _csv_rows(path: Path, text: str) -> list[tuple[str, dict[str, Any]]]:
     return rows
 
 
+def _no_alias_loader() -> type:
+    """A YAML SafeLoader that refuses aliases (``*name``): a few lines of them can stand for
+    billions of items (each alias repeating an anchored list of aliases), and a SUBJECTS list has
+    no use for them."""
+    import yaml
+
+    class NoAliasLoader(yaml.SafeLoader):
+        def compose_node(self, parent: Any, index: Any) -> Any:
+            if self.check_event(yaml.events.AliasEvent):
+                raise yaml.composer.ComposerError(None, None, "aliases (*name) are not accepted in a SUBJECTS file",
+                                                  self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+
+    return NoAliasLoader
+
+
 def _yaml_rows(path: Path, text: str) -> list[tuple[str, dict[str, Any]]]:
     import yaml
 
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_no_alias_loader())  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as e:
         raise InputError(path, f"invalid YAML: {e}") from None
+    except RecursionError:
+        raise InputError(path, "invalid YAML: nested too deeply") from None
     defaults: dict[str, Any] = {}
     if isinstance(doc, dict):
         extra = sorted(set(doc) - {"subjects", "defaults"})
@@ -140,6 +158,9 @@ def _subject(path: Path, where: str, row: dict[str, Any]) -> Subject:
     def fail(problem: str) -> InputError:
         return InputError(path, f"{where}: {problem}")
 
+    for key, value in row.items():
+        if key != "set" and isinstance(value, (list, tuple, dict, set)):
+            raise fail(f"'{key}' must be a single value, not a {'mapping' if isinstance(value, dict) else 'list'}")
     for key in ("id", "capture"):
         if key not in row or str(row[key]).strip() == "":
             raise fail(f"'{key}' is missing")
@@ -180,7 +201,9 @@ def _subject(path: Path, where: str, row: dict[str, Any]) -> Subject:
     if isinstance(sets_raw, str):
         sets = tuple(s.strip() for s in sets_raw.split(";") if s.strip())
     elif isinstance(sets_raw, (list, tuple)):
-        sets = tuple(str(s).strip() for s in sets_raw if str(s).strip())
+        if not all(isinstance(s, str) for s in sets_raw):
+            raise fail("'set' items must be strings stage.key=value (one per item, not nested lists or mappings)")
+        sets = tuple(s.strip() for s in sets_raw if s.strip())
     else:
         raise fail("'set' must be a list or a ';'-separated string of stage.key=value")
     for s in sets:

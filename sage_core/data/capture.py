@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import reprlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -173,6 +174,11 @@ def _outside_capture(json_dir: Path, rel: str, follow_symlinks: bool = False) ->
     return None
 
 
+def _brief(value: Any) -> str:
+    """A file's value for a message: its repr, shortened (a 400-digit number, a deeply nested list)."""
+    return reprlib.repr(value)
+
+
 def _as_int(value: Any) -> int | None:
     if isinstance(value, bool):
         return None
@@ -184,9 +190,13 @@ def _as_int(value: Any) -> int | None:
 
 
 def _as_float(value: Any) -> float | None:
+    """A finite JSON number as a float; None for anything else (an integer beyond float range too)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
-    f = float(value)
+    try:
+        f = float(value)
+    except OverflowError:
+        return None
     return f if math.isfinite(f) else None
 
 
@@ -205,17 +215,17 @@ def _check_frame(jpath: Path, i: int, fr: Any, problems: _Problems) -> dict[str,
     for k in ("timestep_index", "camera_index"):
         v = _as_int(fr[k])
         if v is None or v < 0:
-            bad.append(f"{k}={fr[k]!r} (expected an integer >= 0)")
+            bad.append(f"{k}={_brief(fr[k])} (expected an integer >= 0)")
         out[k] = v
     for k in ("w", "h"):
         v = _as_int(fr[k])
         if v is None or v <= 0:
-            bad.append(f"{k}={fr[k]!r} (expected a positive integer)")
+            bad.append(f"{k}={_brief(fr[k])} (expected a positive integer)")
         out[k] = v
     for k in ("fl_x", "fl_y", "cx", "cy"):
         v = _as_float(fr[k])
         if v is None or (k.startswith("fl") and v <= 0):
-            bad.append(f"{k}={fr[k]!r} (expected a finite {'positive ' if k.startswith('fl') else ''}number)")
+            bad.append(f"{k}={_brief(fr[k])} (expected a finite {'positive ' if k.startswith('fl') else ''}number)")
         out[k] = v
     try:
         M = np.asarray(fr["transform_matrix"], dtype=np.float64)
@@ -232,9 +242,9 @@ def _check_frame(jpath: Path, i: int, fr: Any, problems: _Problems) -> dict[str,
             bad.append("transform_matrix (last row is not 0 0 0 1)")
     for k in ("file_path", "flame_param_path"):
         if not isinstance(fr[k], str) or not fr[k]:
-            bad.append(f"{k}={fr[k]!r} (expected a relative path)")
+            bad.append(f"{k}={_brief(fr[k])} (expected a relative path)")
     if "fg_mask_path" in fr and fr["fg_mask_path"] is not None and not isinstance(fr["fg_mask_path"], str):
-        bad.append(f"fg_mask_path={fr['fg_mask_path']!r} (expected a relative path)")
+        bad.append(f"fg_mask_path={_brief(fr['fg_mask_path'])} (expected a relative path)")
     if bad:
         problems.add(jpath, f"{label} has invalid value(s): {'; '.join(bad)}")
         return None
@@ -251,6 +261,12 @@ def _read_json(path: Path, problems: _Problems) -> list[Any] | None:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
         problems.add(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}")
+        return None
+    except RecursionError:
+        problems.add(path, "invalid JSON: nested too deeply to read")
+        return None
+    except ValueError as exc:  # an integer of more digits than Python converts
+        problems.add(path, f"invalid JSON: {exc}")
         return None
     if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list):
         problems.add(path, "expected a JSON object with a 'frames' list")

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -390,8 +391,112 @@ def is_bundle(path: str | Path) -> bool:
     return (Path(path) / BUNDLE_JSON).is_file()
 
 
+def _brief(value: Any) -> str:
+    """A metadata value for a message, shortened."""
+    import reprlib
+
+    return reprlib.repr(value)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    """Whether ``v`` is a JSON number that is a finite float (an integer of 400 digits is not)."""
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
+
+
+def _matrix_problem(v: Any, shape: tuple[int, int]) -> bool:
+    """Whether ``v`` is not a nested list of finite numbers of ``shape``."""
+    return not (isinstance(v, list) and len(v) == shape[0]
+                and all(isinstance(r, list) and len(r) == shape[1] and all(_is_number(x) for x in r) for r in v))
+
+
+def _camera_problem(cam: Any) -> str | None:
+    """What is wrong with a ``reference_camera`` section (None: nothing; absent counts as fine)."""
+    if cam is None or cam == {}:
+        return None
+    if not isinstance(cam, dict):
+        return "'reference_camera' is not an object"
+    if _matrix_problem(cam.get("K"), (3, 3)):
+        return "'reference_camera' → 'K' is not a 3x3 list of finite numbers"
+    if _matrix_problem(cam.get("w2c"), (4, 4)):
+        return "'reference_camera' → 'w2c' is not a 4x4 list of finite numbers"
+    for key in ("width", "height"):
+        if not (_is_int(cam.get(key)) and 0 < cam[key] <= 1 << 16):
+            return f"'reference_camera' → '{key}' is {_brief(cam.get(key))}, expected a positive whole number"
+    if not _is_int(cam.get("index", -1)) or not isinstance(cam.get("name", ""), str):
+        return "'reference_camera' → 'index' must be a whole number and 'name' a string"
+    return None
+
+
+def _model_problem(ref: Any) -> str | None:
+    """What is wrong with the ``flame`` → ``model`` reference (None: nothing; absent counts as fine)."""
+    if ref is None:
+        return None
+    if not isinstance(ref, dict):
+        return "'flame' → 'model' is not an object"
+    if not isinstance(ref.get("included", True), bool):
+        return "'flame' → 'model' → 'included' is not true or false"
+    for key in ("file", "file_sha256", "file_sha256_prefix", "base_sha256"):
+        if ref.get(key) is not None and not isinstance(ref[key], str):
+            return f"'flame' → 'model' → '{key}' is {_brief(ref[key])}, expected a string"
+    mouth = ref.get("mouth_interior")
+    if mouth is None:
+        return None
+    if not isinstance(mouth, dict):
+        return "'flame' → 'model' → 'mouth_interior' is not an object"
+    lips = mouth.get("lips")
+    if not (isinstance(lips, list) and lips and all(_is_int(i) and 0 <= i < 1 << 31 for i in lips)):
+        return "'flame' → 'model' → 'mouth_interior' → 'lips' is not a list of vertex ids"
+    if not all(isinstance(mouth.get(k, False), bool) for k in ("cavity", "tongue")):
+        return "'flame' → 'model' → 'mouth_interior' → 'cavity' and 'tongue' must be true or false"
+    return None
+
+
+def _render_problem(render: Any) -> str | None:
+    """What is wrong with the ``render`` section (None: nothing; absent counts as fine)."""
+    if render is None:
+        return None
+    if not isinstance(render, dict):
+        return "'render' is not an object"
+    for key in ("near", "far", "background"):
+        if key in render and not _is_number(render[key]):
+            return f"'render' → '{key}' is {_brief(render[key])}, expected a finite number"
+    if render.get("correction") is not None and not isinstance(render["correction"], dict):
+        return "'render' → 'correction' is not an object"
+    return None
+
+
+def _metadata_problem(meta: dict[str, Any]) -> str | None:
+    """The first field of a bundle's metadata that :func:`load_bundle` could not use, or None."""
+    if not _is_int(meta.get("format", 0)) or meta.get("format", 0) < 0:
+        return f"'format' is {_brief(meta.get('format'))}, expected a whole number"
+    for key in ("flame", "surfels", "files"):
+        if not isinstance(meta.get(key), dict):
+            return f"bundle metadata lacks the '{key}' section"
+    for key, value in meta["files"].items():
+        if not isinstance(value, str):
+            return f"'files' → '{key}' is {_brief(value)}, expected a file name"
+    count = meta["surfels"].get("count")
+    if count is not None and not (_is_int(count) and count >= 0):
+        return f"'surfels' → 'count' is {_brief(count)}, expected a whole number"
+    centre = meta.get("head_center")
+    if centre is not None and not (isinstance(centre, list) and len(centre) == 3 and all(_is_number(x) for x in centre)):
+        return f"'head_center' is {_brief(centre)}, expected three finite numbers"
+    return _model_problem(meta["flame"].get("model")) or _render_problem(meta.get("render")) \
+        or _camera_problem(meta.get("reference_camera"))
+
+
 def read_bundle_metadata(root: str | Path) -> dict[str, Any]:
-    """Read and check ``bundle.json``; InputError naming the file when it is missing or not a bundle."""
+    """Read and check ``bundle.json``; InputError naming the file when it is missing, not a bundle,
+    or holds a field of the wrong type (:func:`_metadata_problem`)."""
     p = Path(root) / BUNDLE_JSON
     if not p.is_file():
         raise InputError(Path(root), f"not an avatar bundle (no {BUNDLE_JSON}; write one with `sage export WS --bundle`)")
@@ -399,13 +504,15 @@ def read_bundle_metadata(root: str | Path) -> dict[str, Any]:
         meta = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(p, f"cannot read bundle metadata: {e}") from None
+    except (RecursionError, ValueError) as e:  # nesting past the parser's depth; an integer of too many digits
+        raise InputError(p, "cannot read bundle metadata: " + ("nested too deeply" if isinstance(e, RecursionError) else str(e))) from None
     if not isinstance(meta, dict) or meta.get("kind") != BUNDLE_KIND:
         raise InputError(p, f"not a sage avatar bundle (kind is not {BUNDLE_KIND!r})")
-    if int(meta.get("format", 0)) > BUNDLE_FORMAT:
+    problem = _metadata_problem(meta)
+    if problem is not None:
+        raise InputError(p, f"malformed bundle metadata: {problem}")
+    if meta.get("format", 0) > BUNDLE_FORMAT:
         raise InputError(p, f"bundle format {meta.get('format')} is newer than this sage supports ({BUNDLE_FORMAT})")
-    for key in ("flame", "surfels", "files"):
-        if not isinstance(meta.get(key), dict):
-            raise InputError(p, f"bundle metadata lacks the '{key}' section")
     return meta
 
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 import io
 import pickletools
 import re
+import reprlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -56,6 +57,27 @@ class RefusedPickle(UnsupportedPickle):
 
 MAX_DEPTH = 64
 """Deepest nesting of containers and chumpy expressions accepted in a FLAME pickle."""
+
+MAX_NODES = 1 << 20
+"""Most values a FLAME pickle may expand to, each reference to a shared (memo) object counted again.
+
+A real FLAME pickle holds a few dozen keys, each an array or a chumpy/sparse object of a handful of
+entries (an array counts as one value however large: its size is bounded by the file's bytes), so
+it has well under a thousand. 1,048,576 still admits a model whose vertices, faces, weights and
+pose blend shapes are nested Python lists instead of arrays, and refuses a file whose memo
+references double at every level (the "billion laughs": 20 levels of ``[L, L]`` are 2 million
+values) before the expansion costs memory or time. Conversion is memoised by object identity, so
+its work is linear in the file's distinct objects."""
+
+MAX_DENSE_ELEMENTS = 1 << 27
+"""Most elements a sparse matrix may densify to (1 GiB of float64). FLAME's ``J_regressor`` is
+5 x 5023 (about 5 x 5143 with teeth); a file declaring a larger matrix is refused rather than
+allocated."""
+
+
+def _brief(value: Any) -> str:
+    """A short repr of a value a file built (bounded in depth and length, whatever its nesting)."""
+    return reprlib.repr(value)
 
 
 # --------------------------------------------------------------------------------------------
@@ -153,10 +175,10 @@ def _new_dtype(code: Any, *_flags: Any) -> _DtypeBuilder:
     if isinstance(code, bytes):
         code = code.decode("latin1")
     if not isinstance(code, str) or not _DTYPE_CODE.match(code):
-        raise RefusedPickle(f"dtype {code!r} is not accepted (numeric, bool and string dtypes only)")
+        raise RefusedPickle(f"dtype {_brief(code)} is not accepted (numeric, bool and string dtypes only)")
     dt = np.dtype(code)
     if dt.kind not in "biufcSU" or dt.hasobject:
-        raise RefusedPickle(f"dtype {code!r} is not accepted")
+        raise RefusedPickle(f"dtype {_brief(code)} is not accepted")
     return _DtypeBuilder(dt)
 
 
@@ -172,7 +194,7 @@ def _shape(shape: Any) -> tuple[int, ...]:
     if isinstance(shape, int) and not isinstance(shape, bool):
         shape = (shape,)
     if not isinstance(shape, (tuple, list)) or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
-        raise UnsupportedPickle(f"malformed array shape {shape!r}")
+        raise UnsupportedPickle(f"malformed array shape {_brief(shape)}")
     return tuple(shape)
 
 
@@ -224,7 +246,7 @@ def _reconstruct(cls: Any, shape: Any, dtype_code: Any) -> _ArrayBuilder:
 
 def _frombuffer(buf: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
     if order not in ("C", "F"):
-        raise UnsupportedPickle(f"bad array order {order!r}")
+        raise UnsupportedPickle(f"bad array order {_brief(order)}")
     return _array_from_bytes(buf, _dtype(dtype), shape, order)
 
 
@@ -381,6 +403,8 @@ class _Machine:
                 if handler is None:
                     raise RefusedPickle(f"opcode {op.name} is not accepted")
                 handler(self, arg)
+        except RecursionError:
+            raise UnsupportedPickle(f"nested too deeply to read (limit {MAX_DEPTH} levels)") from None
         except (ValueError, EOFError, OverflowError, MemoryError) as exc:
             if isinstance(exc, UnsupportedPickle):
                 raise
@@ -581,81 +605,152 @@ _OPS: dict[str, Callable[[_Machine, Any], None]] = {
 # --------------------------------------------------------------------------------------------
 
 
-def _sparse_to_dense(obj: SparseStub, depth: int) -> np.ndarray:
+def _sparse_to_dense(obj: SparseStub, conv: _Converter, depth: int) -> np.ndarray:
+    """A sparse stand-in as a dense array; refused past :data:`MAX_DENSE_ELEMENTS` elements."""
     import scipy.sparse
 
     st = obj.state
-    try:
-        data = np.asarray(to_plain(st["data"], depth + 1))
-        indices = np.asarray(to_plain(st["indices"], depth + 1))
-        indptr = np.asarray(to_plain(st["indptr"], depth + 1))
-    except KeyError as exc:
-        raise UnsupportedPickle(f"sparse matrix lacks {exc.args[0]!r}") from None
     shape = st.get("_shape", st.get("shape"))
     if shape is None:
         raise UnsupportedPickle("sparse matrix lacks its shape")
     shape = _shape(tuple(shape) if isinstance(shape, list) else shape)
     if len(shape) != 2:
-        raise UnsupportedPickle(f"sparse matrix shape {shape} is not 2-D")
+        raise UnsupportedPickle(f"sparse matrix shape {_brief(shape)} is not 2-D")
+    if shape[0] * shape[1] > MAX_DENSE_ELEMENTS:
+        raise UnsupportedPickle(f"sparse matrix of shape {shape[0]}x{shape[1]} is too large to densify "
+                                f"({shape[0] * shape[1]} elements, at most {MAX_DENSE_ELEMENTS})")
+    try:
+        data = np.asarray(conv.plain(st["data"], depth + 1))
+        indices = np.asarray(conv.plain(st["indices"], depth + 1))
+        indptr = np.asarray(conv.plain(st["indptr"], depth + 1))
+    except KeyError as exc:
+        raise UnsupportedPickle(f"sparse matrix lacks {exc.args[0]!r}") from None
     for name, arr in (("data", data), ("indices", indices), ("indptr", indptr)):
         if arr.dtype.kind not in ("iuf" if name == "data" else "iu"):
             raise UnsupportedPickle(f"sparse matrix {name} has dtype {arr.dtype}")
     cls = scipy.sparse.csc_matrix if obj.fmt == "csc" else scipy.sparse.csr_matrix
     try:
         return np.asarray(cls((data, indices, indptr), shape=shape).toarray())
-    except (ValueError, IndexError, TypeError) as exc:
+    except (ValueError, IndexError, TypeError, OverflowError) as exc:
         raise UnsupportedPickle(f"malformed sparse matrix ({exc})") from None
 
 
-def _chumpy_to_array(obj: ChumpyStub, depth: int) -> np.ndarray:
+def _ints(value: Any, what: str) -> tuple[int, ...]:
+    """A converted shape or axes list as Python ints (UnsupportedPickle for anything else)."""
+    try:
+        return tuple(int(v) for v in value)
+    except (TypeError, ValueError, OverflowError):
+        raise UnsupportedPickle(f"malformed {what} {_brief(value)}") from None
+
+
+def _chumpy_to_array(obj: ChumpyStub, conv: _Converter, depth: int) -> np.ndarray:
+    """The value of one of the chumpy stand-ins (module doc); UnsupportedPickle for the others."""
     st = obj.state
     name = obj.name
     try:
         if name == "Select" and "a" in st and "idxs" in st:
-            base = np.asarray(to_plain(st["a"], depth + 1))
-            out = base.ravel()[np.asarray(to_plain(st["idxs"], depth + 1)).ravel()]
-            shape = to_plain(st.get("preferred_shape"), depth + 1)
-            return out.reshape(tuple(int(s) for s in shape)) if shape is not None else out
+            base = np.asarray(conv.plain(st["a"], depth + 1))
+            out = base.ravel()[np.asarray(conv.plain(st["idxs"], depth + 1)).ravel()]
+            shape = conv.plain(st.get("preferred_shape"), depth + 1)
+            return out.reshape(_ints(shape, "Select shape")) if shape is not None else out
         if name == "Reshape" and "a" in st and "shape" in st:
-            return np.asarray(to_plain(st["a"], depth + 1)).reshape(tuple(int(s) for s in to_plain(st["shape"], depth + 1)))
+            arr = np.asarray(conv.plain(st["a"], depth + 1))
+            return arr.reshape(_ints(conv.plain(st["shape"], depth + 1), "Reshape shape"))
         if name == "Transpose" and "a" in st:
-            axes = to_plain(st.get("axes"), depth + 1)
-            arr = np.asarray(to_plain(st["a"], depth + 1))
-            return arr.transpose(tuple(int(a) for a in axes)) if axes is not None else arr.T
-    except (ValueError, IndexError, TypeError) as exc:
+            axes = conv.plain(st.get("axes"), depth + 1)
+            arr = np.asarray(conv.plain(st["a"], depth + 1))
+            return arr.transpose(_ints(axes, "Transpose axes")) if axes is not None else arr.T
+    except (ValueError, IndexError, TypeError, OverflowError) as exc:
+        if isinstance(exc, UnsupportedPickle):
+            raise
         raise UnsupportedPickle(f"malformed chumpy object {obj.module}.{name} ({exc})") from None
     if "x" in st:
-        return np.asarray(to_plain(st["x"], depth + 1))
+        return np.asarray(conv.plain(st["x"], depth + 1))
     raise UnsupportedPickle(f"cannot evaluate chumpy object {obj.module}.{name} without chumpy")
+
+
+_SHARED = (dict, list, tuple, set, frozenset, _Builder)
+"""The kinds of object a file can reference more than once through the memo."""
+
+
+class _Converter:
+    """Turns the machine's result into plain values, each shared object once.
+
+    An object the file references several times (memo ``GET``) is converted on its first visit and
+    its result reused, so the work is linear in the file's distinct objects. :attr:`count` adds up
+    the values the result expands to, a shared object counted again at every reference; past
+    :data:`MAX_NODES` the file is refused, so nothing downstream (``np.asarray`` of a nested list)
+    expands it either.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._memo: dict[int, tuple[Any, Any, int]] = {}  # id -> (object kept alive, plain value, its count)
+
+    def _add(self, n: int) -> None:
+        self.count += n
+        if self.count > MAX_NODES:
+            raise UnsupportedPickle(f"expands to more than {MAX_NODES} values (shared objects repeated at every "
+                                    "reference); a FLAME file holds a few dozen arrays")
+
+    def plain(self, value: Any, depth: int = 0) -> Any:
+        """``value`` with its stand-ins turned into numpy arrays; dicts, lists and tuples walked.
+
+        Raises :class:`UnsupportedPickle` past :data:`MAX_DEPTH` levels or :data:`MAX_NODES` values,
+        for a builder a file never completed, and for any value that is not plain data.
+        """
+        if depth > MAX_DEPTH:
+            raise UnsupportedPickle(f"nested deeper than {MAX_DEPTH} levels")
+        if not isinstance(value, _SHARED):
+            self._add(1)
+            return self._leaf(value)
+        seen = self._memo.get(id(value))
+        if seen is not None:
+            self._add(seen[2])
+            return seen[1]
+        start = self.count
+        self._add(1)
+        out = self._node(value, depth)
+        self._memo[id(value)] = (value, out, self.count - start)
+        return out
+
+    def _node(self, value: Any, depth: int) -> Any:
+        """One container or builder, its parts converted."""
+        if isinstance(value, ChumpyStub):
+            return _chumpy_to_array(value, self, depth)
+        if isinstance(value, SparseStub):
+            return _sparse_to_dense(value, self, depth)
+        if isinstance(value, _ArrayBuilder):
+            if value.array is None:
+                raise UnsupportedPickle("an array without its data")
+            return value.array
+        if isinstance(value, _DtypeBuilder):
+            return value.dtype
+        if isinstance(value, dict):
+            return {k: self.plain(v, depth + 1) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return type(value)(self.plain(v, depth + 1) for v in value)
+        if isinstance(value, (set, frozenset)):
+            self._add(len(value))
+            return type(value)(value)
+        raise UnsupportedPickle(f"a {type(value).__name__} is not a value")
+
+    @staticmethod
+    def _leaf(value: Any) -> Any:
+        """A value that holds no others: returned as it is unless it is a bare global."""
+        if isinstance(value, _Global):
+            raise UnsupportedPickle(f"a bare reference to {value.label} is not a value")
+        return value
 
 
 def to_plain(value: Any, depth: int = 0) -> Any:
     """Recursively turn stand-ins into numpy arrays; dicts, lists and tuples are walked.
 
-    Raises :class:`UnsupportedPickle` past :data:`MAX_DEPTH` levels, for a builder a file never
-    completed, and for any value that is not plain data.
+    Raises :class:`UnsupportedPickle` past :data:`MAX_DEPTH` levels or :data:`MAX_NODES` values
+    (:class:`_Converter`), for a builder a file never completed, and for any value that is not plain
+    data.
     """
-    if depth > MAX_DEPTH:
-        raise UnsupportedPickle(f"nested deeper than {MAX_DEPTH} levels")
-    if isinstance(value, ChumpyStub):
-        return _chumpy_to_array(value, depth)
-    if isinstance(value, SparseStub):
-        return _sparse_to_dense(value, depth)
-    if isinstance(value, _ArrayBuilder):
-        if value.array is None:
-            raise UnsupportedPickle("an array without its data")
-        return value.array
-    if isinstance(value, _DtypeBuilder):
-        return value.dtype
-    if isinstance(value, _Global):
-        raise UnsupportedPickle(f"a bare reference to {value.label} is not a value")
-    if isinstance(value, dict):
-        return {k: to_plain(v, depth + 1) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return type(value)(to_plain(v, depth + 1) for v in value)
-    if isinstance(value, (set, frozenset)):
-        return type(value)(value)
-    return value
+    return _Converter().plain(value, depth)
 
 
 def loads_flame_pickle(data: bytes) -> Any:
@@ -663,20 +758,12 @@ def loads_flame_pickle(data: bytes) -> Any:
     return _Machine().run(io.BytesIO(data))
 
 
-def load_flame_pickle(path: str | Path) -> dict[str, Any]:
-    """Load a FLAME-style pickle into a dict of plain values, without running anything it names.
-
-    Arrays (including chumpy and sparse values) come back as numpy arrays; strings stay strings.
-    Raises :class:`UnsupportedPickle` (:class:`RefusedPickle` for a forbidden global or opcode) or
-    ``OSError``.
-    """
-    with open(path, "rb") as fh:
-        raw = _Machine().run(fh)
-    if not isinstance(raw, dict):
-        raise UnsupportedPickle(f"expected a dict at the top level, found {type(raw).__name__}")
+def _plain_dict(raw: dict[Any, Any]) -> dict[str, Any]:
+    """The machine's top-level dict as str -> numpy array (strings kept as strings)."""
+    conv = _Converter()
     out: dict[str, Any] = {}
     for key, value in raw.items():
-        value = to_plain(value)
+        value = conv.plain(value)
         if isinstance(value, (bytes, str)):
             out[str(key)] = value.decode("latin1") if isinstance(value, bytes) else value
         else:
@@ -685,3 +772,26 @@ def load_flame_pickle(path: str | Path) -> dict[str, Any]:
             except (ValueError, TypeError):
                 out[str(key)] = value
     return out
+
+
+def load_flame_pickle(path: str | Path) -> dict[str, Any]:
+    """Load a FLAME-style pickle into a dict of plain values, without running anything it names.
+
+    Arrays (including chumpy and sparse values) come back as numpy arrays; strings stay strings.
+    Raises :class:`UnsupportedPickle` (:class:`RefusedPickle` for a forbidden global or opcode),
+    also for values that cannot be converted (too large, too deep, out of range), or ``OSError``.
+    """
+    with open(path, "rb") as fh:
+        raw = _Machine().run(fh)
+    if not isinstance(raw, dict):
+        raise UnsupportedPickle(f"expected a dict at the top level, found {type(raw).__name__}")
+    try:
+        return _plain_dict(raw)
+    except RecursionError:
+        raise UnsupportedPickle(f"nested too deeply to convert (limit {MAX_DEPTH} levels)") from None
+    except MemoryError:
+        raise UnsupportedPickle("its arrays do not fit in memory") from None
+    except (ValueError, TypeError, IndexError, OverflowError) as exc:
+        if isinstance(exc, UnsupportedPickle):
+            raise
+        raise UnsupportedPickle(f"cannot convert its values to arrays ({type(exc).__name__}: {exc})") from None

@@ -185,6 +185,17 @@ def _from_npz(path: Path) -> FlameModelData:
     return data
 
 
+def _from_pickle_file(path: Path) -> FlameModelData:
+    """A FLAME pickle read by the restricted reader; InputError naming ``path`` for any problem."""
+    try:
+        d = load_flame_pickle(path)
+    except UnsupportedPickle as exc:
+        raise InputError(path, f"not a readable FLAME pickle: {exc}") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read the FLAME model ({exc.strerror or exc})") from None
+    return _from_pickle_dict(path, d)
+
+
 def load_flame_model(path: str | Path, add_teeth: bool | None = None, *, npz_only: bool = False) -> FlameModelData:
     """Load a FLAME model from the official pickle or the project's npz.
 
@@ -205,16 +216,11 @@ def load_flame_model(path: str | Path, add_teeth: bool | None = None, *, npz_onl
     if (npz_only or path.suffix.lower() == ".npz") and not is_zip:
         raise InputError(path, "not a zip archive: an .npz FLAME model must be the project's npz "
                                "(sage reads pickles only from .pkl files)")
-    if is_zip:
-        data = _from_npz(path)
-    else:
-        try:
-            d = load_flame_pickle(path)
-        except UnsupportedPickle as exc:
-            raise InputError(path, f"not a readable FLAME pickle: {exc}") from None
-        except OSError as exc:
-            raise InputError(path, f"cannot read the FLAME model ({exc.strerror or exc})") from None
-        data = _from_pickle_dict(path, d)
+    try:
+        data = _from_npz(path) if is_zip else _from_pickle_file(path)
+    except MemoryError:
+        raise InputError(path, "the FLAME model's arrays do not fit in memory (a FLAME model takes a few hundred MB "
+                               "at most; the file declares more)") from None
 
     if add_teeth is None:
         add_teeth = data.n_vertices == FLAME_N_VERTICES and not has_teeth(data)

@@ -44,10 +44,17 @@ class ReenactResult:
     stage: str = "reenact"
 
 
+MAX_NAME_BYTES = 255
+"""Longest folder name (in UTF-8 bytes) that file systems accept."""
+RECORD_NAME = "reenact.json"
+
+
 def seq_label(seq: Path) -> str:
-    """A folder-name-safe label of a motion source (its file stem or folder name)."""
+    """A folder-name-safe label of a motion source (its file stem or folder name), at most 200
+    bytes so that the camera's suffix still fits a folder name."""
     name = seq.stem if seq.is_file() else seq.name
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "motion"
+    label = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    return label.encode("utf-8")[:200].decode("utf-8", "ignore") or "motion"
 
 
 def parse_size(size: str | None) -> tuple[int | None, int] | None:
@@ -103,11 +110,34 @@ def check_reenact_options(*, ws: Path | None, bundle: Path | None, flame_seq: Pa
 
 
 def check_output_name(name: str | None) -> None:
-    """ConfigError unless ``name`` is None or a plain folder name."""
+    """ConfigError unless ``name`` is None or a plain folder name of at most
+    :data:`MAX_NAME_BYTES` bytes."""
+    import reprlib
+
     from ..errors import ConfigError
 
-    if name is not None and (not name or "/" in name or name in (".", "..")):
-        raise ConfigError(f"--name must be a plain folder name, got {name!r}")
+    if name is None:
+        return
+    if not name or "/" in name or "\0" in name or name in (".", ".."):
+        raise ConfigError(f"--name must be a plain folder name, got {reprlib.repr(name)}")
+    size = len(name.encode("utf-8", "surrogateescape"))
+    if size > MAX_NAME_BYTES:
+        raise ConfigError(f"--name is {size} bytes long; a folder name holds at most {MAX_NAME_BYTES} "
+                          f"(got {reprlib.repr(name)})")
+
+
+def check_output_folder(out: Path, force: bool = False) -> None:
+    """Refuse an ``--out`` folder that holds files but no ``reenact.json`` (so it is not an earlier
+    reenactment's output), unless ``force``: a reenactment replaces ``frames/`` and ``video.mp4``
+    in it. InputError when ``out`` is a file, ConfigError for such a folder."""
+    from ..errors import ConfigError, InputError
+
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "the output path exists and is not a folder")
+    if force or not out.is_dir() or (out / RECORD_NAME).is_file() or not any(out.iterdir()):
+        return
+    raise ConfigError(f"{out} holds files and no {RECORD_NAME}, so it is not an earlier reenactment's folder; "
+                      f"a reenactment replaces frames/ and video.mp4 in it: give a new or empty folder, or pass --force")
 
 
 def _pick_capture_camera(cams: dict[int, Any], index: int | None, source: Path) -> tuple[int, Any]:
@@ -160,6 +190,7 @@ def reenact_stage(
     size: str | None = None,
     threads: int | None = None,
     flame_model: str | Path | None = None,
+    force: bool = False,
     on_event: EventFn | None = None,
 ) -> ReenactResult:
     """Render the avatar of ``ws`` (``stage``: auto, phase1, phase2) or of ``bundle`` driven by
@@ -168,6 +199,7 @@ def reenact_stage(
     size: the output size, "WxH" or a height (:func:`parse_size`; default the camera's own).
     threads: CPU threads (None: ``$SAGE_THREADS``, else the idle cores). flame_model: the FLAME
     model file a bundle that does not carry its model was built with (checked by SHA-256 first).
+    force: write into an ``out`` that holds other files (:func:`check_output_folder`).
     Options as :func:`check_reenact_options` describes (ConfigError); the motion is validated
     against the avatar before anything renders (InputError naming the source).
     """
@@ -190,6 +222,8 @@ def reenact_stage(
     check_reenact_options(ws=ws_path, bundle=bundle, flame_seq=flame_seq, camera=camera, cameras_from=cameras_from, orbit=orbit,
                           frame_format=frame_format, video=video, fps=fps, max_frames=max_frames, size=size)  # fmt: skip
     check_output_name(name)
+    if out is not None:
+        check_output_folder(Path(out), force)
     out_size = parse_size(size)
     dev = resolve_device(device)
     n_threads = apply_threads(threads)
@@ -291,13 +325,13 @@ def reenact_stage(
         "threads": n_threads,
         "paths": "relative to this file's folder",
     }
-    atomic_write_json(out_dir / "reenact.json", doc)
+    atomic_write_json(out_dir / RECORD_NAME, doc)
     outputs: dict[str, Path] = {}
     if report.frames_dir is not None:
         outputs["frames"] = Path(report.frames_dir)
     if report.video_path is not None:
         outputs["video"] = Path(report.video_path)
-    outputs["record"] = out_dir / "reenact.json"
+    outputs["record"] = out_dir / RECORD_NAME
     shown = f"{avatar_label} ({avatar_path})"
     result = ReenactResult(out_dir, label, doc, report, shown, f"{motion.source} ({motion.source_kind}, {n} frames)", cam_desc,
                            time.time() - t0, outputs, dev, renderer.backend)  # fmt: skip

@@ -177,6 +177,26 @@ def check_regime(regime: str, kind: str, n_timesteps: int, source: Path) -> None
         raise ConfigError(f"regime sv-hr needs several frames of one camera; the input {source} holds one image (use one-shot)")
 
 
+def _output_folder(out_dir: str | Path, input_path: str | Path) -> Path:
+    """OUT as an absolute path (``.`` and ``..`` resolved). The finished capture takes OUT's place as
+    a whole (the old folder is moved aside and deleted), so ConfigError when OUT is the current
+    folder or holds it (the shell would be left in a deleted folder) or holds the input."""
+    out = Path(os.path.abspath(Path(out_dir).expanduser()))
+    real = Path(os.path.realpath(out))
+    try:
+        here: Path | None = Path(os.path.realpath(os.getcwd()))
+    except OSError:  # the current folder was deleted
+        here = None
+    if here is not None and (real == here or real in here.parents):
+        raise ConfigError(f"the output folder {out_dir} is the current folder or holds it; sage track puts a new folder "
+                          f"in its place: give a folder to create, e.g. {Path(out_dir) / 'capture'}")
+    source = Path(os.path.realpath(Path(input_path).expanduser()))
+    if real in source.parents:
+        raise ConfigError(f"the output folder {out_dir} holds the input {input_path}; sage track replaces the output "
+                          "folder as a whole: give a folder elsewhere")
+    return out
+
+
 def _prepare_out(out: Path, force: bool) -> Path:
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
@@ -218,8 +238,8 @@ def track_capture(
     this model (default: calibrated). models_dir: folder of the MediaPipe models (default:
     ``$SAGE_MEDIAPIPE_DIR``, then the cache). device: torch device of the fit. progress:
     ``progress(done, total, message, **stats)``.
-    Raises ConfigError (options, regime, an occupied OUT) or InputError (a file or image) before
-    writing anything.
+    Raises ConfigError (options, regime, an occupied OUT, an OUT that is the current folder or
+    holds the input) or InputError (a file or image) before writing anything.
     """
     from ..flame import FlameModel, load_flame_model, load_masks
     from .faces import FaceObserver
@@ -230,7 +250,7 @@ def track_capture(
 
     t_start = time.time()
     timings: dict[str, float] = {}
-    out = Path(out_dir)
+    out = _output_folder(out_dir, input_path)
     reason = litert_available()
     if reason is not None:
         raise ConfigError(reason)
