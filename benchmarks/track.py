@@ -119,19 +119,22 @@ def _phase2_finished(ws: Path) -> str | None:
 
 
 def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, avatar_preset: str, avatar_sets: list[str],
-                threads: int) -> dict:
+                threads: int, known_focal: bool = False) -> dict:
     """Train an avatar on the tracked capture and one on the capture's own parameters; compare them on
-    the same test images (module docstring)."""
+    the same test images (module docstring). ``known_focal``: the tracking is given one camera's true
+    focal length (as EXIF gives it); the own avatar is the same."""
     cap = _capture(work, regime, synth_preset)
     inp, cams = _input(work, regime, synth_preset, cap)
     info = json.loads((cap / "gt" / "info.json").read_text())
-    tracked = work / f"tracked_{regime}_{synth_preset}_{track_preset}_uncropped"
+    tracked = work / f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}_uncropped"
     model = str(cap / "model" / "synth_flame.pkl")
     if not (tracked / "transforms.json").is_file():
         args = ["track", str(inp), str(tracked), "--flame-model", model, "--preset", track_preset, "--quiet", "--force",
                 "--set", _train_ratio(info), "--set", "crop=false", "--set", "neck_line=false"]
         if cams is not None:
             args += ["--cameras", str(cams)]
+        if known_focal:
+            args += ["--set", f"focal={json.loads((cap / 'transforms.json').read_text())['frames'][0]['fl_x']}"]
         _sage(args, threads)
     ids = {f["timestep_index"]: int(f["timestep_id"]) for f in json.loads((tracked / "transforms.json").read_text())["frames"]}
     held_out = None
@@ -141,7 +144,7 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
         held_out = held_out_for_tracked(tracked, cap)
     runs = {}
     for name, capture in (("own", cap), ("tracked", tracked)):
-        ws = work / f"avatar_{regime}_{synth_preset}_{name}_{avatar_preset}"
+        ws = work / f"avatar_{regime}_{synth_preset}_{name}{'_focal' if known_focal and name == 'tracked' else ''}_{avatar_preset}"
         args = ["run", str(capture), str(ws), "--flame-model", model, "--regime", REGIME_OF[regime], "--preset", avatar_preset,
                 "--seed", "0", "--quiet"]
         for kv in avatar_sets:
@@ -171,8 +174,9 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
             runs[name]["novel_groups"] = {
                 **{f"subset_{k}": _means(v["overall"]) for k, v in doc.get("subsets", {}).items()},
                 **{f"views_{k}": _means(v["overall"]) for k, v in doc.get("view_groups", {}).items()}}
-    return {"regime": regime, "track_regime": REGIME_OF[regime], "synth_preset": synth_preset, "avatar_preset": avatar_preset,
-            "avatar_sets": avatar_sets, "common_images": len(common), "held_out_alignment": held_out,
+    return {"regime": regime, "track_regime": REGIME_OF[regime], "known_focal": known_focal, "synth_preset": synth_preset,
+            "avatar_preset": avatar_preset, "avatar_sets": avatar_sets, "common_images": len(common),
+            "held_out_alignment": held_out,
             "common_timesteps": sorted({t for t, _ in common}), "runs": runs,
             "psnr_difference_db": round(runs["tracked"]["common"]["psnr"] - runs["own"]["common"]["psnr"], 3)}
 
@@ -509,19 +513,21 @@ def markdown(doc: dict) -> str:
             o, t = a["runs"]["own"]["common"], a["runs"]["tracked"]["common"]
             walls = " / ".join(f"{a['runs'][k]['wall_s']:.0f}" + (" (reused)" if a["runs"][k].get("reused") else "")
                                for k in ("own", "tracked"))
-            lines.append(f"| {a['regime']} ({a['track_regime']}) | {a['common_images']} | {o['psnr']:.2f} / {o['ssim']:.4f} / "
+            lines.append(f"| {a['regime']} ({a['track_regime']}{', focal length given' if a.get('known_focal') else ''}) | {a['common_images']} | {o['psnr']:.2f} / {o['ssim']:.4f} / "
                          f"{o.get('lpips', float('nan')):.4f} | {t['psnr']:.2f} / {t['ssim']:.4f} / {t.get('lpips', float('nan')):.4f} | "
                          f"{a['psnr_difference_db']:+.2f} | {a.get('machine', {}).get('date_utc', '—')} | {walls} |")
         for a in doc["avatars"]:
             o, t = (a["runs"][k].get("novel_groups") for k in ("own", "tracked"))
             if o and t:
-                lines += ["", f"{a['regime']}: the held-out set by group, own / `sage track`'s, PSNR / SSIM / LPIPS: "
+                lines += ["", f"{a['regime']}{' (focal length given)' if a.get('known_focal') else ''}: the held-out set by "
+                          "group, own / `sage track`'s, PSNR / SSIM / LPIPS: "
                           + "; ".join(f"{k.replace('subset_', '').replace('views_', 'views ')} {o[k]['psnr']:.2f} / "
                                       f"{o[k]['ssim']:.4f} / {o[k].get('lpips', float('nan')):.4f} against {t[k]['psnr']:.2f} / "
                                       f"{t[k]['ssim']:.4f} / {t[k].get('lpips', float('nan')):.4f}"
                                       for k in o if k in t)
-                          + f" (the held-out cameras moved by the similarity of scale {a['held_out_alignment']['scale']:.3f} "
-                          "that maps the tracked mesh onto the true one)."]
+                          + f" (held-out cameras anchored at the {a['held_out_alignment'].get('anchor', 'mesh')}: scale "
+                          f"{a['held_out_alignment']['scale']:.3f}, focal lengths × "
+                          f"{a['held_out_alignment'].get('focal_ratio', 1.0):.3f}; `held_out_for_tracked`)."]
         lines += ["", "A regime's row is replaced only when `--only-avatars` trains it again."]
         if any(r.get("reused") for a in doc["avatars"] for r in a["runs"].values()):
             lines[-1] += (" (reused): the avatar of an earlier run of the same command, whose workspace the benchmark "
@@ -630,6 +636,10 @@ def main(argv: list[str] | None = None) -> None:
         avatars = [avatar_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset,
                                a.track_preset, a.avatar_preset, a.avatar_set, a.threads)
                    for r in a.regimes.split(",") if r in ("monocular", "multiview", "oneshot")]
+        if a.known_focal:  # the one-camera regimes tracked again with the true focal length given
+            avatars += [avatar_case(a.out, r, a.synth_preset, a.track_preset, a.avatar_preset, a.avatar_set, a.threads,
+                                    known_focal=True)
+                        for r in a.regimes.split(",") if r in ("monocular", "oneshot")]
         for x in avatars:
             x["machine"] = machine
             x["benchmark_command"] = command
@@ -665,8 +675,8 @@ def main(argv: list[str] | None = None) -> None:
     if a.only_avatars:
         doc = json.loads((a.docs / "track.json").read_text())
         # regimes this run did not train keep their earlier comparison (with its own command and machine)
-        ran = {x["regime"] for x in avatars}
-        doc["avatars"] = [x for x in doc.get("avatars") or [] if x["regime"] not in ran] + avatars
+        ran = {(x["regime"], bool(x.get("known_focal"))) for x in avatars}
+        doc["avatars"] = [x for x in doc.get("avatars") or [] if (x["regime"], bool(x.get("known_focal"))) not in ran] + avatars
         doc.pop("avatar", None)  # the earlier, not like-for-like comparison
         _write(a.docs, doc)
         return

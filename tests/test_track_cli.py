@@ -114,6 +114,10 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
         assert (out / name).is_file(), name
     report = json.loads((out / "track" / "report.json").read_text())
     assert report["regime"] == "one-shot" and report["calibration"]["kept"] > 200 and report["reprojection_px"]["mean"] < 3
+    # no EXIF, no --focal: the focal length is fitted, then held for a second fit
+    refit = report["camera"]["focal_refit"]
+    assert report["camera"]["focal_source"] == "fitted" and refit is not None
+    assert refit["focal_px"][0] == pytest.approx(report["camera"]["focal_px"], rel=1e-5)
     from sage_core.data.imageio import read_image
 
     height = read_image(out / "images" / "00000_00.png").shape[0]

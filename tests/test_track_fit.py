@@ -128,6 +128,17 @@ def test_face_only_silhouette_rule():
     assert face_only_silhouette("face", focal_fitted=True) and not face_only_silhouette("all", focal_fitted=False)
 
 
+def test_focal_refit_rule():
+    """A fitted focal length is held for a second fit under auto when the silhouette rule is auto, always
+    under on, never under off; a known focal length is never refitted."""
+    from sage_core.track.pipeline import focal_refit_rule
+
+    assert focal_refit_rule("auto", "auto", focal_fitted=True) and not focal_refit_rule("auto", "auto", focal_fitted=False)
+    assert not focal_refit_rule("auto", "all", focal_fitted=True) and not focal_refit_rule("auto", "face", focal_fitted=True)
+    assert focal_refit_rule("on", "all", focal_fitted=True) and not focal_refit_rule("off", "auto", focal_fitted=True)
+    assert not focal_refit_rule("on", "auto", focal_fitted=False)
+
+
 def test_embedding_file_round_trip_and_errors(tmp_path, head):
     model, _ = head
     emb = LandmarkEmbedding(np.arange(40), np.arange(40) * 3, np.tile([0.2, 0.3, 0.5], (40, 1)), np.linspace(0, 0.004, 40))

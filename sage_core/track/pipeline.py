@@ -61,6 +61,8 @@ class TrackResult:
         steady_pivot: whether the head's pivot was held steady (``TrackConfig.steady_pivot``): mode
             ("on", "off", "auto"; "off" where it does not apply: one image, a rig), held (bool), and for
             auto the pivot's spread over the frames fitted without it and the scale it was held within.
+        focal_refit: when a fitted focal length was held for a second fit (``TrackConfig.focal_refit``):
+            the first fit's focal lengths (output pixels) and its seconds; else None.
     """
 
     out_dir: Path
@@ -84,6 +86,7 @@ class TrackResult:
     losses: dict[str, float] = field(default_factory=dict)
     cameras: list[dict[str, Any]] = field(default_factory=list)
     steady_pivot: dict[str, Any] = field(default_factory=dict)
+    focal_refit: dict[str, Any] | None = None
 
     def rows(self) -> list[tuple[str, str]]:
         """(label, value) lines for the closing panel."""
@@ -95,7 +98,9 @@ class TrackResult:
             ("dropped", str(len(self.dropped)) + (f" ({', '.join(f'{k} {n}' for k, n in Counter(d['kind'] for d in self.dropped).items())})"
                                                   if self.dropped else "")),
             ("landmark error", f"mean {self.reprojection_px:.2f} px, max {self.reprojection_max_px:.1f} px"),
-            ("focal length", f"{self.focal_px:.1f} px ({self.focal_source})" if self.focal_px is not None else self.focal_source),
+            ("focal length", (f"{self.focal_px:.1f} px ({self.focal_source}"
+                              + (", then held for a second fit" if self.focal_refit else "") + ")")
+             if self.focal_px is not None else self.focal_source),
             ("masks", ", ".join(f"{k} {n}" for k, n in self.masks.items())),
             ("wall time", f"{self.wall_time_s:.1f} s"),
         ]
@@ -119,6 +124,18 @@ def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
     lowered every error (docs/track.md).
     """
     return mode == "face" or (mode == "auto" and not focal_fitted)
+
+
+def focal_refit_rule(mode: str, silhouette_mode: str, focal_fitted: bool) -> bool:
+    """Whether a fit that fitted a focal length is followed by a second fit with that focal length held
+    (and so, with ``silhouette_two_sided=auto``, the face-only silhouette of a known focal length).
+
+    mode: ``TrackConfig.focal_refit`` (on, off, auto); silhouette_mode: ``silhouette_two_sided``;
+    focal_fitted: a camera's focal length was fitted. ``auto`` refits when the silhouette rule is
+    ``auto``: the whole outline pulled both ways finds the focal length, and the refit puts the face
+    where the photo has it (a synthetic photo's face 5.1 → 1.8 px off the truth's, docs/track.md).
+    """
+    return focal_fitted and (mode == "on" or (mode == "auto" and silhouette_mode == "auto"))
 
 
 def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
@@ -447,6 +464,18 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
                          steady_pivot=pivot, steady_pivot_auto=pivot_auto)
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
     fit = fitter.run()
+    focal_refit = None
+    if focal_refit_rule(cfg.focal_refit, cfg.silhouette_two_sided, any(c.fit_focal for c in fit_cams)):
+        # the focal length found, held: fitted again from the start with the silhouette of a known one
+        held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, fit_cams)]
+        both = np.zeros(V, bool)
+        for k in ("face", "neck"):
+            both[np.asarray(groups.get(k, []), np.int64)] = True
+        problem = replace(problem, cameras=held, silhouette_inward=~both if both.any() else None)
+        first = {"focal_px": [float(c.K[0, 0]) for c in fit.cameras], "fit_s": round(time.time() - t0, 1)}
+        fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
+        fit = fitter.run()
+        focal_refit = first
     save_embedding(root / "track" / "landmark_embedding.npz", fitter.emb)  # the one the fit ended with
     timings["fit"] = time.time() - t0
     timings.update({f"fit_{k}": v for k, v in fit.timings.items()})
@@ -542,6 +571,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         warnings=warnings, rig_scale=fit.rig_scale, losses=fit.losses,
         steady_pivot={"mode": cfg.steady_pivot if pivot or pivot_auto else "off", "held": pivot or bool(fit.pivot_check.get("held")),
                       **({"spread": fit.pivot_check["spread"], "scale": cfg.steady_depth_scale} if fit.pivot_check else {})},
+        focal_refit=focal_refit,
         cameras=[{"index": c.index, "name": c.name, "crop": [win.x0, win.y0, win.w, win.h], "output_size": [win.out_w, win.out_h],
                   "focal_input_px": round(float(c.K[0, 0] * win.w / win.out_w), 3)} for c, win in zip(cams, windows)],
         per_image=[
@@ -584,7 +614,8 @@ def _write_report(root: Path, r: TrackResult, source: Any, cfg: TrackConfig, mod
         "reprojection_px": {"mean": r.reprojection_px, "max": r.reprojection_max_px,
                             "definition": "per image: mean (max) distance in output pixels between the detected landmarks "
                                           "and the fitted mesh's, over landmarks on triangles facing the camera"},
-        "camera": {"focal_px": r.focal_px, "focal_source": r.focal_source, "rig_scale": r.rig_scale, "cameras": r.cameras},
+        "camera": {"focal_px": r.focal_px, "focal_source": r.focal_source, "rig_scale": r.rig_scale, "cameras": r.cameras,
+                   "focal_refit": r.focal_refit},
         "steady_pivot": r.steady_pivot,
         "masks": r.masks,
         "losses": r.losses,
