@@ -117,7 +117,8 @@ class TrackConfig:
                                      choices=("auto", "face", "all"))
     focal_refit: str = _opt("auto", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
                                     "held and the silhouette of a known one (face and neck both ways, the rest inwards): on, "
-                                    "off, or auto (on when silhouette_two_sided is auto; docs/track.md).",
+                                    "off, or auto (on when silhouette_two_sided is auto, for a photo or a folder of images; a video "
+                                    "fitted on keyframes keeps its first fit; docs/track.md).",
                             choices=("auto", "on", "off"))
     silhouette_scale: float = _opt(0.01, "Robust scale of the silhouette distances (fraction of the face size).", gt=0)
     w_photo: float = _opt(1.0, "Weight of the photometric term (rasterized vertex colours against the images).", ge=0)
