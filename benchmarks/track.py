@@ -700,7 +700,8 @@ def main(argv: list[str] | None = None) -> None:
            "load_after": [round(x, 2) for x in os.getloadavg()]}
     # what this run did not measure is kept from the previous results (with its own commands and machine)
     doc["video"] = video
-    for key in ("video_runs", "notes", "cases_previous_version", "clip_runs", "backgrounds"):
+    for key in ("video_runs", "notes", "cases_previous_version", "clip_runs", "clip_runs_superseded", "backgrounds",
+                "avatar_variants"):
         if key in old and not (key == "video_runs" and video is not None):
             doc[key] = old[key]
     if video is None and old.get("video") and "video_runs" not in old:

@@ -93,8 +93,9 @@ def test_rescore_reads_each_case_from_the_folder_it_was_tracked_into(tmp_path, m
 
 
 def test_a_full_run_keeps_what_it_did_not_measure(tmp_path, monkeypatch):
-    """A run of the regimes replaces the cases and keeps the clip's seed runs, the backgrounds, the
-    video runs and the notes of earlier runs (each with its own command)."""
+    """A run of the regimes replaces the cases and keeps the clip's seed runs (and superseded ones), the
+    backgrounds, the video runs, the avatar variants and the notes of earlier runs (each with its own
+    command)."""
     def fake_case(work, regime, synth_preset, track_preset, threads, known_focal=False, seed=None, sets=None):
         return {"regime": regime, "track_regime": "one-shot", "synth_preset": synth_preset, "track_preset": track_preset,
                 "known_focal": known_focal, "seed": seed, "sets": [], "images": 1, "image_size": [256, 372], "timesteps": 1,
@@ -107,7 +108,8 @@ def test_a_full_run_keeps_what_it_did_not_measure(tmp_path, monkeypatch):
     kept = {"clip_runs": [{"label": "pivot", "known_focal": True, "sets": [], "seeds": [0], "cases": [],
                            "mean": {"aligned_mm": 9.0, "rigid_per_timestep_mm": 4.0, "camera_mm": 90.0, "focal_rel_error": 0.0},
                            "machine": {"date_utc": "d"}}],
-            "backgrounds": [], "video_runs": [], "notes": {"cases": "earlier notes"}}
+            "backgrounds": [], "video_runs": [], "notes": {"cases": "earlier notes"},
+            "clip_runs_superseded": [{"label": "older"}], "avatar_variants": [{"regime": "oneshot", "label": "refit"}]}
     (docs / "track.json").write_text(json.dumps({
         "command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"}, "threads": 1,
         "load_after": [0, 0, 0], "cases": [{"regime": "old"}], **kept}))

@@ -129,16 +129,14 @@ def test_face_only_silhouette_rule():
 
 
 def test_focal_refit_rule():
-    """A fitted focal length is held for a second fit under auto when the silhouette rule is auto and
-    the fit is in one piece (not a keyframed video), always under on, never under off; a known focal
-    length is never refitted."""
+    """A fitted focal length is held for a second fit only when asked (on); a known one never is."""
     from sage_core.track.pipeline import focal_refit_rule
+    from sage_core.track.config import TrackConfig
 
-    assert focal_refit_rule("auto", "auto", True, keyframed=False) and not focal_refit_rule("auto", "auto", False, keyframed=False)
-    assert not focal_refit_rule("auto", "auto", True, keyframed=True)
-    assert not focal_refit_rule("auto", "all", True, keyframed=False) and not focal_refit_rule("auto", "face", True, keyframed=False)
-    assert focal_refit_rule("on", "all", True, keyframed=True) and not focal_refit_rule("off", "auto", True, keyframed=False)
-    assert not focal_refit_rule("on", "auto", False, keyframed=False)
+    assert focal_refit_rule("on", focal_fitted=True) and not focal_refit_rule("on", focal_fitted=False)
+    assert not focal_refit_rule("off", focal_fitted=True)
+    assert TrackConfig().focal_refit == "off"
+
 
 
 def test_embedding_file_round_trip_and_errors(tmp_path, head):

@@ -115,11 +115,11 @@ class TrackConfig:
                                              "when outside the person mask), all (every outline vertex; also without region masks), "
                                              "or auto (face when the focal length is known: calibrated cameras, EXIF or focal; all while it is fitted).",
                                      choices=("auto", "face", "all"))
-    focal_refit: str = _opt("auto", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
-                                    "held and the silhouette of a known one (face and neck both ways, the rest inwards): on, "
-                                    "off, or auto (on when silhouette_two_sided is auto, for a photo or a folder of images; a video "
-                                    "fitted on keyframes keeps its first fit; docs/track.md).",
-                            choices=("auto", "on", "off"))
+    focal_refit: str = _opt("off", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
+                                   "held, and so with the silhouette of a known one (face and neck both ways, the rest inwards): "
+                                   "on or off. Measured in docs/track.md: better on the synthetic photo and clip, worse on the "
+                                   "synthetic videos, unsteady on a real photo.",
+                            choices=("on", "off"))
     silhouette_scale: float = _opt(0.01, "Robust scale of the silhouette distances (fraction of the face size).", gt=0)
     w_photo: float = _opt(1.0, "Weight of the photometric term (rasterized vertex colours against the images).", ge=0)
     w_shape: float = _opt(0.01, "Weight of the identity prior (squared coefficients).", ge=0)

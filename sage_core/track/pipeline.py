@@ -126,19 +126,17 @@ def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
     return mode == "face" or (mode == "auto" and not focal_fitted)
 
 
-def focal_refit_rule(mode: str, silhouette_mode: str, focal_fitted: bool, keyframed: bool) -> bool:
+def focal_refit_rule(mode: str, focal_fitted: bool) -> bool:
     """Whether a fit that fitted a focal length is followed by a second fit with that focal length held
     (and so, with ``silhouette_two_sided=auto``, the face-only silhouette of a known focal length).
 
-    mode: ``TrackConfig.focal_refit`` (on, off, auto); silhouette_mode: ``silhouette_two_sided``;
-    focal_fitted: a camera's focal length was fitted; keyframed: the fit is a long ordered sequence's
-    (keyframes, then tracking). ``auto`` refits a fit in one piece (a photo, a folder of images) when
-    the silhouette rule is ``auto``: the whole outline pulled both ways finds the focal length, and the
-    refit puts the face where the photo has it (a synthetic photo's face 5.1 → 1.8 px off the truth's,
-    the 11-frame clip 7.54 → 5.44 mm); a video fitted on keyframes keeps its first fit (the 20-s
-    synthetic video 3.42 mm with one fit, 6.52 mm with two, the drifting one 4.52 and 8.76; docs/track.md).
+    mode: ``TrackConfig.focal_refit`` (on, off); focal_fitted: a camera's focal length was fitted. Off by
+    default: on the synthetic photo the refit puts the face where the photo has it (5.1 → 1.8 px off
+    the truth's) and on the 11-frame clip it lowers the error (7.54 → 5.44 mm), but it doubles the
+    20-s synthetic video's error (3.42 → 6.52 mm) and on a real photo it found a worse fit at three
+    of six seeds (docs/track.md).
     """
-    return focal_fitted and (mode == "on" or (mode == "auto" and silhouette_mode == "auto" and not keyframed))
+    return focal_fitted and mode == "on"
 
 
 def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
@@ -468,8 +466,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
     fit = fitter.run()
     focal_refit = None
-    keyframed = problem.smooth and 0 < cfg.keyframes < problem.n_timesteps  # as Fitter.run decides
-    if focal_refit_rule(cfg.focal_refit, cfg.silhouette_two_sided, any(c.fit_focal for c in fit_cams), keyframed):
+    if focal_refit_rule(cfg.focal_refit, any(c.fit_focal for c in fit_cams)):
         # the focal length found, held: fitted again from the start with the silhouette of a known one
         held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, fit_cams)]
         both = np.zeros(V, bool)
