@@ -644,30 +644,32 @@ def main(argv: list[str] | None = None) -> None:
             x["machine"] = machine
             x["benchmark_command"] = command
     one_camera = [r for r in a.regimes.split(",") if r in ("monocular", "oneshot")]
+    # each branch reads the results file only after its measurements, just before it writes it back, so
+    # that runs of the benchmark side by side do not drop each other's entries
     if a.only_known_focal:
-        doc = json.loads((a.docs / "track.json").read_text())
         extra = [track_case(a.out, r, a.synth_preset, a.track_preset, a.threads, known_focal=True) for r in one_camera]
         for x in extra:
             x["machine"] = machine
             x["benchmark_command"] = command
+        doc = json.loads((a.docs / "track.json").read_text())
         doc["cases"] = [c for c in doc["cases"] if not c.get("known_focal")] + extra
         _write(a.docs, doc)
         return
     if a.only_clip_seeds is not None:
-        doc = json.loads((a.docs / "track.json").read_text())
         run = clip_seed_run(a.out, a.synth_preset, a.track_preset, a.threads, a.known_focal,
                             [int(x) for x in a.only_clip_seeds.split(",")], a.clip_set)
         run.update(label=a.clip_label, machine=machine, benchmark_command=command)
+        doc = json.loads((a.docs / "track.json").read_text())
         doc["clip_runs"] = [r for r in doc.get("clip_runs") or []
                             if (r["label"], r["known_focal"]) != (a.clip_label, a.known_focal)] + [run]
         _write(a.docs, doc)
         return
     if a.only_backgrounds:
-        doc = json.loads((a.docs / "track.json").read_text())
         rows = background_cases(a.out, a.synth_preset, a.track_preset, a.threads, a.only_backgrounds.split(","))
         for x in rows:
             x["machine"] = machine
             x["benchmark_command"] = command
+        doc = json.loads((a.docs / "track.json").read_text())
         ran = {x["background"] for x in rows}
         doc["backgrounds"] = [x for x in doc.get("backgrounds") or [] if x["background"] not in ran] + rows
         _write(a.docs, doc)

@@ -153,3 +153,29 @@ def test_an_avatar_its_run_trained_again_is_not_reported_as_reused(tmp_path, mon
     again = bench.avatar_case(work, "monocular", "small", "default", "tiny", [], 1)
     assert again["runs"]["own"].get("reused") is True and again["runs"]["own"]["wall_s"] == 10.0
     assert "reused" not in again["runs"]["tracked"] and again["runs"]["tracked"]["wall_s"] == 42.0
+
+
+def test_a_clip_seed_run_keeps_what_another_run_wrote_meanwhile(tmp_path, monkeypatch):
+    """The results file is read after the clip's seeds are tracked: an entry another run of the benchmark
+    wrote in the meantime (here an avatar comparison) survives."""
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    path = docs / "track.json"
+    path.write_text(json.dumps({
+        "command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"}, "threads": 1,
+        "load_after": [0, 0, 0], "cases": []}))
+
+    def fake_case(work, regime, synth_preset, track_preset, threads, known_focal=False, seed=None, sets=None):
+        doc = json.loads(path.read_text())  # another benchmark process finishes while the seeds are tracked
+        doc["backgrounds"] = [{"background": "coffee", "written_while": seed}]
+        path.write_text(json.dumps(doc))
+        return {"regime": regime, "known_focal": known_focal, "seed": seed, "sets": [], "timesteps": 11,
+                "errors": _errors(1.0), "command": "sage track ..."}
+
+    monkeypatch.setattr(bench, "track_case", fake_case)
+    monkeypatch.setattr(bench, "_write", lambda docs_dir, doc: (docs_dir / "track.json").write_text(json.dumps(doc)))
+    bench.main(["--only-clip-seeds", "0", "--clip-label", "x", "--out", str(tmp_path / "work"), "--docs", str(docs),
+                "--synth-preset", "small"])
+    doc = json.loads(path.read_text())
+    assert doc["backgrounds"] == [{"background": "coffee", "written_while": 0}]
+    assert [r["label"] for r in doc["clip_runs"]] == ["x"]
