@@ -24,8 +24,6 @@ import io
 import os
 import pickle
 import shutil
-import subprocess
-import sys
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -36,6 +34,7 @@ import torch
 
 from ..atomic import atomic_write_bytes
 from ..errors import InputError, require_file
+from ..pip_fetch import download_wheel as pip_download
 from ..workspace import file_sha256
 from .lpips import DEFAULT_CACHE_PATH, ENV_VAR, EXPECTED_SHAPES, LPIPS, LPIPS_ALEX_SHA256, default_weights_path
 
@@ -208,17 +207,8 @@ def download_wheel(folder: str | Path, pip: list[str] | None = None) -> Path:
     pip: the command that runs pip (default: this interpreter's ``-m pip``). Raises InputError with
     pip's last lines when the download fails (no network, no index).
     """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    cmd = [*(pip or [sys.executable, "-m", "pip"]), "download", HEADS_REQUIREMENT, "--no-deps",
-           "--only-binary=:all:", "--dest", str(folder), "--quiet"]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    wheels = sorted(folder.glob("lpips-*.whl"))
-    if proc.returncode != 0 or not wheels:
-        tail = " | ".join((proc.stderr or proc.stdout or "").strip().splitlines()[-3:])
-        raise InputError(folder, f"`pip download {HEADS_REQUIREMENT}` failed (exit {proc.returncode}): {tail or 'no wheel'}; "
-                                 "fetch the wheel elsewhere and pass it with --heads")
-    return wheels[-1]
+    return pip_download(HEADS_REQUIREMENT, folder, "lpips-*.whl", ("--only-binary=:all:",), pip,
+                        hint="fetch the wheel elsewhere and pass it with --heads")
 
 
 def _eval_finds(out: Path) -> str:

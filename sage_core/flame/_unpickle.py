@@ -46,6 +46,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..errors import InputError
+
 
 class UnsupportedPickle(ValueError):
     """A pickle cannot be read into plain arrays (malformed, or a construct this reader lacks)."""
@@ -795,3 +797,17 @@ def load_flame_pickle(path: str | Path) -> dict[str, Any]:
         if isinstance(exc, UnsupportedPickle):
             raise
         raise UnsupportedPickle(f"cannot convert its values to arrays ({type(exc).__name__}: {exc})") from None
+
+
+def read_flame_pickle(path: Path, kind: str, what: str) -> dict[str, Any]:
+    """:func:`load_flame_pickle`, with every failure as an InputError naming ``path``.
+
+    kind: the file's kind in the message ("FLAME pickle", "mask pickle"); what: what could not be
+    read ("the FLAME model", "the mask file").
+    """
+    try:
+        return load_flame_pickle(path)
+    except UnsupportedPickle as exc:
+        raise InputError(path, f"not a readable {kind}: {exc}") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read {what} ({exc.strerror or exc})") from None

@@ -18,7 +18,7 @@ import numpy as np
 from ..atomic import atomic_writer
 from ..errors import InputError, require_file
 from ..npz import read_npz, shape_str
-from ._unpickle import UnsupportedPickle, load_flame_pickle
+from ._unpickle import read_flame_pickle
 from .model_data import FlameModelData
 from .teeth import FLAME_N_VERTICES, add_teeth as _add_teeth, has_teeth
 
@@ -187,13 +187,7 @@ def _from_npz(path: Path) -> FlameModelData:
 
 def _from_pickle_file(path: Path) -> FlameModelData:
     """A FLAME pickle read by the restricted reader; InputError naming ``path`` for any problem."""
-    try:
-        d = load_flame_pickle(path)
-    except UnsupportedPickle as exc:
-        raise InputError(path, f"not a readable FLAME pickle: {exc}") from None
-    except OSError as exc:
-        raise InputError(path, f"cannot read the FLAME model ({exc.strerror or exc})") from None
-    return _from_pickle_dict(path, d)
+    return _from_pickle_dict(path, read_flame_pickle(path, "FLAME pickle", "the FLAME model"))
 
 
 def load_flame_model(path: str | Path, add_teeth: bool | None = None, *, npz_only: bool = False) -> FlameModelData:

@@ -8,7 +8,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from ..errors import InputError, require_file
-from ._unpickle import UnsupportedPickle, load_flame_pickle
+from ._unpickle import read_flame_pickle
 
 REGIONS_FORMAT = "sage-regions-v1"
 
@@ -21,12 +21,7 @@ def load_masks(path: str | Path) -> dict[str, np.ndarray]:
     """
     path = Path(path)
     require_file(path, "FLAME mask file")
-    try:
-        raw = load_flame_pickle(path)
-    except UnsupportedPickle as exc:
-        raise InputError(path, f"not a readable mask pickle: {exc}") from None
-    except OSError as exc:
-        raise InputError(path, f"cannot read the mask file ({exc.strerror or exc})") from None
+    raw = read_flame_pickle(path, "mask pickle", "the mask file")
     out: dict[str, np.ndarray] = {}
     for name, ids in raw.items():
         arr = np.asarray(ids)

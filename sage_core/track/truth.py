@@ -317,7 +317,7 @@ def held_out_for_tracked(tracked: str | Path, truth: str | Path, anchor: str = "
             ti = int(fr["timestep_index"])
             if ti not in written:
                 nov = load_param_npz(jpath.parent / fr["flame_param_path"])
-                p = _row(trk, 0)
+                p = trk.select([0])
                 e = min(p.expr.shape[1], nov.expr.shape[1], own0.expr.shape[1])
                 p.expr[:, :e] += nov.expr[:, :e] - own0.expr[:, :e]
                 for key in ("jaw_pose", "eyes_pose", "neck_pose"):
@@ -339,16 +339,4 @@ def held_out_for_tracked(tracked: str | Path, truth: str | Path, anchor: str = "
     block = {**block, "moved_from": "the synthetic capture's gt/novel", "alignment": alignment}
     atomic_write_text(tracked / "gt" / "info.json", json.dumps({"novel": block}, indent=2))
     return {"frames": count, **alignment}
-
-
-def _row(params: Any, i: int) -> Any:
-    """Row ``i`` of stacked FLAME parameters as a one-row copy."""
-    from dataclasses import replace
-
-    sl = slice(i, i + 1)
-    return replace(params, expr=params.expr[sl].copy(), rotation=params.rotation[sl].copy(),
-                   neck_pose=params.neck_pose[sl].copy(), jaw_pose=params.jaw_pose[sl].copy(),
-                   eyes_pose=params.eyes_pose[sl].copy(), translation=params.translation[sl].copy(),
-                   dynamic_offset=None if params.dynamic_offset is None else params.dynamic_offset[sl].copy(),
-                   timesteps=params.timesteps[sl].copy())
 

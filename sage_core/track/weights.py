@@ -15,8 +15,6 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import subprocess
-import sys
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -24,6 +22,7 @@ from pathlib import Path
 
 from ..atomic import atomic_write_bytes
 from ..errors import InputError
+from ..pip_fetch import download_wheel as pip_download
 from ..workspace import file_sha256
 
 ENV_VAR = "SAGE_MEDIAPIPE_DIR"
@@ -153,16 +152,7 @@ def download_wheel(folder: str | Path, pip: list[str] | None = None) -> Path:
     pip: the command that runs pip (default: this interpreter's ``-m pip``). Raises InputError with
     pip's last lines when the download fails (no network, no index).
     """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    cmd = [*(pip or [sys.executable, "-m", "pip"]), "download", WHEEL_REQUIREMENT, "--no-deps", *WHEEL_TAGS,
-           "--dest", str(folder), "--quiet"]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    wheels = sorted(folder.glob("mediapipe-*.whl"))
-    if proc.returncode != 0 or not wheels:
-        tail = " | ".join((proc.stderr or proc.stdout or "").strip().splitlines()[-3:])
-        raise InputError(folder, f"`pip download {WHEEL_REQUIREMENT}` failed (exit {proc.returncode}): {tail or 'no wheel'}")
-    return wheels[-1]
+    return pip_download(WHEEL_REQUIREMENT, folder, "mediapipe-*.whl", WHEEL_TAGS, pip)
 
 
 def install_models(dest: str | Path | None = None, wheel: str | Path | None = None) -> ModelPaths:
