@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "sage_core"
 LAYERS: list[tuple[str, ...]] = [
     # foundation: no sage_core imports besides each other's lower rows
     ("errors", "atomic", "_version"),
-    ("config", "native_build", "npz", "serialization"),
+    ("config", "native_build", "npz", "serialization", "pip_fetch"),
     ("image_metrics",),  # its SSIM blur is a native extension
     ("workspace",),
     ("geometry",),
