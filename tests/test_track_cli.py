@@ -114,8 +114,10 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
         assert (out / name).is_file(), name
     report = json.loads((out / "track" / "report.json").read_text())
     assert report["regime"] == "one-shot" and report["calibration"]["kept"] > 200 and report["reprojection_px"]["mean"] < 3
-    # no EXIF, no --focal: the focal length is fitted, in one fit by default
-    assert report["camera"]["focal_source"] == "fitted" and report["camera"]["focal_refit"] is None
+    # no EXIF, no --focal: the focal length is fitted, then held for a second fit (one photo's default)
+    cam = report["camera"]
+    assert cam["focal_source"] == "fitted" and cam["focal_refit"] is not None
+    assert cam["focal_refit"]["focal_px"][0] == pytest.approx(cam["focal_px"], rel=1e-5)
     from sage_core.data.imageio import read_image
 
     height = read_image(out / "images" / "00000_00.png").shape[0]
@@ -139,18 +141,17 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
 
 
 @pytest.mark.slow
-def test_a_fitted_focal_length_held_for_a_second_fit(tmp_path, tiny_capture, model, embedding):
-    """--set focal_refit=on: the photo's fitted focal length is held for a second fit, which the report
-    records (the first fit's focal length, the same as the final one)."""
+def test_one_fit_of_a_fitted_focal_length_when_asked(tmp_path, tiny_capture, model, embedding):
+    """--set focal_refit=off: the photo is fitted once, its focal length with everything else, and the
+    report says there was no second fit."""
     oneshot = _sub_capture(tiny_capture, tmp_path / "sub", (8,), (0,))
     inp, _ = input_from_capture(oneshot, tmp_path / "in")
     out = tmp_path / "cap"
-    res = invoke(["track", inp, out, "--flame-model", model, "--landmark-embedding", embedding, "--set", "focal_refit=on",
+    res = invoke(["track", inp, out, "--flame-model", model, "--landmark-embedding", embedding, "--set", "focal_refit=off",
                   *TINY])
     assert res.exit_code == 0, res.output
     cam = json.loads((out / "track" / "report.json").read_text())["camera"]
-    assert cam["focal_source"] == "fitted" and cam["focal_refit"] is not None
-    assert cam["focal_refit"]["focal_px"][0] == pytest.approx(cam["focal_px"], rel=1e-5)
+    assert cam["focal_source"] == "fitted" and cam["focal_refit"] is None
     assert compare_to_truth(out, oneshot)["aligned"]["mean_mm"] < 4.0
 
 

@@ -119,6 +119,85 @@ def test_silhouette_pulls_inward_only_vertices_just_inwards(head):
     assert terms["narrow", True] == pytest.approx(terms["narrow", False]) and terms["narrow", False] > 1.0
 
 
+def test_silhouette_outward_pull_stops_at_its_limit(head):
+    """With ``silhouette_outward_max`` an outline lying deeper inside the person mask than the limit
+    (hair or a collar beside the face) is not pulled outwards, one lying within it still is; a mask
+    narrower than the mesh pulls inwards whatever the limit."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    fm, v, K, w2c, cam = _mesh_view(head)
+    cover = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height).mask[0].numpy()
+    emb = LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3))
+    masks = {"wide 3 px": binary_dilation(cover, iterations=3), "wide 12 px": binary_dilation(cover, iterations=12),
+             "narrow 12 px": binary_erosion(cover, iterations=12)}
+    terms = {}
+    for name, person in masks.items():
+        for limit in (None, 0.05):  # face height 100 px: the limit is 5 px
+            image = FitImage(0, 0, None, 100.0, np.zeros((*cover.shape, 3), np.float32), person.astype(np.float32))
+            fit = Fitter(fm, emb, FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [image], 1,
+                                             silhouette_outward_max=limit), resolve_track_config("tiny"))
+            r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
+            uv, z = project(v[None], K[None], w2c[None])
+            fit.outline = fit.outline_vertices(v, uv[0], z[0], r.depth[0], w2c)[None]
+            fit.sub_lookup = torch.arange(fm.n_vertices)
+            with torch.no_grad():
+                terms[name, limit] = float(fit.silhouette_term(v[None]))
+    assert terms["wide 3 px", 0.05] == pytest.approx(terms["wide 3 px", None]) and terms["wide 3 px", None] > 1.0
+    assert terms["wide 12 px", None] > terms["wide 3 px", None] and terms["wide 12 px", 0.05] == 0.0
+    assert terms["narrow 12 px", 0.05] == pytest.approx(terms["narrow 12 px", None]) and terms["narrow 12 px", None] > 1.0
+
+
+def test_hair_stage_grows_the_hair_volume_alone(head, tiny_capture):
+    """With the face-only silhouette the scalp is only pulled inwards, so a person mask wider than the
+    head (hair) leaves the scalp offsets where they are; the hair stage pulls them out to it, and moves
+    nothing else."""
+    from scipy.ndimage import binary_dilation
+
+    from sage_core.flame import load_masks
+    from sage_core.track.fitting import TRANS_UNIT
+    from sage_core.track.mesh_utils import hair_region
+
+    fm, v, K, w2c, cam = _mesh_view(head)
+    groups = {k: np.asarray(x) for k, x in load_masks(tiny_capture / "model" / "FLAME_masks.pkl").items()}
+    face = np.zeros(fm.n_vertices, bool)
+    for k in ("face", "neck"):
+        face[groups[k]] = True
+    cover = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height).mask[0].numpy()
+    person = binary_dilation(cover, iterations=4).astype(np.float32)
+    image = FitImage(0, 0, None, 100.0, np.zeros((*cover.shape, 3), np.float32), person)
+    problem = FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [image], 1, hair=hair_region(groups, fm.n_vertices),
+                         silhouette_inward=~face, silhouette_outward_max=0.05, hair_stage=True)
+    p = head[1].params.select([0])
+    grown = {}
+    for hair_stage in (False, True):
+        fit = Fitter(fm, LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3)), problem,
+                     resolve_track_config("tiny"))
+        with torch.no_grad():  # the fit's parameters at the capture's own (its mesh is v)
+            fit.params["shape"].copy_(torch.as_tensor(p.shape[: fit.n_shape]))
+            fit.params["expr"].copy_(torch.as_tensor(p.expr[:, : fit.n_expr]))
+            for n in ("rotation", "neck_pose", "jaw_pose", "eyes_pose"):
+                fit.params[n].copy_(torch.as_tensor(getattr(p, n)))
+            fit.params["translation"].copy_(torch.as_tensor(p.translation) / TRANS_UNIT)
+        before = {n: x.detach().clone() for n, x in fit.params.items()}
+        fit._hair_stage = hair_stage
+        fit._optimise(["offset"], 30, "hair" if hair_stage else "shape")
+        grown[hair_stage] = float(fit.params["offset"].mean())
+        for n, x in fit.params.items():
+            if n != "offset":
+                assert torch.equal(x, before[n]), n
+    assert grown[False] <= 0.0 < 0.05 < grown[True]  # offsets in cm: the hair stage grows the scalp by half a millimetre or more
+
+
+def test_hair_fit_rule():
+    """The hair volume is fitted alone at the end of a face-only fit when asked (on) or for one photo (auto)."""
+    from sage_core.track.config import TrackConfig
+    from sage_core.track.pipeline import hair_fit_rule
+
+    assert hair_fit_rule("auto", one_image=True) and not hair_fit_rule("auto", one_image=False)
+    assert hair_fit_rule("on", one_image=False) and not hair_fit_rule("off", one_image=True)
+    assert TrackConfig().hair_fit == "auto"
+
+
 def test_face_only_silhouette_rule():
     """auto pulls only the face and neck both ways unless a focal length is fitted; face and all are
     taken as given."""
@@ -129,14 +208,17 @@ def test_face_only_silhouette_rule():
 
 
 def test_focal_refit_rule():
-    """A fitted focal length is held for a second fit only when asked (on); a known one never is."""
+    """A fitted focal length is held for a second fit when asked (on), or for one photo (auto, the
+    default); a known one never is."""
     from sage_core.track.pipeline import focal_refit_rule
     from sage_core.track.config import TrackConfig
 
-    assert focal_refit_rule("on", focal_fitted=True) and not focal_refit_rule("on", focal_fitted=False)
-    assert not focal_refit_rule("off", focal_fitted=True)
-    assert TrackConfig().focal_refit == "off"
-
+    assert focal_refit_rule("on", focal_fitted=True, one_image=False) and not focal_refit_rule("on", focal_fitted=False, one_image=True)
+    assert focal_refit_rule("auto", focal_fitted=True, one_image=True)
+    assert not focal_refit_rule("auto", focal_fitted=True, one_image=False)
+    assert not focal_refit_rule("auto", focal_fitted=False, one_image=True)
+    assert not focal_refit_rule("off", focal_fitted=True, one_image=True)
+    assert TrackConfig().focal_refit == "auto"
 
 
 def test_embedding_file_round_trip_and_errors(tmp_path, head):

@@ -83,6 +83,12 @@ class TrackConfig:
     rigid_steps: int = _opt(150, "Adam steps of the rigid pose (and focal) fit on the landmarks.", ge=0)
     steps: int = _opt(400, "Adam steps of the full fit (shape, expression, jaw, eyes, neck, pose, scalp offsets) on landmarks and silhouettes.", ge=0)
     refine_steps: int = _opt(60, "Adam steps with the photometric term added.", ge=0)
+    hair_fit: str = _opt("auto", "With the face-only silhouette (a known focal length, or the second fit of focal_refit), end the "
+                                 "fit by fitting the hair volume (the scalp offsets) alone to the whole outline, both ways, the "
+                                 "head's shape and pose held: on, off, or auto (on for one photo). Measured in docs/track.md: "
+                                 "better on the synthetic and the real photo, worse on the synthetic clip and rig.",
+                         choices=("auto", "on", "off"))
+    hair_steps: int = _opt(100, "Adam steps of that hair-volume fit.", ge=0)
     refine_batch: int = _opt(8, "Images rasterized per refinement step for the photometric term (all when fewer).", ge=1)
     outline_refresh: int = _opt(4, "Images re-rasterized per step to update their outline vertices (the silhouette term).", ge=1)
     outline_period: int = _opt(20, "Steps between two rasterizations of an image's outline in the shape and refine stages "
@@ -115,11 +121,16 @@ class TrackConfig:
                                              "when outside the person mask), all (every outline vertex; also without region masks), "
                                              "or auto (face when the focal length is known: calibrated cameras, EXIF or focal; all while it is fitted).",
                                      choices=("auto", "face", "all"))
-    focal_refit: str = _opt("off", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
-                                   "held, and so with the silhouette of a known one (face and neck both ways, the rest inwards): "
-                                   "on or off. Measured in docs/track.md: better on the synthetic photo and clip, worse on the "
-                                   "synthetic videos, unsteady on a real photo.",
-                            choices=("on", "off"))
+    focal_refit: str = _opt("auto", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
+                                    "held, and so with the silhouette of a known one (face and neck both ways, the rest inwards): "
+                                    "on, off, or auto (on for one photo). Measured in docs/track.md: better on the synthetic and "
+                                    "the real photo; on the synthetic clip a better mesh but a blurrier avatar, on the synthetic "
+                                    "videos worse.",
+                            choices=("auto", "on", "off"))
+    silhouette_outward_max: float = _opt(0.05, "With the face-only silhouette (silhouette_two_sided face, or auto with a known focal "
+                                               "length): outline points this far inside the person mask (fraction of the face size) "
+                                               "or further are not pulled outwards (hair, a collar or a hand lies between them and "
+                                               "the mask's edge); 0.2 or more: every point the term uses.", gt=0)
     silhouette_scale: float = _opt(0.01, "Robust scale of the silhouette distances (fraction of the face size).", gt=0)
     w_photo: float = _opt(1.0, "Weight of the photometric term (rasterized vertex colours against the images).", ge=0)
     w_shape: float = _opt(0.01, "Weight of the identity prior (squared coefficients).", ge=0)
@@ -162,7 +173,7 @@ class TrackConfig:
 
 PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "default": {},
-    "tiny": {"calib_views": 3, "calib_size": 256, "rigid_steps": 60, "steps": 200, "refine_steps": 20, "refine_batch": 4,
+    "tiny": {"calib_views": 3, "calib_size": 256, "rigid_steps": 60, "steps": 200, "refine_steps": 20, "hair_steps": 50, "refine_batch": 4,
              "fit_height": 160, "max_height": 400, "keyframes": 12, "track_steps": 20,
              "calib_pose_yaw_deg": 30.0, "calib_pose_pitch_deg": 12.0, "pivot_pose_yaw_deg": 30.0},
 }

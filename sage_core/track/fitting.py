@@ -100,6 +100,12 @@ class FitProblem:
         silhouette_exclude: (V,) bool, vertices never used as outline points (the neck opening).
         silhouette_inward: (V,) bool, outline vertices that the silhouette only pulls inwards (when they
             lie outside the person mask): where hair may cover the head's outline (ears, back of the head).
+        silhouette_outward_max: outline points lying this far inside the person mask or further (in face
+            heights) are not pulled outwards (None: up to the term's general cut-off, 0.2): what lies
+            between them and the mask's edge is then hair, a collar or a hand rather than the head.
+        hair_stage: with the face-only silhouette (``silhouette_inward``), end every joint fit with
+            ``cfg.hair_steps`` steps that fit the hair volume (the scalp offsets) alone to the whole
+            outline, both ways, the head's shape and pose held.
         landmark_offsets: fit one in-plane offset per landmark, shared by all images (the input sees
             the head from several directions, so a landmark's consistent disagreement with the
             embedding can be told from the shape).
@@ -128,6 +134,8 @@ class FitProblem:
     hair: np.ndarray | None = None
     silhouette_exclude: np.ndarray | None = None
     silhouette_inward: np.ndarray | None = None
+    silhouette_outward_max: float | None = None
+    hair_stage: bool = False
     landmark_offsets: bool = False
     camera_relative: bool = False
     times: np.ndarray | None = None
@@ -285,6 +293,7 @@ class Fitter:
         self.sil_scale = self._t(np.array([problem.images[i].face_height for i in self.sil_images])) * self.sil_fit[:, 1]
         self.outline = torch.full((len(self.sil_images), 0), -1, dtype=torch.long, device=self.device)
         self.outline_next = 0
+        self._hair_stage = False  # set while run_joint fits the hair volume alone (silhouette_term)
         self._rebuild_subset()
         self.z0 = 1.0  # reference depth of camera-relative head positions (set by init_rigid)
         # common log depth of a chunk's sequence (the keyframes'), None: the mean of this fitter's timesteps
@@ -594,7 +603,9 @@ class Fitter:
 
     def silhouette_term(self, verts: torch.Tensor) -> torch.Tensor:
         """Mean robust distance of every image's outline vertices to its person mask's outline, in face
-        heights (distances beyond 0.2 face heights are ignored: occlusions, mask errors)."""
+        heights (distances beyond 0.2 face heights are ignored: occlusions, mask errors; inside the mask,
+        beyond ``problem.silhouette_outward_max`` when set; inward-only vertices inside the mask too, except
+        in the hair stage of :meth:`run_joint`)."""
         valid = self.outline >= 0
         if not bool(valid.any()):
             return torch.zeros((), dtype=self.dtype, device=self.device)
@@ -607,7 +618,11 @@ class Fitter:
         uv, _ = project(pts, Kf, w2c[self.sil_c])
         sdt, size = self.sdt_maps()
         d = sample_map(sdt, uv, *size) / self.sil_scale[:, None]
-        keep = valid & (d.abs() < 0.2) & ~(self.sil_inward[self.outline.clamp_min(0)] & (d < 0))
+        keep = valid & (d.abs() < 0.2)
+        if not self._hair_stage:  # the hair volume's own stage pulls every outline point both ways
+            keep = keep & ~(self.sil_inward[self.outline.clamp_min(0)] & (d < 0))
+            if self.p.silhouette_outward_max is not None:
+                keep = keep & ~((d < 0) & (d.abs() >= self.p.silhouette_outward_max))
         return (charbonnier(d, self.cfg.silhouette_scale) * keep).sum() / keep.sum().clamp_min(1)
 
     def priors(self) -> torch.Tensor:
@@ -889,6 +904,13 @@ class Fitter:
             + (["offset"] if self.hair is not None else [])
         self._optimise(full, c.steps, "shape")
         self._optimise(full, c.refine_steps, "refine")
+        if self.p.hair_stage and self.hair is not None and self.hair.numel() and c.hair_steps > 0 and bool(self.sil_inward.any()):
+            # the hair volume alone to the whole outline, both ways: the skull came from the face
+            self._hair_stage = True
+            try:
+                self._optimise(["offset"], c.hair_steps, "hair")
+            finally:
+                self._hair_stage = False
 
     def _child(self, rows: np.ndarray, progress: Progress | None) -> Fitter:
         """A fitter of the timesteps ``rows`` sharing this one's model, embedding, config and seed."""

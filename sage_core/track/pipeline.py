@@ -126,18 +126,34 @@ def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
     return mode == "face" or (mode == "auto" and not focal_fitted)
 
 
-def focal_refit_rule(mode: str, focal_fitted: bool) -> bool:
+def focal_refit_rule(mode: str, focal_fitted: bool, one_image: bool) -> bool:
     """Whether a fit that fitted a focal length is followed by a second fit with that focal length held
     (and so, with ``silhouette_two_sided=auto``, the face-only silhouette of a known focal length).
 
-    mode: ``TrackConfig.focal_refit`` (on, off); focal_fitted: a camera's focal length was fitted. Off by
-    default: on the synthetic photo the refit puts the face where the photo has it (5.1 → 1.8 px off
-    the truth's) and on the 11-frame clip it lowers the error (7.54 → 5.44 mm), but it doubles the
-    20-s synthetic video's error (3.42 → 6.52 mm) and on a real photo it found a worse fit at three
-    of six seeds, the face-only fit there switching outcome with a 0.003 % change of the focal
-    length (docs/track.md).
+    mode: ``TrackConfig.focal_refit`` (auto, on, off); focal_fitted: a camera's focal length was
+    fitted; one_image: the input is one photo. ``auto`` refits one photo only. While the focal length
+    is free the whole outline is pulled both ways, and on one photo that pulls the head onto its hair
+    (the synthetic photo's face 8 % too large, the landmarks 3.1 px off); holding the focal length
+    found and fitting again with the face-only silhouette puts the face where the photo has it (the
+    synthetic one-shot avatar 3.88 dB behind the capture's own parameters before, 0.72 dB after; 0.41
+    dB with the outline limit and the hair stage of one photo, ``hair_fit_rule``). A sequence
+    measured otherwise: better on the 11-frame clip's mesh (7.54 → 5.44 mm) but its avatar blurrier
+    (LPIPS 0.19 → 0.28), and twice the 20-s video's error (3.42 → 6.52 mm) (docs/track.md).
     """
-    return focal_fitted and mode == "on"
+    return focal_fitted and (mode == "on" or (mode == "auto" and one_image))
+
+
+def hair_fit_rule(mode: str, one_image: bool) -> bool:
+    """Whether a fit with the face-only silhouette ends with the hair volume fitted alone to the whole
+    outline (``TrackConfig.hair_fit``: auto, on, off; ``auto`` for one photo). With the face-only
+    silhouette the scalp is pulled only inwards, so the hair volume never grows: a photo's hair then
+    lies off the mesh and its one-shot avatar draws it with streaks. Measured (docs/track.md): the
+    synthetic photo 2.77 → 1.98 mm after one similarity (focal length given 2.83 → 2.17), the real
+    photo's avatar without the streaks at the crown; the 11-frame clip (focal length given) 5.02 →
+    5.22 mm, 2.90 → 4.02 per timestep, and the rig 3.29 → 4.01 mm in the world: there the outlines
+    of many views grow the offsets past the head's.
+    """
+    return mode == "on" or (mode == "auto" and one_image)
 
 
 def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
@@ -461,19 +477,23 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
             both[np.asarray(groups.get(k, []), np.int64)] = True
         inward = ~both
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
-                         silhouette_exclude=exclude, silhouette_inward=inward, landmark_offsets=lmk_offsets,
+                         silhouette_exclude=exclude, silhouette_inward=inward,
+                         silhouette_outward_max=cfg.silhouette_outward_max if inward is not None else None,
+                         hair_stage=hair_fit_rule(cfg.hair_fit, source.kind == "image"),
+                         landmark_offsets=lmk_offsets,
                          camera_relative=source.kind != "multiview", steady_depth=steady,
                          steady_pivot=pivot, steady_pivot_auto=pivot_auto)
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
     fit = fitter.run()
     focal_refit = None
-    if focal_refit_rule(cfg.focal_refit, any(c.fit_focal for c in fit_cams)):
+    if focal_refit_rule(cfg.focal_refit, any(c.fit_focal for c in fit_cams), source.kind == "image"):
         # the focal length found, held: fitted again from the start with the silhouette of a known one
         held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, fit_cams)]
         both = np.zeros(V, bool)
         for k in ("face", "neck"):
             both[np.asarray(groups.get(k, []), np.int64)] = True
-        problem = replace(problem, cameras=held, silhouette_inward=~both if both.any() else None)
+        problem = replace(problem, cameras=held, silhouette_inward=~both if both.any() else None,
+                          silhouette_outward_max=cfg.silhouette_outward_max if both.any() else None)
         first = {"focal_px": [float(c.K[0, 0]) for c in fit.cameras], "fit_s": round(time.time() - t0, 1)}
         fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
         fit = fitter.run()
