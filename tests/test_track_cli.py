@@ -114,10 +114,14 @@ def test_one_photo_to_an_ingestible_capture(tmp_path, tiny_capture, model):
         assert (out / name).is_file(), name
     report = json.loads((out / "track" / "report.json").read_text())
     assert report["regime"] == "one-shot" and report["calibration"]["kept"] > 200 and report["reprojection_px"]["mean"] < 3
-    # no EXIF, no --focal: the focal length is fitted, then held for a second fit (one photo's default)
+    # no EXIF, no --focal: the focal length is fitted, then held for a second fit (one photo's default),
+    # and the fit with the lower landmark error is kept
     cam = report["camera"]
     assert cam["focal_source"] == "fitted" and cam["focal_refit"] is not None
     assert cam["focal_refit"]["focal_px"][0] == pytest.approx(cam["focal_px"], rel=1e-5)
+    first_px, second_px = cam["focal_refit"]["landmark_px"]
+    assert cam["focal_refit"]["kept"] == ("second" if second_px < first_px else "first")
+    assert report["reprojection_px"]["mean"] == pytest.approx(min(first_px, second_px), abs=2e-3)
     from sage_core.data.imageio import read_image
 
     height = read_image(out / "images" / "00000_00.png").shape[0]

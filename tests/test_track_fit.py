@@ -188,6 +188,19 @@ def test_hair_stage_grows_the_hair_volume_alone(head, tiny_capture):
     assert grown[False] <= 0.0 < 0.05 < grown[True]  # offsets in cm: the hair stage grows the scalp by half a millimetre or more
 
 
+def test_the_second_fit_is_kept_by_its_landmark_error():
+    """focal_refit=auto keeps the second fit only when its landmarks lie closer; on keeps it always. The
+    landmark error of a fit is the mean over its images with landmarks."""
+    from types import SimpleNamespace
+
+    from sage_core.track.pipeline import landmark_error, refit_kept
+
+    assert refit_kept("auto", 3.1, 1.8) and not refit_kept("auto", 1.7, 2.3) and not refit_kept("auto", 2.0, 2.0)
+    assert refit_kept("on", 1.7, 2.3)
+    assert landmark_error(SimpleNamespace(reprojection_px=np.array([1.0, np.nan, 3.0]))) == pytest.approx(2.0)
+    assert landmark_error(SimpleNamespace(reprojection_px=np.array([np.nan]))) == float("inf")
+
+
 def test_hair_fit_rule():
     """The hair volume is fitted alone at the end of a face-only fit when asked (on) or for one photo (auto)."""
     from sage_core.track.config import TrackConfig

@@ -123,9 +123,9 @@ class TrackConfig:
                                      choices=("auto", "face", "all"))
     focal_refit: str = _opt("auto", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
                                     "held, and so with the silhouette of a known one (face and neck both ways, the rest inwards): "
-                                    "on, off, or auto (on for one photo). Measured in docs/track.md: better on the synthetic and "
-                                    "the real photo; on the synthetic clip a better mesh but a blurrier avatar, on the synthetic "
-                                    "videos worse.",
+                                    "on (the second fit kept), off, or auto (for one photo; the second fit kept when its landmark "
+                                    "error is lower). Measured in docs/track.md: better on the synthetic and the real photo; on the "
+                                    "synthetic clip a better mesh but a blurrier avatar, on the synthetic videos worse.",
                             choices=("auto", "on", "off"))
     silhouette_outward_max: float = _opt(0.05, "With the face-only silhouette (silhouette_two_sided face, or auto with a known focal "
                                                "length): outline points this far inside the person mask (fraction of the face size) "
