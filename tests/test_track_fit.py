@@ -186,6 +186,7 @@ def test_hair_stage_grows_the_hair_volume_alone(head, tiny_capture):
             if n != "offset":
                 assert torch.equal(x, before[n]), n
     assert grown[False] <= 0.0 < 0.05 < grown[True]  # offsets in cm: the hair stage grows the scalp by half a millimetre or more
+    assert resolve_track_config("tiny").hair_fit == "on"  # every face-only fit ends with it by default
 
 
 def test_the_second_fit_is_kept_by_its_landmark_error():
@@ -199,16 +200,6 @@ def test_the_second_fit_is_kept_by_its_landmark_error():
     assert refit_kept("on", 1.7, 2.3)
     assert landmark_error(SimpleNamespace(reprojection_px=np.array([1.0, np.nan, 3.0]))) == pytest.approx(2.0)
     assert landmark_error(SimpleNamespace(reprojection_px=np.array([np.nan]))) == float("inf")
-
-
-def test_hair_fit_rule():
-    """The hair volume is fitted alone at the end of a face-only fit when asked (on) or for one photo (auto)."""
-    from sage_core.track.config import TrackConfig
-    from sage_core.track.pipeline import hair_fit_rule
-
-    assert hair_fit_rule("auto", one_image=True) and not hair_fit_rule("auto", one_image=False)
-    assert hair_fit_rule("on", one_image=False) and not hair_fit_rule("off", one_image=True)
-    assert TrackConfig().hair_fit == "auto"
 
 
 def test_face_only_silhouette_rule():

@@ -83,11 +83,11 @@ class TrackConfig:
     rigid_steps: int = _opt(150, "Adam steps of the rigid pose (and focal) fit on the landmarks.", ge=0)
     steps: int = _opt(400, "Adam steps of the full fit (shape, expression, jaw, eyes, neck, pose, scalp offsets) on landmarks and silhouettes.", ge=0)
     refine_steps: int = _opt(60, "Adam steps with the photometric term added.", ge=0)
-    hair_fit: str = _opt("auto", "With the face-only silhouette (a known focal length, or the second fit of focal_refit), end the "
-                                 "fit by fitting the hair volume (the scalp offsets) alone to the whole outline, both ways, the "
-                                 "head's shape and pose held: on, off, or auto (on for one photo). Measured in docs/track.md: "
-                                 "better on the synthetic and the real photo, worse on the synthetic clip and rig.",
-                         choices=("auto", "on", "off"))
+    hair_fit: str = _opt("on", "With the face-only silhouette (a known focal length, or the second fit of focal_refit), end the "
+                               "fit by fitting the hair volume (the scalp offsets) alone to the whole outline, both ways, the "
+                               "head's shape and pose held: on or off. Measured in docs/track.md: sharper avatars from the "
+                               "synthetic photo, clip and rig, the scalp further from the synthetic truth's thin hair shell.",
+                         choices=("on", "off"))
     hair_steps: int = _opt(100, "Adam steps of that hair-volume fit.", ge=0)
     refine_batch: int = _opt(8, "Images rasterized per refinement step for the photometric term (all when fewer).", ge=1)
     outline_refresh: int = _opt(4, "Images re-rasterized per step to update their outline vertices (the silhouette term).", ge=1)

@@ -105,7 +105,9 @@ class FitProblem:
             between them and the mask's edge is then hair, a collar or a hand rather than the head.
         hair_stage: with the face-only silhouette (``silhouette_inward``), end every joint fit with
             ``cfg.hair_steps`` steps that fit the hair volume (the scalp offsets) alone to the whole
-            outline, both ways, the head's shape and pose held.
+            outline, both ways, the head's shape and pose held. With the face-only silhouette the scalp
+            is only pulled inwards, so without it the hair volume never grows and the hair lies off the
+            mesh (``TrackConfig.hair_fit``; measured in docs/track.md).
         landmark_offsets: fit one in-plane offset per landmark, shared by all images (the input sees
             the head from several directions, so a landmark's consistent disagreement with the
             embedding can be told from the shape).

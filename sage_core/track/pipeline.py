@@ -140,7 +140,7 @@ def focal_refit_rule(mode: str, focal_fitted: bool, one_image: bool) -> bool:
     (the synthetic photo's face 8 % too large, the landmarks 3.1 px off); holding the focal length
     found and fitting again with the face-only silhouette puts the face where the photo has it (the
     synthetic one-shot avatar 3.88 dB behind the capture's own parameters before, 0.72 dB after; 0.41
-    dB with the outline limit and the hair stage of one photo, ``hair_fit_rule``). A sequence
+    dB with the outline limit and the hair stage, ``TrackConfig.hair_fit``). A sequence
     measured otherwise: better on the 11-frame clip's mesh (7.54 → 5.44 mm) but its avatar blurrier
     (LPIPS 0.19 → 0.28), and twice the 20-s video's error (3.42 → 6.52 mm) (docs/track.md).
     """
@@ -164,19 +164,6 @@ def refit_kept(mode: str, first_px: float, second_px: float) -> bool:
     trims the hair from the mask it raises both (coffee 1.74 → 2.31 px, 1.92 → 3.13 mm; rocket 1.80 →
     2.05 px, 2.05 → 2.90 mm), and there the whole outline's first fit is kept (docs/track.md)."""
     return mode == "on" or second_px < first_px
-
-
-def hair_fit_rule(mode: str, one_image: bool) -> bool:
-    """Whether a fit with the face-only silhouette ends with the hair volume fitted alone to the whole
-    outline (``TrackConfig.hair_fit``: auto, on, off; ``auto`` for one photo). With the face-only
-    silhouette the scalp is pulled only inwards, so the hair volume never grows: a photo's hair then
-    lies off the mesh and its one-shot avatar draws it with streaks. Measured (docs/track.md): the
-    synthetic photo 2.77 → 1.98 mm after one similarity (focal length given 2.83 → 2.17), the real
-    photo's avatar without the streaks at the crown; the 11-frame clip (focal length given) 5.02 →
-    5.22 mm, 2.90 → 4.02 per timestep, and the rig 3.29 → 4.01 mm in the world: there the outlines
-    of many views grow the offsets past the head's.
-    """
-    return mode == "on" or (mode == "auto" and one_image)
 
 
 def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
@@ -502,7 +489,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
                          silhouette_exclude=exclude, silhouette_inward=inward,
                          silhouette_outward_max=cfg.silhouette_outward_max if inward is not None else None,
-                         hair_stage=hair_fit_rule(cfg.hair_fit, source.kind == "image"),
+                         hair_stage=cfg.hair_fit == "on",
                          landmark_offsets=lmk_offsets,
                          camera_relative=source.kind != "multiview", steady_depth=steady,
                          steady_pivot=pivot, steady_pivot_auto=pivot_auto)
