@@ -95,26 +95,39 @@ def test_outline_vertices_lie_on_the_rendered_outline(head):
     assert np.all(d <= 3.0)
 
 
+def _silhouette_term(head, person: np.ndarray, **problem: object) -> float:
+    """The silhouette term of the capture's first mesh seen by camera 8 against the person mask
+    ``person`` (face height 100 px), the fit's outline found at that mesh; ``problem``: FitProblem fields."""
+    fm, v, K, w2c, cam = _mesh_view(head)
+    emb = LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3))
+    image = FitImage(0, 0, None, 100.0, np.zeros((*person.shape, 3), np.float32), person.astype(np.float32))
+    fit = Fitter(fm, emb, FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [image], 1, **problem),
+                 resolve_track_config("tiny"))
+    r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
+    uv, z = project(v[None], K[None], w2c[None])
+    fit.outline = fit.outline_vertices(v, uv[0], z[0], r.depth[0], w2c)[None]
+    fit.sub_lookup = torch.arange(fm.n_vertices)
+    with torch.no_grad():
+        return float(fit.silhouette_term(v[None]))
+
+
+def _coverage(head) -> np.ndarray:
+    """(H, W) bool: the pixels the capture's first mesh covers in camera 8."""
+    fm, v, K, w2c, cam = _mesh_view(head)
+    return rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height).mask[0].numpy()
+
+
 def test_silhouette_pulls_inward_only_vertices_just_inwards(head):
     """A person mask wider than the mesh (hair around the head) pulls every outline vertex outwards,
     except those marked inward-only; a narrower one pulls all of them inwards alike."""
     from scipy.ndimage import binary_dilation, binary_erosion
 
-    fm, v, K, w2c, cam = _mesh_view(head)
-    cover = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height).mask[0].numpy()
-    emb = LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3))
+    cover = _coverage(head)
+    n = head[0].v_template.shape[0]
     terms = {}
     for name, person in (("wide", binary_dilation(cover, iterations=4)), ("narrow", binary_erosion(cover, iterations=4))):
-        for inward in (None, np.ones(fm.n_vertices, bool)):
-            image = FitImage(0, 0, None, 100.0, np.zeros((*cover.shape, 3), np.float32), person.astype(np.float32))
-            fit = Fitter(fm, emb, FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [image], 1,
-                                             silhouette_inward=inward), resolve_track_config("tiny"))
-            r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
-            uv, z = project(v[None], K[None], w2c[None])
-            fit.outline = fit.outline_vertices(v, uv[0], z[0], r.depth[0], w2c)[None]
-            fit.sub_lookup = torch.arange(fm.n_vertices)
-            with torch.no_grad():
-                terms[name, inward is not None] = float(fit.silhouette_term(v[None]))
+        for inward in (None, np.ones(n, bool)):
+            terms[name, inward is not None] = _silhouette_term(head, person, silhouette_inward=inward)
     assert terms["wide", False] > 1.0 and terms["wide", True] == 0.0
     assert terms["narrow", True] == pytest.approx(terms["narrow", False]) and terms["narrow", False] > 1.0
 
@@ -125,23 +138,11 @@ def test_silhouette_outward_pull_stops_at_its_limit(head):
     narrower than the mesh pulls inwards whatever the limit."""
     from scipy.ndimage import binary_dilation, binary_erosion
 
-    fm, v, K, w2c, cam = _mesh_view(head)
-    cover = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height).mask[0].numpy()
-    emb = LandmarkEmbedding(np.array([1, 2, 3]), np.array([0, 1, 2]), np.full((3, 3), 1 / 3))
+    cover = _coverage(head)
     masks = {"wide 3 px": binary_dilation(cover, iterations=3), "wide 12 px": binary_dilation(cover, iterations=12),
              "narrow 12 px": binary_erosion(cover, iterations=12)}
-    terms = {}
-    for name, person in masks.items():
-        for limit in (None, 0.05):  # face height 100 px: the limit is 5 px
-            image = FitImage(0, 0, None, 100.0, np.zeros((*cover.shape, 3), np.float32), person.astype(np.float32))
-            fit = Fitter(fm, emb, FitProblem([FitCamera(cam.K, cam.w2c, cam.width, cam.height)], [image], 1,
-                                             silhouette_outward_max=limit), resolve_track_config("tiny"))
-            r = rasterize_mesh(v, fm.faces, K, w2c, cam.width, cam.height)
-            uv, z = project(v[None], K[None], w2c[None])
-            fit.outline = fit.outline_vertices(v, uv[0], z[0], r.depth[0], w2c)[None]
-            fit.sub_lookup = torch.arange(fm.n_vertices)
-            with torch.no_grad():
-                terms[name, limit] = float(fit.silhouette_term(v[None]))
+    terms = {(name, limit): _silhouette_term(head, person, silhouette_outward_max=limit)
+             for name, person in masks.items() for limit in (None, 0.05)}  # face height 100 px: the limit is 5 px
     assert terms["wide 3 px", 0.05] == pytest.approx(terms["wide 3 px", None]) and terms["wide 3 px", None] > 1.0
     assert terms["wide 12 px", None] > terms["wide 3 px", None] and terms["wide 12 px", 0.05] == 0.0
     assert terms["narrow 12 px", 0.05] == pytest.approx(terms["narrow 12 px", None]) and terms["narrow 12 px", None] > 1.0
@@ -179,7 +180,6 @@ def test_hair_stage_grows_the_hair_volume_alone(head, tiny_capture):
                 fit.params[n].copy_(torch.as_tensor(getattr(p, n)))
             fit.params["translation"].copy_(torch.as_tensor(p.translation) / TRANS_UNIT)
         before = {n: x.detach().clone() for n, x in fit.params.items()}
-        fit._hair_stage = hair_stage
         fit._optimise(["offset"], 30, "hair" if hair_stage else "shape")
         grown[hair_stage] = float(fit.params["offset"].mean())
         for n, x in fit.params.items():

@@ -295,7 +295,6 @@ class Fitter:
         self.sil_scale = self._t(np.array([problem.images[i].face_height for i in self.sil_images])) * self.sil_fit[:, 1]
         self.outline = torch.full((len(self.sil_images), 0), -1, dtype=torch.long, device=self.device)
         self.outline_next = 0
-        self._hair_stage = False  # set while run_joint fits the hair volume alone (silhouette_term)
         self._rebuild_subset()
         self.z0 = 1.0  # reference depth of camera-relative head positions (set by init_rigid)
         # common log depth of a chunk's sequence (the keyframes'), None: the mean of this fitter's timesteps
@@ -603,11 +602,11 @@ class Fitter:
         self.outline = out
         self._rebuild_subset()
 
-    def silhouette_term(self, verts: torch.Tensor) -> torch.Tensor:
+    def silhouette_term(self, verts: torch.Tensor, both_ways: bool = False) -> torch.Tensor:
         """Mean robust distance of every image's outline vertices to its person mask's outline, in face
         heights (distances beyond 0.2 face heights are ignored: occlusions, mask errors; inside the mask,
-        beyond ``problem.silhouette_outward_max`` when set; inward-only vertices inside the mask too, except
-        in the hair stage of :meth:`run_joint`)."""
+        beyond ``problem.silhouette_outward_max`` when set; inward-only vertices inside the mask too).
+        ``both_ways``: every outline vertex pulled both ways, as the hair stage of :meth:`run_joint` does."""
         valid = self.outline >= 0
         if not bool(valid.any()):
             return torch.zeros((), dtype=self.dtype, device=self.device)
@@ -621,7 +620,7 @@ class Fitter:
         sdt, size = self.sdt_maps()
         d = sample_map(sdt, uv, *size) / self.sil_scale[:, None]
         keep = valid & (d.abs() < 0.2)
-        if not self._hair_stage:  # the hair volume's own stage pulls every outline point both ways
+        if not both_ways:
             keep = keep & ~(self.sil_inward[self.outline.clamp_min(0)] & (d < 0))
             if self.p.silhouette_outward_max is not None:
                 keep = keep & ~((d < 0) & (d.abs() >= self.p.silhouette_outward_max))
@@ -788,7 +787,8 @@ class Fitter:
     def _optimise(self, names: list[str], steps: int, stage: str) -> None:
         """Adam on the named parameters for ``steps`` steps (learning rate decaying to a tenth). The rigid
         stage uses the landmarks only; the others add the silhouettes (``refresh`` images re-rasterized per
-        step) and the refine stage the photometric term on a minibatch."""
+        step), the refine stage the photometric term on a minibatch, and the hair stage pulls every outline
+        vertex both ways (``silhouette_term``'s ``both_ways``)."""
         if steps <= 0:
             return
         c = self.cfg
@@ -830,7 +830,7 @@ class Fitter:
             loss = c.w_landmark * lm + self.priors()
             stats = {"landmark_px": float(px.detach().mean()) if px.numel() else float("nan")}
             if use_sil:
-                sil = self.silhouette_term(verts)
+                sil = self.silhouette_term(verts, both_ways=stage == "hair")
                 loss = loss + c.w_silhouette * sil
                 stats["silhouette"] = float(sil.detach())
             if use_photo:
@@ -908,11 +908,7 @@ class Fitter:
         self._optimise(full, c.refine_steps, "refine")
         if self.p.hair_stage and self.hair is not None and self.hair.numel() and c.hair_steps > 0 and bool(self.sil_inward.any()):
             # the hair volume alone to the whole outline, both ways: the skull came from the face
-            self._hair_stage = True
-            try:
-                self._optimise(["offset"], c.hair_steps, "hair")
-            finally:
-                self._hair_stage = False
+            self._optimise(["offset"], c.hair_steps, "hair")
 
     def _child(self, rows: np.ndarray, progress: Progress | None) -> Fitter:
         """A fitter of the timesteps ``rows`` sharing this one's model, embedding, config and seed."""

@@ -479,13 +479,15 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     steady = steady_depth_rule(cfg.steady_depth, source.kind, len(obs.kept))
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
-    inward = None
-    face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
-    if face_only and len(groups.get("face", [])):
-        both = np.zeros(V, bool)
+    # the outline vertices a face-only silhouette pulls both ways: the FLAME masks' face and neck (None
+    # without a face region); every other outline vertex it pulls only inwards
+    face_neck = None
+    if len(groups.get("face", [])):
+        face_neck = np.zeros(V, bool)
         for k in ("face", "neck"):
-            both[np.asarray(groups.get(k, []), np.int64)] = True
-        inward = ~both
+            face_neck[np.asarray(groups.get(k, []), np.int64)] = True
+    face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
+    inward = ~face_neck if face_only and face_neck is not None else None
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
                          silhouette_exclude=exclude, silhouette_inward=inward,
                          silhouette_outward_max=cfg.silhouette_outward_max if inward is not None else None,
@@ -499,11 +501,8 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     if focal_refit_rule(cfg.focal_refit, any(c.fit_focal for c in fit_cams), source.kind == "image"):
         # the focal length found, held: fitted again from the start with the silhouette of a known one
         held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, fit_cams)]
-        both = np.zeros(V, bool)
-        for k in ("face", "neck"):
-            both[np.asarray(groups.get(k, []), np.int64)] = True
-        problem = replace(problem, cameras=held, silhouette_inward=~both if both.any() else None,
-                          silhouette_outward_max=cfg.silhouette_outward_max if both.any() else None)
+        problem = replace(problem, cameras=held, silhouette_inward=None if face_neck is None else ~face_neck,
+                          silhouette_outward_max=None if face_neck is None else cfg.silhouette_outward_max)
         first = {"focal_px": [float(c.K[0, 0]) for c in fit.cameras], "fit_s": round(time.time() - t0, 1)}
         second_fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
         second = second_fitter.run()
