@@ -23,6 +23,12 @@ the head, three novel expressions from the six in front), which
 ``--video`` also renders a head-turn video of a synthetic head (yaw ±60°, some pitch, ``--video-fps``
 frames per second for ``--video-seconds``, ``--video-size``) as an MP4 and tracks it: the time of the
 issue's "20-second 30-fps head-turn video" target, and its vertex error against the rendered truth.
+The head is rendered as ``sage synth`` renders its subjects, hair volume past the scalp and mouth
+interior included (``--video-appearance detailed``); ``smooth`` renders the bare head of earlier
+versions, whose outline is the skull's and so favours a silhouette that pulls the whole outline.
+
+``--only-avatars --avatar-label L --avatar-track-set KEY=VALUE`` trains the tracked avatar on a capture
+tracked with other settings (its own folders) and records it under ``avatar_variants``.
 
 ``--only-clip-seeds 0,1,2`` tracks the monocular clip once per tracking seed with the settings of
 ``--clip-set`` (and the true focal length with ``--known-focal``) and records the runs under
@@ -119,14 +125,17 @@ def _phase2_finished(ws: Path) -> str | None:
 
 
 def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, avatar_preset: str, avatar_sets: list[str],
-                threads: int, known_focal: bool = False) -> dict:
+                threads: int, known_focal: bool = False, track_sets: list[str] | None = None) -> dict:
     """Train an avatar on the tracked capture and one on the capture's own parameters; compare them on
     the same test images (module docstring). ``known_focal``: the tracking is given one camera's true
-    focal length (as EXIF gives it); the own avatar is the same."""
+    focal length (as EXIF gives it); ``track_sets``: more ``--set KEY=VALUE`` of the tracking (its
+    capture and avatar in folders of their own). The own avatar is the same for all."""
+    track_sets = list(track_sets or [])
+    tag = _settings_tag(track_sets)
     cap = _capture(work, regime, synth_preset)
     inp, cams = _input(work, regime, synth_preset, cap)
     info = json.loads((cap / "gt" / "info.json").read_text())
-    tracked = work / f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}_uncropped"
+    tracked = work / f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}_uncropped{tag}"
     model = str(cap / "model" / "synth_flame.pkl")
     if not (tracked / "transforms.json").is_file():
         args = ["track", str(inp), str(tracked), "--flame-model", model, "--preset", track_preset, "--quiet", "--force",
@@ -135,6 +144,8 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
             args += ["--cameras", str(cams)]
         if known_focal:
             args += ["--set", f"focal={json.loads((cap / 'transforms.json').read_text())['frames'][0]['fl_x']}"]
+        for kv in track_sets:
+            args += ["--set", kv]
         _sage(args, threads)
     ids = {f["timestep_index"]: int(f["timestep_id"]) for f in json.loads((tracked / "transforms.json").read_text())["frames"]}
     held_out = None
@@ -144,7 +155,8 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
         held_out = held_out_for_tracked(tracked, cap)
     runs = {}
     for name, capture in (("own", cap), ("tracked", tracked)):
-        ws = work / f"avatar_{regime}_{synth_preset}_{name}{'_focal' if known_focal and name == 'tracked' else ''}_{avatar_preset}"
+        ws = work / (f"avatar_{regime}_{synth_preset}_{name}{'_focal' if known_focal and name == 'tracked' else ''}"
+                     f"{tag if name == 'tracked' else ''}_{avatar_preset}")
         args = ["run", str(capture), str(ws), "--flame-model", model, "--regime", REGIME_OF[regime], "--preset", avatar_preset,
                 "--seed", "0", "--quiet"]
         for kv in avatar_sets:
@@ -175,7 +187,7 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
                 **{f"subset_{k}": _means(v["overall"]) for k, v in doc.get("subsets", {}).items()},
                 **{f"views_{k}": _means(v["overall"]) for k, v in doc.get("view_groups", {}).items()}}
     return {"regime": regime, "track_regime": REGIME_OF[regime], "known_focal": known_focal, "synth_preset": synth_preset,
-            "avatar_preset": avatar_preset, "avatar_sets": avatar_sets, "common_images": len(common),
+            "avatar_preset": avatar_preset, "avatar_sets": avatar_sets, "track_sets": track_sets, "common_images": len(common),
             "held_out_alignment": held_out,
             "common_timesteps": sorted({t for t, _ in common}), "runs": runs,
             "psnr_difference_db": round(runs["tracked"]["common"]["psnr"] - runs["own"]["common"]["psnr"], 3)}
@@ -306,10 +318,13 @@ def background_cases(work: Path, synth_preset: str, track_preset: str, threads: 
 
 
 def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], seed: int = 0,
-                 sway_mm: float = 0.0) -> tuple[Path, dict]:
+                 sway_mm: float = 0.0, appearance: str = "detailed") -> tuple[Path, dict]:
     """A head-turn MP4 of a synthetic head (exact model) and its truth: model file, per-frame FLAME
     parameters and the camera (VHAP monocular convention). ``sway_mm``: the head also drifts, up to
-    this far towards and away from the camera and half as far sideways (slower than the turns)."""
+    this far towards and away from the camera and half as far sideways (slower than the turns).
+    ``appearance``: detailed renders the subject as ``sage synth`` does (its hair volume past the
+    scalp, mouth interior, skin detail); smooth the bare head of earlier versions of this benchmark
+    (skin only, its outline the skull's)."""
     import torch
 
     from sage_core.data.synthetic import (
@@ -323,7 +338,8 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
     from sage_core.export.video import VideoWriter
 
     W, H = size
-    cfg = preset("small", regime="monocular", seed=seed, width=W, height=H, tracking="exact")
+    cfg = preset("small", regime="monocular", seed=seed, width=W, height=H, tracking="exact",
+                 appearance="detailed" if appearance == "detailed" else "smooth")
     subject = make_subject(cfg)
     model_files = write_model_files(subject.head, path.parent / "video_model")
     cam = monocular_camera(W, H, cfg.mono_focal)
@@ -344,19 +360,22 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
     crease = np.zeros(verts.shape[1])
     with VideoWriter(path, fps=fps, width=W, height=H, quality=9) as vw:
         for t in range(n):
-            r = render_head(subject.head, verts[t], cam, subject.app, crease, supersample=1)
+            if appearance == "detailed":
+                r = subject.render(verts[t], cam, crease, supersample=1)
+            else:
+                r = render_head(subject.head, verts[t], cam, subject.app, crease, supersample=1)
             neck = neck_line_mask(subject.head, verts[t], cam)
             vw.write(r.rgb * neck[..., None] + (1 - neck[..., None]))
     np.savez(path.with_suffix(".truth.npz"), vertices=verts.astype(np.float32), rotation=rot, translation=trans, K=cam.K, w2c=cam.w2c,
              faces=subject.head.faces)
     del neutral
-    return path, {"model": str(model_files["npz"]), "frames": n}
+    return path, {"model": str(model_files["npz"]), "frames": n, "appearance": appearance}
 
 
 def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], track_preset: str, threads: int,
-               sway_mm: float = 0.0, sets: list[str] | None = None) -> dict:
-    """Render (or reuse) the head-turn video, track it (``sets``: extra ``--set KEY=VALUE`` of the tracking),
-    and compare the meshes with the rendered truth."""
+               sway_mm: float = 0.0, sets: list[str] | None = None, appearance: str = "detailed") -> dict:
+    """Render (or reuse) the head-turn video (``appearance`` as :func:`render_video`), track it (``sets``:
+    extra ``--set KEY=VALUE`` of the tracking), and compare the meshes with the rendered truth."""
     import torch
 
     from sage_core.data.capture import read_capture
@@ -364,16 +383,17 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
     from sage_core.track.truth import error_summary, similarity_fit
 
     sway = f"_sway{sway_mm:g}mm" if sway_mm else ""
-    video = work / f"headturn_{int(seconds)}s_{int(fps)}fps_{size[0]}x{size[1]}{sway}.mp4"
+    look = "" if appearance == "detailed" else f"_{appearance}"
+    video = work / f"headturn_{int(seconds)}s_{int(fps)}fps_{size[0]}x{size[1]}{sway}{look}.mp4"
     meta_path = video.with_suffix(".json")
     if not meta_path.is_file():
         t0 = time.time()
-        _, meta = render_video(video, seconds, fps, size, sway_mm=sway_mm)
+        _, meta = render_video(video, seconds, fps, size, sway_mm=sway_mm, appearance=appearance)
         meta["render_s"] = round(time.time() - t0, 1)
         meta_path.write_text(json.dumps(meta))
     meta = json.loads(meta_path.read_text())
     # one folder per video and settings, so runs of the same video with other settings may overlap
-    out = work / f"tracked_video{sway}_{track_preset}{_settings_tag(sets or [])}"
+    out = work / f"tracked_video{sway}{look}_{track_preset}{_settings_tag(sets or [])}"
     args = ["track", str(video), str(out), "--flame-model", meta["model"], "--preset", track_preset, "--quiet", "--force"]
     for kv in sets or []:
         args += ["--set", kv]
@@ -398,7 +418,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
     report = json.loads((out / "track" / "report.json").read_text())
     focal = report["camera"]["cameras"][0]["focal_input_px"]
     return {
-        "video": video.name, "seconds": seconds, "fps": fps, "size": list(size), "frames": meta["frames"], "sway_mm": sway_mm,
+        "video": video.name, "appearance": appearance, "seconds": seconds, "fps": fps, "size": list(size), "frames": meta["frames"], "sway_mm": sway_mm,
         "timesteps": report["timesteps"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
         "steady_pivot": report.get("steady_pivot"),
@@ -463,7 +483,9 @@ def markdown(doc: dict) -> str:
                                      if doc.get("video") else [])
     if runs:
         lines += ["", "Head-turn videos of a synthetic head (yaw ±60°, 360x640, 30 fps; some also drifting towards and away from "
-                      "the camera by the amount given and half as far sideways). Times in seconds: the wall time of "
+                      "the camera by the amount given and half as far sideways): with hair, the subject as `sage synth` renders "
+                      "it (hair volume past the scalp, mouth interior, skin detail; `--video-appearance detailed`, the default), "
+                      "or the bare head of earlier versions whose outline is the skull's (`smooth`). Times in seconds: the wall time of "
                       "the whole command and its phases; the fit is split into the keyframes' full schedule and the tracking "
                       "of every frame (a joint fit of all frames has neither). Commands, machine and load per row in "
                       "`track.json` (`video_runs`).", "",
@@ -474,7 +496,8 @@ def markdown(doc: dict) -> str:
             v = r["video"]
             e = v["errors"]
             sway = f", drifting ±{v['sway_mm']:g} mm" if v.get("sway_mm") else ""
-            lines.append(f"| {v['seconds']:.0f} s ({v['frames']} frames{sway}) | {r['label']} | {v['timesteps']} | {v['dropped']} | "
+            look = "with hair" if v.get("appearance") == "detailed" else "bare head"
+            lines.append(f"| {v['seconds']:.0f} s ({v['frames']} frames{sway}, {look}) | {r['label']} | {v['timesteps']} | {v['dropped']} | "
                          f"{v['wall_s']:.0f} | "
                          + " | ".join(_sec(v["timings_s"], k) for k in ("faces", "images", "embedding", "fit", "fit_keyframes",
                                                                          "fit_track", "masks"))
@@ -532,6 +555,17 @@ def markdown(doc: dict) -> str:
         if any(r.get("reused") for a in doc["avatars"] for r in a["runs"].values()):
             lines[-1] += (" (reused): the avatar of an earlier run of the same command, whose workspace the benchmark "
                           "found complete; its time is the sum of its stages' recorded times.")
+    if doc.get("avatar_variants"):
+        lines += ["", "Avatars on captures tracked with other settings (`--only-avatars --avatar-label`, "
+                      "`--avatar-track-set`; `avatar_variants` in `track.json`), against the same own-parameter avatar:", "",
+                  "| variant | regime | tracking `--set` | `sage track`'s: PSNR / SSIM / LPIPS | difference (dB) | run (UTC) |",
+                  "|---|---|---|---|---:|---|"]
+        for a in doc["avatar_variants"]:
+            t = a["runs"]["tracked"]["common"]
+            sets = " ".join(f"`{kv}`" for kv in a.get("track_sets") or []) or "—"
+            lines.append(f"| {a['label']} | {a['regime']}{', focal length given' if a.get('known_focal') else ''} | {sets} | "
+                         f"{t['psnr']:.2f} / {t['ssim']:.4f} / {t.get('lpips', float('nan')):.4f} | "
+                         f"{a['psnr_difference_db']:+.2f} | {a.get('machine', {}).get('date_utc', '—')} |")
     if doc.get("backgrounds"):
         lines += ["", "The one-shot photo's head over photographs from scikit-image (`--only-backgrounds`), tracked with the "
                       "masks' colour cut off and on (`--set mask_colour_cut=off|on`; `auto` turns it on for such "
@@ -597,6 +631,9 @@ def main(argv: list[str] | None = None) -> None:
                          "video and label) instead of making it the only video row")
     ap.add_argument("--video-set", action="append", default=[], metavar="KEY=VALUE",
                     help="a --set for the video's tracking (repeatable)")
+    ap.add_argument("--video-appearance", default="detailed", choices=("detailed", "smooth"),
+                    help="detailed: the synthetic subject with its hair volume, mouth and skin detail; smooth: the bare "
+                         "head of earlier versions (its outline the skull's)")
     ap.add_argument("--out", type=Path, default=Path("bench-track"))
     ap.add_argument("--docs", type=Path, default=REPO / "docs" / "benchmarks")
     ap.add_argument("--threads", type=int, default=2)
@@ -611,6 +648,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--avatar-preset", default="tiny", choices=("tiny", "small", "default"))
     ap.add_argument("--avatar-set", action="append", default=[], metavar="KEY=VALUE",
                     help="a --set for both avatars' sage run (repeatable)")
+    ap.add_argument("--avatar-track-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a --set for the tracking of the avatars' captures (repeatable; needs --avatar-label)")
+    ap.add_argument("--avatar-label", default=None,
+                    help="with --only-avatars: put the comparison into DOCS/track.json's avatar_variants under this "
+                         "label (replacing one of the same label, regime and focal mode) instead of the main avatar rows")
     ap.add_argument("--only-backgrounds", default=None, metavar="NAMES",
                     help=f"run only the one-shot head over these scikit-image photographs (comma-separated, e.g. {','.join(BACKGROUNDS)}) "
                          "and put them into DOCS/track.json beside the cases already there")
@@ -625,6 +667,10 @@ def main(argv: list[str] | None = None) -> None:
                     help="recompute the errors of DOCS/track.json's tracked captures in WORK, the clip's seed runs "
                          "included (no tracking; times kept)")
     a = ap.parse_args(argv)
+    if a.avatar_track_set and a.avatar_label is None:
+        ap.error("--avatar-track-set needs --avatar-label (a variant is not recorded as the main avatar rows)")
+    if a.avatar_label is not None and not a.only_avatars:
+        ap.error("--avatar-label needs --only-avatars")
     if a.rescore:
         rescore(a.out, a.docs)
         return
@@ -634,15 +680,17 @@ def main(argv: list[str] | None = None) -> None:
     avatars = None
     if a.avatars or a.only_avatars:
         avatars = [avatar_case(a.out, r, (a.multiview_preset or a.synth_preset) if r == "multiview" else a.synth_preset,
-                               a.track_preset, a.avatar_preset, a.avatar_set, a.threads)
+                               a.track_preset, a.avatar_preset, a.avatar_set, a.threads, track_sets=a.avatar_track_set)
                    for r in a.regimes.split(",") if r in ("monocular", "multiview", "oneshot")]
         if a.known_focal:  # the one-camera regimes tracked again with the true focal length given
             avatars += [avatar_case(a.out, r, a.synth_preset, a.track_preset, a.avatar_preset, a.avatar_set, a.threads,
-                                    known_focal=True)
+                                    known_focal=True, track_sets=a.avatar_track_set)
                         for r in a.regimes.split(",") if r in ("monocular", "oneshot")]
         for x in avatars:
             x["machine"] = machine
             x["benchmark_command"] = command
+            if a.avatar_label is not None:
+                x["label"] = a.avatar_label
     one_camera = [r for r in a.regimes.split(",") if r in ("monocular", "oneshot")]
     # each branch reads the results file only after its measurements, just before it writes it back, so
     # that runs of the benchmark side by side do not drop each other's entries
@@ -674,6 +722,14 @@ def main(argv: list[str] | None = None) -> None:
         doc["backgrounds"] = [x for x in doc.get("backgrounds") or [] if x["background"] not in ran] + rows
         _write(a.docs, doc)
         return
+    if a.only_avatars and a.avatar_label is not None:
+        doc = json.loads((a.docs / "track.json").read_text())
+        ran = {(x["regime"], bool(x.get("known_focal"))) for x in avatars}
+        doc["avatar_variants"] = [x for x in doc.get("avatar_variants") or []
+                                  if (x["label"], x["regime"], bool(x.get("known_focal"))) not in
+                                  {(a.avatar_label, *k) for k in ran}] + avatars
+        _write(a.docs, doc)
+        return
     if a.only_avatars:
         doc = json.loads((a.docs / "track.json").read_text())
         # regimes this run did not train keep their earlier comparison (with its own command and machine)
@@ -689,7 +745,8 @@ def main(argv: list[str] | None = None) -> None:
     video = None
     if a.video:
         w, h = (int(x) for x in a.video_size.split("x"))
-        video = video_case(a.out, a.video_seconds, a.video_fps, (w, h), a.track_preset, a.threads, a.video_sway, a.video_set)
+        video = video_case(a.out, a.video_seconds, a.video_fps, (w, h), a.track_preset, a.threads, a.video_sway, a.video_set,
+                           a.video_appearance)
     old = json.loads((a.docs / "track.json").read_text()) if (a.docs / "track.json").is_file() else {}
     if video is not None and a.video_label is not None:
         run = {"label": a.video_label, "run": {"command": command, "machine": machine,

@@ -109,7 +109,7 @@ def test_a_full_run_keeps_what_it_did_not_measure(tmp_path, monkeypatch):
                            "mean": {"aligned_mm": 9.0, "rigid_per_timestep_mm": 4.0, "camera_mm": 90.0, "focal_rel_error": 0.0},
                            "machine": {"date_utc": "d"}}],
             "backgrounds": [], "video_runs": [], "notes": {"cases": "earlier notes"},
-            "clip_runs_superseded": [{"label": "older"}], "avatar_variants": [{"regime": "oneshot", "label": "refit"}]}
+            "clip_runs_superseded": [{"label": "older"}], "avatar_variants": [_avatar("oneshot", 19.0, label="refit")]}
     (docs / "track.json").write_text(json.dumps({
         "command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"}, "threads": 1,
         "load_after": [0, 0, 0], "cases": [{"regime": "old"}], **kept}))
@@ -179,3 +179,93 @@ def test_a_clip_seed_run_keeps_what_another_run_wrote_meanwhile(tmp_path, monkey
     doc = json.loads(path.read_text())
     assert doc["backgrounds"] == [{"background": "coffee", "written_while": 0}]
     assert [r["label"] for r in doc["clip_runs"]] == ["x"]
+
+
+def _avatar(regime: str, psnr: float, **extra) -> dict:
+    common = {"psnr": psnr, "ssim": 0.8, "lpips": 0.2}
+    return {"regime": regime, "track_regime": "sv-hr", "known_focal": False, "avatar_preset": "tiny", "avatar_sets": [],
+            "common_images": 4, "runs": {"own": {"common": common, "wall_s": 1.0}, "tracked": {"common": common, "wall_s": 1.0}},
+            "psnr_difference_db": 0.0, **extra}
+
+
+def test_avatar_variants_are_recorded_per_label_beside_the_main_rows(tmp_path, monkeypatch):
+    """--only-avatars --avatar-label L --avatar-track-set K=V: the tracking gets the settings, the comparison
+    goes into avatar_variants (replacing L's earlier row of that regime, keeping other labels), the main
+    avatar rows stay; --avatar-track-set without a label is refused."""
+    calls = []
+
+    def fake_avatar(work, regime, synth_preset, track_preset, avatar_preset, avatar_sets, threads, known_focal=False,
+                    track_sets=None):
+        calls.append((regime, known_focal, list(track_sets or [])))
+        return _avatar(regime, 21.0, track_sets=list(track_sets or []))
+
+    monkeypatch.setattr(bench, "avatar_case", fake_avatar)
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    main_rows = [_avatar("monocular", 20.0)]
+    (docs / "track.json").write_text(json.dumps({
+        "command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"}, "threads": 1,
+        "load_after": [0, 0, 0], "cases": [], "avatars": main_rows,
+        "avatar_variants": [_avatar("monocular", 19.0, label="refit"), _avatar("monocular", 18.0, label="other")]}))
+    bench.main(["--only-avatars", "--regimes", "monocular", "--avatar-label", "refit", "--avatar-track-set", "focal_refit=on",
+                "--out", str(tmp_path / "work"), "--docs", str(docs), "--synth-preset", "small"])
+    assert calls == [("monocular", False, ["focal_refit=on"])]
+    doc = json.loads((docs / "track.json").read_text())
+    assert doc["avatars"] == main_rows
+    assert [(v["label"], v["runs"]["tracked"]["common"]["psnr"]) for v in doc["avatar_variants"]] == [("other", 18.0), ("refit", 21.0)]
+    md = (docs / "track.md").read_text()
+    assert "| refit | monocular | `focal_refit=on` | 21.00 / 0.8000 / 0.2000 | +0.00 |" in md
+    import pytest
+
+    with pytest.raises(SystemExit):
+        bench.main(["--only-avatars", "--avatar-track-set", "focal_refit=on", "--out", str(tmp_path / "work"),
+                    "--docs", str(docs)])
+
+
+def test_an_avatar_variant_tracks_into_its_own_folders(tmp_path, monkeypatch):
+    """avatar_case with track_sets passes them to `sage track` and keeps that capture and its avatar in
+    folders tagged by the settings; the own-parameter avatar is shared."""
+    work = tmp_path
+    cap = work / "cap"
+    (cap / "gt").mkdir(parents=True)
+    (cap / "gt" / "info.json").write_text(json.dumps({"config": {"train_timesteps": 2}, "counts": {"timesteps": 3}}))
+    monkeypatch.setattr(bench, "_capture", lambda w, r, p: cap)
+    monkeypatch.setattr(bench, "_input", lambda w, r, p, c: (work / "in", None))
+    seen = []
+
+    def fake_sage(args, threads):
+        seen.append(list(args))
+        out = Path(args[2])
+        if args[0] == "track":
+            out.mkdir(parents=True)
+            (out / "transforms.json").write_text(json.dumps({"frames": [{"timestep_index": 0, "timestep_id": "0"}]}))
+            return 1.0, ""
+        metrics = out / "eval" / "phase2" / "test" / "metrics.json"
+        metrics.parent.mkdir(parents=True, exist_ok=True)
+        metrics.write_text(json.dumps({"images": [{"timestep": 0, "camera": 0, "psnr": 20.0, "ssim": 0.8, "lpips": 0.2}]}))
+        return 2.0, ""
+
+    monkeypatch.setattr(bench, "_sage", fake_sage)
+    res = bench.avatar_case(work, "monocular", "small", "default", "tiny", [], 1, track_sets=["focal_refit=on"])
+    tag = bench._settings_tag(["focal_refit=on"])
+    track = next(a for a in seen if a[0] == "track")
+    assert track[2].endswith(f"tracked_monocular_small_default_uncropped{tag}") and "focal_refit=on" in track
+    runs = [a for a in seen if a[0] == "run"]
+    assert Path(runs[0][2]).name == "avatar_monocular_small_own_tiny"
+    assert Path(runs[1][2]).name == f"avatar_monocular_small_tracked{tag}_tiny" and Path(runs[1][1]) == Path(track[2])
+    assert res["track_sets"] == ["focal_refit=on"]
+
+
+def test_the_video_table_says_which_head_each_video_shows():
+    """Video rows name their appearance: with hair (detailed) or the bare head of earlier runs (smooth,
+    also rows recorded before the appearance was)."""
+    def run(label: str, **video) -> dict:
+        v = {"video": "v.mp4", "seconds": 20, "frames": 600, "sway_mm": 0.0, "timesteps": 600, "dropped": 0, "wall_s": 300.0,
+             "timings_s": {"fit": 200.0}, "reprojection_px": 1.5, "errors": _errors(4.0), **video}
+        return {"label": label, "run": {}, "video": v}
+
+    md = bench.markdown({"command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"},
+                         "threads": 1, "load_after": [0, 0, 0], "cases": [],
+                         "video_runs": [run("a", appearance="detailed"), run("b", appearance="smooth"), run("c")]})
+    rows = [line for line in md.splitlines() if line.startswith("| 20 s")]
+    assert [r.split(" | ")[0] for r in rows] == ["| 20 s (600 frames, with hair)"] + ["| 20 s (600 frames, bare head)"] * 2

@@ -214,7 +214,13 @@ def test_video_with_a_missed_frame(tmp_path, tiny_capture, model, embedding):
     assert report["calibration"] is None and "from" in report["landmark_embedding"]
     pivot = report["steady_pivot"]
     assert pivot["mode"] == "auto" and pivot["held"] is (pivot["spread"] <= pivot["scale"] == 0.01)
-    assert ("fit_pivot_check" in report["timings_s"]) is pivot["held"]
+    # no EXIF, no --focal: the fitted focal length is held for a second fit, which keeps the first's decision
+    refit = report["camera"]["focal_refit"]
+    assert refit is not None
+    assert refit["kept"] == ("second" if refit["landmark_px"][1] < refit["landmark_px"][0] or not refit["landmarks_compared"]
+                             else "first")
+    prefix = "fit_first_" if refit["kept"] == "second" else "fit_"
+    assert (f"{prefix}pivot_check" in report["timings_s"]) is pivot["held"]
 
 
 def test_a_held_pivot_uses_the_wider_pose_table(tmp_path, tiny_capture, model):
@@ -230,7 +236,7 @@ def test_a_held_pivot_uses_the_wider_pose_table(tmp_path, tiny_capture, model):
     for pivot in ("on", "off"):
         out = tmp_path / f"cap_{pivot}"
         res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--set", "steps=60", "--set", "keyframes=0",
-                      "--set", f"steady_pivot={pivot}", "--set", "pivot_pose_yaw_deg=60"])
+                      "--set", "focal_refit=off", "--set", f"steady_pivot={pivot}", "--set", "pivot_pose_yaw_deg=60"])
         assert res.exit_code == 0, res.output
         report = json.loads((out / "track" / "report.json").read_text())
         assert report["steady_pivot"] == {"mode": pivot, "held": pivot == "on"}
@@ -238,6 +244,39 @@ def test_a_held_pivot_uses_the_wider_pose_table(tmp_path, tiny_capture, model):
         emb = load_embedding(out / "track" / "landmark_embedding.npz", n_faces)
         yaws[pivot] = emb.pose.yaws
     assert yaws["on"].max() == pytest.approx(60.0) and yaws["off"].max() == pytest.approx(30.0)
+
+
+def test_a_known_or_held_focal_length_fits_a_clip_without_the_pose_table(tmp_path, tiny_capture, model):
+    """A clip whose focal length is given (--set focal) is fitted without the pose table (the
+    calibration builds none, the capture's embedding has none), unless the whole outline is pulled both
+    ways (silhouette_two_sided=all); without a focal length the fitted one is held for a second fit
+    (focal_refit=auto), kept, which drops the first fit's table and keeps its decision on the head's
+    pivot."""
+    from sage_core.flame import load_flame_model
+    from sage_core.track.embedding import load_embedding
+
+    n_faces = load_flame_model(model).n_faces
+    clip = _clip(tmp_path, tiny_capture)
+    reports, tables = {}, {}
+    for name, extra in (("given", ("--set", "focal=300")), ("refit", ()),
+                        ("given_all", ("--set", "focal=300", "--set", "silhouette_two_sided=all"))):
+        out = tmp_path / f"cap_{name}"
+        res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--set", "steps=60", "--set", "keyframes=0", *extra])
+        assert res.exit_code == 0, res.output
+        reports[name] = json.loads((out / "track" / "report.json").read_text())
+        tables[name] = load_embedding(out / "track" / "landmark_embedding.npz", n_faces).pose is not None
+    assert tables == {"given": False, "refit": False, "given_all": True}
+    given, refit = reports["given"], reports["refit"]
+    assert given["camera"]["focal_source"] != "fitted" and given["calibration"]["pose_views"] == 0
+    # the whole outline pulled both ways (asked for) brings the table back with a known focal length
+    assert reports["given_all"]["calibration"]["pose_views"] > 0
+    assert refit["camera"]["focal_source"] == "fitted" and refit["calibration"]["pose_views"] > 0
+    # the first fit followed the detector's lean with the table, the second not: their landmark errors
+    # are not compared, and the second fit is kept under auto too
+    assert refit["camera"]["focal_refit"]["kept"] == "second"
+    assert refit["camera"]["focal_refit"]["landmarks_compared"] is False
+    assert refit["steady_pivot"]["mode"] == "auto" and "spread" in refit["steady_pivot"]
+    assert refit["steady_pivot"]["held"] is (refit["steady_pivot"]["spread"] <= 0.01)
 
 
 def test_a_wider_pose_table_with_other_landmarks_is_not_used(tmp_path, tiny_capture, model, monkeypatch):
@@ -257,7 +296,7 @@ def test_a_wider_pose_table_with_other_landmarks_is_not_used(tmp_path, tiny_capt
     clip = _clip(tmp_path, tiny_capture)
     out = tmp_path / "cap"
     res = invoke(["track", clip, out, "--flame-model", model, *TINY, "--set", "steps=60", "--set", "keyframes=0",
-                  "--set", "steady_pivot=on", "--set", "pivot_pose_yaw_deg=60"])
+                  "--set", "focal_refit=off", "--set", "steady_pivot=on", "--set", "pivot_pose_yaw_deg=60"])
     assert res.exit_code == 0, res.output
     assert len(calls) == 1
     report = json.loads((out / "track" / "report.json").read_text())

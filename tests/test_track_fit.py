@@ -190,7 +190,8 @@ def test_hair_stage_grows_the_hair_volume_alone(head, tiny_capture):
 
 
 def test_the_second_fit_is_kept_by_its_landmark_error():
-    """focal_refit=auto keeps the second fit only when its landmarks lie closer; on keeps it always. The
+    """focal_refit=auto keeps the second fit only when its landmarks lie closer (or the two fits' errors
+    are not comparable); on keeps it always. The
     landmark error of a fit is the mean over its images with landmarks."""
     from types import SimpleNamespace
 
@@ -198,6 +199,8 @@ def test_the_second_fit_is_kept_by_its_landmark_error():
 
     assert refit_kept("auto", 3.1, 1.8) and not refit_kept("auto", 1.7, 2.3) and not refit_kept("auto", 2.0, 2.0)
     assert refit_kept("on", 1.7, 2.3)
+    # a sequence's first fit with the pose table, its second without: not compared, the second kept
+    assert refit_kept("auto", 1.7, 2.3, comparable=False) and not refit_kept("auto", 1.7, 2.3, comparable=True)
     assert landmark_error(SimpleNamespace(reprojection_px=np.array([1.0, np.nan, 3.0]))) == pytest.approx(2.0)
     assert landmark_error(SimpleNamespace(reprojection_px=np.array([np.nan]))) == float("inf")
 
@@ -212,16 +215,14 @@ def test_face_only_silhouette_rule():
 
 
 def test_focal_refit_rule():
-    """A fitted focal length is held for a second fit when asked (on), or for one photo (auto, the
-    default); a known one never is."""
+    """A fitted focal length is held for a second fit (auto, the default, and on), never with off; a
+    known one never is."""
     from sage_core.track.pipeline import focal_refit_rule
     from sage_core.track.config import TrackConfig
 
-    assert focal_refit_rule("on", focal_fitted=True, one_image=False) and not focal_refit_rule("on", focal_fitted=False, one_image=True)
-    assert focal_refit_rule("auto", focal_fitted=True, one_image=True)
-    assert not focal_refit_rule("auto", focal_fitted=True, one_image=False)
-    assert not focal_refit_rule("auto", focal_fitted=False, one_image=True)
-    assert not focal_refit_rule("off", focal_fitted=True, one_image=True)
+    assert focal_refit_rule("on", focal_fitted=True) and not focal_refit_rule("on", focal_fitted=False)
+    assert focal_refit_rule("auto", focal_fitted=True) and not focal_refit_rule("auto", focal_fitted=False)
+    assert not focal_refit_rule("off", focal_fitted=True)
     assert TrackConfig().focal_refit == "auto"
 
 
@@ -325,13 +326,15 @@ def test_fit_looks_the_pose_table_up_at_each_images_pose(head):
 
 
 def test_landmark_pose_rule():
-    """auto: one camera that sees the head turn (a video, several frames); on and off as given."""
+    """auto: one camera that sees the head turn (a video, several frames) whose fit pulls the whole
+    outline both ways (a fitted focal length, or silhouette_two_sided=all); on and off as given."""
     from sage_core.track.pipeline import landmark_pose_rule
 
-    assert landmark_pose_rule("auto", "video", 40) and landmark_pose_rule("auto", "images", 2)
-    assert not landmark_pose_rule("auto", "image", 1) and not landmark_pose_rule("auto", "multiview", 6)
-    assert not landmark_pose_rule("auto", "images", 1)
-    assert landmark_pose_rule("on", "multiview", 6) and not landmark_pose_rule("off", "video", 40)
+    assert landmark_pose_rule("auto", "video", 40, True) and landmark_pose_rule("auto", "images", 2, True)
+    assert not landmark_pose_rule("auto", "video", 40, False) and not landmark_pose_rule("auto", "images", 2, False)
+    assert not landmark_pose_rule("auto", "image", 1, True) and not landmark_pose_rule("auto", "multiview", 6, True)
+    assert not landmark_pose_rule("auto", "images", 1, True)
+    assert landmark_pose_rule("on", "multiview", 6, False) and not landmark_pose_rule("off", "video", 40, True)
 
 
 def test_fit_recovers_the_head_from_ideal_landmarks(head, one_thread):

@@ -66,8 +66,10 @@ class TrackConfig:
     landmark_pose: str = _opt("auto", "Let the landmarks slide over the face with the head's pose relative to the camera, as the "
                                       "detector's do (it leans towards a frontal face: uncorrected, a turned or pitched head is "
                                       "fitted turned too little), from the calibrated embedding's pose table: on, off, or auto "
-                                      "(on for one camera that sees the head turn: a video or a folder of frames; a calibrated rig "
-                                      "holds the pose by itself and one photo showed no gain, docs/track.md).",
+                                      "(on for one camera that sees the head turn, a video or a folder of frames, while the whole "
+                                      "outline is pulled both ways: a fitted focal length, or silhouette_two_sided=all; with the "
+                                      "face-only silhouette of a known focal length the table traded against the head's depth, a "
+                                      "calibrated rig holds the pose by itself and one photo showed no gain, docs/track.md).",
                               choices=("auto", "on", "off"))
     calib_pose_yaw_deg: float = _opt(45.0, "Calibration: the pose table's views continue the yaw steps out to this yaw (degrees).", ge=0, le=75)
     pivot_pose_yaw_deg: float = _opt(60.0, "Calibration: with the head's pivot held (steady_pivot on, or auto when the frames agree "
@@ -122,10 +124,11 @@ class TrackConfig:
                                              "or auto (face when the focal length is known: calibrated cameras, EXIF or focal; all while it is fitted).",
                                      choices=("auto", "face", "all"))
     focal_refit: str = _opt("auto", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
-                                    "held, and so with the silhouette of a known one (face and neck both ways, the rest inwards): "
-                                    "on (the second fit kept), off, or auto (for one photo; the second fit kept when its landmark "
-                                    "error is lower). Measured in docs/track.md: better on the synthetic and the real photo; on the "
-                                    "synthetic clip a better mesh but a blurrier avatar, on the synthetic videos worse.",
+                                    "held, and so as with a known one (the face-only silhouette and the hair stage; for a "
+                                    "sequence no pose table, landmark_pose): auto (the second fit kept when its landmark error "
+                                    "is lower), on (the second fit kept), or off (one fit). Measured in docs/track.md: better on "
+                                    "the synthetic photo, clip and head-turn video with hair and on the real photo; worse on a "
+                                    "bare head, whose outline is the skull's (use off there).",
                             choices=("auto", "on", "off"))
     silhouette_outward_max: float = _opt(0.05, "With the face-only silhouette (silhouette_two_sided face, or auto with a known focal "
                                                "length): outline points this far inside the person mask (fraction of the face size) "

@@ -63,7 +63,8 @@ class TrackResult:
             auto the pivot's spread over the frames fitted without it and the scale it was held within.
         focal_refit: when a fitted focal length was held for a second fit (``TrackConfig.focal_refit``):
             the first fit's focal lengths (output pixels) and its seconds, both fits' mean landmark errors
-            (``landmark_px``: first, second) and the fit kept (``kept``: "first" or "second",
+            (``landmark_px``: first, second), whether they were compared (``landmarks_compared``: both
+            fits with a pose table or both without) and the fit kept (``kept``: "first" or "second",
             :func:`refit_kept`); else None.
     """
 
@@ -129,22 +130,23 @@ def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
     return mode == "face" or (mode == "auto" and not focal_fitted)
 
 
-def focal_refit_rule(mode: str, focal_fitted: bool, one_image: bool) -> bool:
+def focal_refit_rule(mode: str, focal_fitted: bool) -> bool:
     """Whether a fit that fitted a focal length is followed by a second fit with that focal length held
-    (and so, with ``silhouette_two_sided=auto``, the face-only silhouette of a known focal length).
+    (and so, with ``silhouette_two_sided=auto``, the face-only silhouette of a known focal length, and
+    for a sequence no pose table, :func:`landmark_pose_rule`).
 
     mode: ``TrackConfig.focal_refit`` (auto, on, off); focal_fitted: a camera's focal length was
-    fitted; one_image: the input is one photo. ``auto`` refits one photo only (and keeps the second fit
-    when its landmark error is lower, :func:`refit_kept`). While the focal length
-    is free the whole outline is pulled both ways, and on one photo that pulls the head onto its hair
-    (the synthetic photo's face 8 % too large, the landmarks 3.1 px off); holding the focal length
-    found and fitting again with the face-only silhouette puts the face where the photo has it (the
-    synthetic one-shot avatar 3.88 dB behind the capture's own parameters before, 0.72 dB after; 0.41
-    dB with the outline limit and the hair stage, ``TrackConfig.hair_fit``). A sequence
-    measured otherwise: better on the 11-frame clip's mesh (7.54 → 5.44 mm) but its avatar blurrier
-    (LPIPS 0.19 → 0.28), and twice the 20-s video's error (3.42 → 6.52 mm) (docs/track.md).
+    fitted. ``auto`` and ``on`` refit; ``auto`` keeps the second fit when its landmark error is lower,
+    or the two errors do not compare (:func:`refit_kept`). While the focal length is free the whole outline is pulled both ways, and
+    that pulls the head onto its hair (the synthetic photo's face 8 % too large, the landmarks 3.1 px
+    off); holding the focal length found and fitting again as with a known one puts the face where the
+    images have it: the synthetic one-shot avatar 3.88 dB behind the capture's own parameters before,
+    0.41 dB after; the 11-frame clip 7.54 → 5.64 mm after one similarity (mean of three seeds), its
+    avatar +0.75 → +1.42 dB over the own parameters'; the 20-s head-turn video with hair 7.16 → 4.29
+    mm. On the bare synthetic head, whose outline is its skull, the whole outline's first fit was the
+    better one (the video 3.42 mm against 5.65; docs/track.md, "Limits").
     """
-    return focal_fitted and (mode == "on" or (mode == "auto" and one_image))
+    return focal_fitted and mode in ("auto", "on")
 
 
 def landmark_error(fit: Any) -> float:
@@ -155,15 +157,20 @@ def landmark_error(fit: Any) -> float:
     return float(px.mean()) if px.size else float("inf")
 
 
-def refit_kept(mode: str, first_px: float, second_px: float) -> bool:
+def refit_kept(mode: str, first_px: float, second_px: float, comparable: bool = True) -> bool:
     """Whether the second fit of ``focal_refit`` is kept: always when asked for (on); with ``auto`` when
-    its landmark error is lower than the first fit's. Which silhouette lies better depends on the
-    photo's mask: on the synthetic photo matted on white the second fit's face-only silhouette lowers
-    the landmark error (3.11 → 1.78 px) and the vertex error (3.25 → 1.98 mm after one similarity), on
-    the real astronaut photo the landmark error (4.63 → 3.16 px); over photographs whose colour cut
+    its landmark error is lower than the first fit's, where the two are ``comparable`` (both fits
+    measured their landmarks against the same points: with a pose table in both or in neither), and
+    otherwise always. A sequence's first fit follows the detector's lean with the pose table and its
+    second does not (:func:`landmark_pose_rule`); the table lets the landmarks lie closer on a worse
+    mesh (the synthetic head-turn video with hair 4.43 px and 7.16 mm after one similarity against
+    4.98 px and 4.29 mm), so there the errors are not compared. For one photo, which mask's outline
+    lies better decides: the face-only silhouette lowers the landmark and the vertex error on the
+    synthetic photo matted on white (3.11 → 1.78 px, 3.25 → 1.98 mm after one similarity) and the
+    landmark error on the real astronaut photo (4.63 → 3.16 px); over photographs whose colour cut
     trims the hair from the mask it raises both (coffee 1.74 → 2.31 px, 1.92 → 3.13 mm; rocket 1.80 →
     2.05 px, 2.05 → 2.90 mm), and there the whole outline's first fit is kept (docs/track.md)."""
-    return mode == "on" or second_px < first_px
+    return mode == "on" or not comparable or second_px < first_px
 
 
 def _one_camera_sequence(kind: str, n_timesteps: int) -> bool:
@@ -179,13 +186,19 @@ def steady_depth_rule(enabled: bool, kind: str, n_timesteps: int) -> bool:
     return enabled and _one_camera_sequence(kind, n_timesteps)
 
 
-def landmark_pose_rule(mode: str, kind: str, n_timesteps: int) -> bool:
+def landmark_pose_rule(mode: str, kind: str, n_timesteps: int, whole_outline: bool) -> bool:
     """Whether the landmarks follow the detector's lean with the pose (``TrackConfig.landmark_pose``):
-    on / off as asked; auto: for a video or a folder of several frames from one camera. There the lean
-    turns every fitted frame back towards the camera by the same share (pitch by about 15 %), which
-    nothing else in one camera's view corrects; a calibrated rig's views hold the pose, and on one
-    photo the table did not lower the error (docs/track.md)."""
-    return mode == "on" or (mode == "auto" and _one_camera_sequence(kind, n_timesteps))
+    on / off as asked; auto: for a video or a folder of several frames from one camera whose fit pulls
+    the whole outline both ways (``whole_outline``: a fitted focal length with
+    ``silhouette_two_sided=auto``, or ``all``). There the lean turns every fitted frame back towards
+    the camera by the same share (pitch by about 15 %), which nothing else in one camera's view
+    corrects. With the face-only silhouette (a known focal length: EXIF, ``focal``, or the second fit
+    of ``focal_refit``) the table traded against the head's depth instead: the synthetic clip 4.66 mm
+    off without it against 5.24 with it (mean of three seeds), the camera 5.3 mm against 10.7, the
+    head-turn video with hair 4.39 mm without it; the bare head's video with the whole outline and its
+    focal length given 3.56 mm with it against 4.22. A calibrated rig's views hold the pose, and on
+    one photo the table did not lower the error (docs/track.md)."""
+    return mode == "on" or (mode == "auto" and whole_outline and _one_camera_sequence(kind, n_timesteps))
 
 
 def infer_regime(kind: str, n_timesteps: int) -> str:
@@ -434,7 +447,11 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     # -- landmark embedding
     t0 = time.time()
     calibration = None
-    pose_on = landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept))
+    focal_fitted = any(c.fit_focal for c in fit_cams)
+    # the first fit pulls the whole outline both ways unless the face-only silhouette applies (and the
+    # model has the face region it needs)
+    whole_outline = not (face_only_silhouette(cfg.silhouette_two_sided, focal_fitted) and len(groups.get("face", [])))
+    pose_on = landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), whole_outline)
     pivot = steady_depth_rule(cfg.steady_pivot == "on", source.kind, len(obs.kept))
     pivot_auto = steady_depth_rule(cfg.steady_pivot == "auto", source.kind, len(obs.kept))
     pivot_emb = None
@@ -486,7 +503,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         face_neck = np.zeros(V, bool)
         for k in ("face", "neck"):
             face_neck[np.asarray(groups.get(k, []), np.int64)] = True
-    face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=any(c.fit_focal for c in fit_cams))
+    face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=focal_fitted)
     inward = ~face_neck if face_only and face_neck is not None else None
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
                          silhouette_exclude=exclude, silhouette_inward=inward,
@@ -498,19 +515,31 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
     fit = fitter.run()
     focal_refit = None
-    if focal_refit_rule(cfg.focal_refit, any(c.fit_focal for c in fit_cams), source.kind == "image"):
-        # the focal length found, held: fitted again from the start with the silhouette of a known one
+    if focal_refit_rule(cfg.focal_refit, focal_fitted):
+        # the focal length found, held: fitted again from the start as with a known one — the face-only
+        # silhouette, the pose table by the rule of a known focal length, and the pivot as the first fit
+        # decided (held or not; its check is not run twice)
         held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, fit_cams)]
+        pivot_held = pivot or bool(fit.pivot_check.get("held"))
         problem = replace(problem, cameras=held, silhouette_inward=None if face_neck is None else ~face_neck,
-                          silhouette_outward_max=None if face_neck is None else cfg.silhouette_outward_max)
+                          silhouette_outward_max=None if face_neck is None else cfg.silhouette_outward_max,
+                          steady_pivot=pivot_held, steady_pivot_auto=False)
+        refit_emb = fitter.emb
+        if refit_emb.pose is not None and not landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), face_neck is None):
+            refit_emb = replace(refit_emb, pose=None)
+        # the two fits' landmark errors compare only when both measure them against the same points
+        compared = (fitter.emb.pose is None) == (refit_emb.pose is None)
         first = {"focal_px": [float(c.K[0, 0]) for c in fit.cameras], "fit_s": round(time.time() - t0, 1)}
-        second_fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
+        second_fitter = Fitter(flame, refit_emb, problem, cfg, progress, seed=seed)
         second = second_fitter.run()
+        # the pivot's check and its cost belong to the first fit; its stages' times kept beside the second's
+        second = replace(second, pivot_check=dict(fit.pivot_check),
+                         timings={**{f"first_{k}": v for k, v in fit.timings.items()}, **second.timings})
         px = [landmark_error(fit), landmark_error(second)]
-        kept = "second" if refit_kept(cfg.focal_refit, *px) else "first"
+        kept = "second" if refit_kept(cfg.focal_refit, *px, comparable=compared) else "first"
         if kept == "second":
             fitter, fit = second_fitter, second
-        focal_refit = {**first, "landmark_px": [round(x, 3) for x in px], "kept": kept}
+        focal_refit = {**first, "landmark_px": [round(x, 3) for x in px], "landmarks_compared": compared, "kept": kept}
     save_embedding(root / "track" / "landmark_embedding.npz", fitter.emb)  # the one the fit ended with
     timings["fit"] = time.time() - t0
     timings.update({f"fit_{k}": v for k, v in fit.timings.items()})
