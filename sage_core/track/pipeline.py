@@ -358,6 +358,35 @@ def track_capture(
     return result
 
 
+def _second_fit(flame: Any, fitter: Any, fit: Any, problem: Any, face_neck: np.ndarray | None, cfg: TrackConfig,
+                progress: Progress | None, seed: int, first_s: float, pose_table: bool) -> tuple[Any, Any, dict[str, Any]]:
+    """``focal_refit``: the fit of ``fitter`` (whose result is ``fit``, ``first_s`` seconds) fitted again
+    from the start with its focal lengths held, as with known ones: the face-only silhouette
+    (``face_neck``: (V,) bool, the vertices pulled both ways; None, the whole outline), the pose table
+    only with ``pose_table``, and the head's pivot as the first fit decided (held or not; its check is
+    not run twice). Returns the fitter and fit kept (:func:`refit_kept`) and the report's
+    ``focal_refit`` entry."""
+    from .fitting import Fitter, FitCamera
+
+    held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, problem.cameras)]
+    problem = replace(problem, cameras=held, silhouette_inward=None if face_neck is None else ~face_neck,
+                      silhouette_outward_max=None if face_neck is None else cfg.silhouette_outward_max,
+                      steady_pivot=problem.steady_pivot or bool(fit.pivot_check.get("held")), steady_pivot_auto=False)
+    emb = fitter.emb if pose_table or fitter.emb.pose is None else replace(fitter.emb, pose=None)
+    # the two fits' landmark errors compare only when both measure them against the same points
+    compared = (fitter.emb.pose is None) == (emb.pose is None)
+    second_fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed)
+    second = second_fitter.run()
+    # the pivot's check and its cost belong to the first fit; its stages' times kept beside the second's
+    second = replace(second, pivot_check=dict(fit.pivot_check),
+                     timings={**{f"first_{k}": v for k, v in fit.timings.items()}, **second.timings})
+    px = [landmark_error(fit), landmark_error(second)]
+    kept = "second" if refit_kept(cfg.focal_refit, *px, comparable=compared) else "first"
+    report = {"focal_px": [float(c.K[0, 0]) for c in fit.cameras], "fit_s": round(first_s, 1),
+              "landmark_px": [round(x, 3) for x in px], "landmarks_compared": compared, "kept": kept}
+    return (second_fitter, second, report) if kept == "second" else (fitter, fit, report)
+
+
 def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.ndarray], emb_given: Any, observer: Any,
            models: Any, cfg: TrackConfig, regime: str, root: Path, device: str, seed: int, progress: Progress | None,
            timings: dict[str, float]) -> TrackResult:
@@ -516,30 +545,9 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     fit = fitter.run()
     focal_refit = None
     if focal_refit_rule(cfg.focal_refit, focal_fitted):
-        # the focal length found, held: fitted again from the start as with a known one — the face-only
-        # silhouette, the pose table by the rule of a known focal length, and the pivot as the first fit
-        # decided (held or not; its check is not run twice)
-        held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, fit_cams)]
-        pivot_held = pivot or bool(fit.pivot_check.get("held"))
-        problem = replace(problem, cameras=held, silhouette_inward=None if face_neck is None else ~face_neck,
-                          silhouette_outward_max=None if face_neck is None else cfg.silhouette_outward_max,
-                          steady_pivot=pivot_held, steady_pivot_auto=False)
-        refit_emb = fitter.emb
-        if refit_emb.pose is not None and not landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), face_neck is None):
-            refit_emb = replace(refit_emb, pose=None)
-        # the two fits' landmark errors compare only when both measure them against the same points
-        compared = (fitter.emb.pose is None) == (refit_emb.pose is None)
-        first = {"focal_px": [float(c.K[0, 0]) for c in fit.cameras], "fit_s": round(time.time() - t0, 1)}
-        second_fitter = Fitter(flame, refit_emb, problem, cfg, progress, seed=seed)
-        second = second_fitter.run()
-        # the pivot's check and its cost belong to the first fit; its stages' times kept beside the second's
-        second = replace(second, pivot_check=dict(fit.pivot_check),
-                         timings={**{f"first_{k}": v for k, v in fit.timings.items()}, **second.timings})
-        px = [landmark_error(fit), landmark_error(second)]
-        kept = "second" if refit_kept(cfg.focal_refit, *px, comparable=compared) else "first"
-        if kept == "second":
-            fitter, fit = second_fitter, second
-        focal_refit = {**first, "landmark_px": [round(x, 3) for x in px], "landmarks_compared": compared, "kept": kept}
+        fitter, fit, focal_refit = _second_fit(
+            flame, fitter, fit, problem, face_neck, cfg, progress, seed, time.time() - t0,
+            pose_table=landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), face_neck is None))
     save_embedding(root / "track" / "landmark_embedding.npz", fitter.emb)  # the one the fit ended with
     timings["fit"] = time.time() - t0
     timings.update({f"fit_{k}": v for k, v in fit.timings.items()})
