@@ -215,14 +215,18 @@ def test_face_only_silhouette_rule():
 
 
 def test_focal_refit_rule():
-    """A fitted focal length is held for a second fit (auto, the default, and on), never with off; a
-    known one never is."""
+    """auto (the default) holds a fitted focal length for a second fit for one photo, and for a sequence
+    only when its pivot was held; on always; off and a known focal length never."""
     from sage_core.track.pipeline import focal_refit_rule
     from sage_core.track.config import TrackConfig
 
-    assert focal_refit_rule("on", focal_fitted=True) and not focal_refit_rule("on", focal_fitted=False)
-    assert focal_refit_rule("auto", focal_fitted=True) and not focal_refit_rule("auto", focal_fitted=False)
-    assert not focal_refit_rule("off", focal_fitted=True)
+    assert focal_refit_rule("auto", True, sequence=False, pivot_held=False)
+    assert focal_refit_rule("auto", True, sequence=True, pivot_held=True)
+    assert not focal_refit_rule("auto", True, sequence=True, pivot_held=False)
+    assert focal_refit_rule("on", True, sequence=True, pivot_held=False)
+    assert not focal_refit_rule("on", False, sequence=False, pivot_held=False)
+    assert not focal_refit_rule("auto", False, sequence=True, pivot_held=True)
+    assert not focal_refit_rule("off", True, sequence=False, pivot_held=True)
     assert TrackConfig().focal_refit == "auto"
 
 

@@ -125,10 +125,11 @@ class TrackConfig:
                                      choices=("auto", "face", "all"))
     focal_refit: str = _opt("auto", "After fitting an uncalibrated camera's focal length, fit everything again with that focal length "
                                     "held, and so as with a known one (the face-only silhouette and the hair stage; for a "
-                                    "sequence no pose table, landmark_pose): auto (the second fit kept when its landmark error "
-                                    "is lower), on (the second fit kept), or off (one fit). Measured in docs/track.md: better on "
-                                    "the synthetic photo, clip and head-turn video with hair and on the real photo; worse on a "
-                                    "bare head, whose outline is the skull's (use off there).",
+                                    "sequence no pose table, landmark_pose): auto (one photo, and a sequence whose head's pivot "
+                                    "was held, steady_pivot; the second fit kept when its landmark error is lower), on (the "
+                                    "second fit kept), or off (one fit). Measured in docs/track.md: better on the synthetic "
+                                    "photo, clip and head-turn video with hair and on the real photo; worse on a head that "
+                                    "drifts (hence the pivot) and on a bare head, whose outline is the skull's (use off there).",
                             choices=("auto", "on", "off"))
     silhouette_outward_max: float = _opt(0.05, "With the face-only silhouette (silhouette_two_sided face, or auto with a known focal "
                                                "length): outline points this far inside the person mask (fraction of the face size) "

@@ -130,23 +130,27 @@ def face_only_silhouette(mode: str, focal_fitted: bool) -> bool:
     return mode == "face" or (mode == "auto" and not focal_fitted)
 
 
-def focal_refit_rule(mode: str, focal_fitted: bool) -> bool:
+def focal_refit_rule(mode: str, focal_fitted: bool, sequence: bool, pivot_held: bool) -> bool:
     """Whether a fit that fitted a focal length is followed by a second fit with that focal length held
     (and so, with ``silhouette_two_sided=auto``, the face-only silhouette of a known focal length, and
     for a sequence no pose table, :func:`landmark_pose_rule`).
 
     mode: ``TrackConfig.focal_refit`` (auto, on, off); focal_fitted: a camera's focal length was
-    fitted. ``auto`` and ``on`` refit; ``auto`` keeps the second fit when its landmark error is lower,
-    or the two errors do not compare (:func:`refit_kept`). While the focal length is free the whole outline is pulled both ways, and
-    that pulls the head onto its hair (the synthetic photo's face 8 % too large, the landmarks 3.1 px
-    off); holding the focal length found and fitting again as with a known one puts the face where the
-    images have it: the synthetic one-shot avatar 3.88 dB behind the capture's own parameters before,
-    0.41 dB after; the 11-frame clip 7.54 → 5.64 mm after one similarity (mean of three seeds), its
-    avatar +0.75 → +1.42 dB over the own parameters'; the 20-s head-turn video with hair 7.16 → 4.29
-    mm. On the bare synthetic head, whose outline is its skull, the whole outline's first fit was the
-    better one (the video 3.42 mm against 5.65; docs/track.md, "Limits").
+    fitted; sequence: one camera's video or folder of several frames; pivot_held: the first fit held
+    the head's pivot (``TrackConfig.steady_pivot``). ``on`` refits; ``auto`` refits one photo, and a
+    sequence whose pivot was held, and keeps the second fit when its landmark error is lower, or the
+    two errors do not compare (:func:`refit_kept`). While the focal length is free the whole outline
+    is pulled both ways, and that pulls the head onto its hair (the synthetic photo's face 8 % too
+    large, the landmarks 3.1 px off); holding the focal length found and fitting again as with a known
+    one puts the face where the images have it: the synthetic one-shot avatar 3.88 dB behind the
+    capture's own parameters before, 0.41 dB after; the 11-frame clip 7.54 → 5.64 mm after one
+    similarity (mean of three seeds), its avatar +0.75 → +1.42 dB over the own parameters'; the 20-s
+    head-turn video with hair 7.16 → 4.29 mm. With the pivot free the face-only outline leaves each
+    frame's depth to itself: the same video with the head drifting ±30 mm went 10.56 → 19.47 mm. On
+    the bare synthetic head, whose outline is its skull, the whole outline's first fit was the better
+    one (the video 3.42 mm against 5.65; docs/track.md, "Limits").
     """
-    return focal_fitted and mode in ("auto", "on")
+    return focal_fitted and (mode == "on" or (mode == "auto" and (not sequence or pivot_held)))
 
 
 def landmark_error(fit: Any) -> float:
@@ -544,7 +548,8 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
     fit = fitter.run()
     focal_refit = None
-    if focal_refit_rule(cfg.focal_refit, focal_fitted):
+    sequence = _one_camera_sequence(source.kind, len(obs.kept))
+    if focal_refit_rule(cfg.focal_refit, focal_fitted, sequence, pivot_held=pivot or bool(fit.pivot_check.get("held"))):
         fitter, fit, focal_refit = _second_fit(
             flame, fitter, fit, problem, face_neck, cfg, progress, seed, time.time() - t0,
             pose_table=landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), face_neck is None))
