@@ -338,8 +338,7 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
     from sage_core.export.video import VideoWriter
 
     W, H = size
-    cfg = preset("small", regime="monocular", seed=seed, width=W, height=H, tracking="exact",
-                 appearance="detailed" if appearance == "detailed" else "smooth")
+    cfg = preset("small", regime="monocular", seed=seed, width=W, height=H, tracking="exact", appearance=appearance)
     subject = make_subject(cfg)
     model_files = write_model_files(subject.head, path.parent / "video_model")
     cam = monocular_camera(W, H, cfg.mono_focal)

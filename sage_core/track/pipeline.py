@@ -362,20 +362,21 @@ def track_capture(
     return result
 
 
-def _second_fit(flame: Any, fitter: Any, fit: Any, problem: Any, face_neck: np.ndarray | None, cfg: TrackConfig,
-                progress: Progress | None, seed: int, first_s: float, pose_table: bool) -> tuple[Any, Any, dict[str, Any]]:
+def _second_fit(flame: Any, fitter: Any, fit: Any, problem: Any, face_neck: np.ndarray | None, pivot_held: bool,
+                cfg: TrackConfig, progress: Progress | None, seed: int, first_s: float,
+                pose_table: bool) -> tuple[Any, Any, dict[str, Any]]:
     """``focal_refit``: the fit of ``fitter`` (whose result is ``fit``, ``first_s`` seconds) fitted again
     from the start with its focal lengths held, as with known ones: the face-only silhouette
     (``face_neck``: (V,) bool, the vertices pulled both ways; None, the whole outline), the pose table
-    only with ``pose_table``, and the head's pivot as the first fit decided (held or not; its check is
-    not run twice). Returns the fitter and fit kept (:func:`refit_kept`) and the report's
+    only with ``pose_table``, and the head's pivot held as the first fit decided (``pivot_held``; its
+    check is not run twice). Returns the fitter and fit kept (:func:`refit_kept`) and the report's
     ``focal_refit`` entry."""
     from .fitting import Fitter, FitCamera
 
     held = [FitCamera(fc.K.copy(), c.w2c, c.width, c.height, fit_focal=False) for fc, c in zip(fit.cameras, problem.cameras)]
     problem = replace(problem, cameras=held, silhouette_inward=None if face_neck is None else ~face_neck,
                       silhouette_outward_max=None if face_neck is None else cfg.silhouette_outward_max,
-                      steady_pivot=problem.steady_pivot or bool(fit.pivot_check.get("held")), steady_pivot_auto=False)
+                      steady_pivot=pivot_held, steady_pivot_auto=False)
     emb = fitter.emb if pose_table or fitter.emb.pose is None else replace(fitter.emb, pose=None)
     # the two fits' landmark errors compare only when both measure them against the same points
     compared = (fitter.emb.pose is None) == (emb.pose is None)
@@ -477,14 +478,21 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
                 progress(done, total, "cropping and segmenting")
     timings["images"] = time.time() - t0
 
-    # -- landmark embedding
+    # -- landmark embedding (whether it has a pose table follows the silhouette's outline rule)
     t0 = time.time()
     calibration = None
     focal_fitted = any(c.fit_focal for c in fit_cams)
-    # the first fit pulls the whole outline both ways unless the face-only silhouette applies (and the
-    # model has the face region it needs)
-    whole_outline = not (face_only_silhouette(cfg.silhouette_two_sided, focal_fitted) and len(groups.get("face", [])))
-    pose_on = landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), whole_outline)
+    V = model.n_vertices
+    # the outline vertices a face-only silhouette pulls both ways: the FLAME masks' face and neck (None
+    # without a face region); every other outline vertex it pulls only inwards
+    face_neck = None
+    if len(groups.get("face", [])):
+        face_neck = np.zeros(V, bool)
+        for k in ("face", "neck"):
+            face_neck[np.asarray(groups.get(k, []), np.int64)] = True
+    face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=focal_fitted)
+    inward = ~face_neck if face_only and face_neck is not None else None
+    pose_on = landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), whole_outline=inward is None)
     pivot = steady_depth_rule(cfg.steady_pivot == "on", source.kind, len(obs.kept))
     pivot_auto = steady_depth_rule(cfg.steady_pivot == "auto", source.kind, len(obs.kept))
     pivot_emb = None
@@ -518,7 +526,6 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
 
     # -- fit
     t0 = time.time()
-    V = model.n_vertices
     hair = hair_region(groups, V) if cfg.scalp_offsets else None
     if cfg.scalp_offsets and hair is None:
         warnings.append("no 'scalp' region in the FLAME masks: hair volume (static offsets) not fitted")
@@ -529,15 +536,6 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     smooth = source.kind == "video" or (source.kind == "images" and cfg.smooth_sequences)
     steady = steady_depth_rule(cfg.steady_depth, source.kind, len(obs.kept))
     rig_scale = source.kind == "multiview" and (cfg.rig_scale == "fit" or (cfg.rig_scale == "auto" and not source.metric))
-    # the outline vertices a face-only silhouette pulls both ways: the FLAME masks' face and neck (None
-    # without a face region); every other outline vertex it pulls only inwards
-    face_neck = None
-    if len(groups.get("face", [])):
-        face_neck = np.zeros(V, bool)
-        for k in ("face", "neck"):
-            face_neck[np.asarray(groups.get(k, []), np.int64)] = True
-    face_only = face_only_silhouette(cfg.silhouette_two_sided, focal_fitted=focal_fitted)
-    inward = ~face_neck if face_only and face_neck is not None else None
     problem = FitProblem(fit_cams, images, len(obs.kept), fit_rig_scale=rig_scale, smooth=smooth, hair=hair,
                          silhouette_exclude=exclude, silhouette_inward=inward,
                          silhouette_outward_max=cfg.silhouette_outward_max if inward is not None else None,
@@ -548,11 +546,11 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
     fitter = Fitter(flame, emb, problem, cfg, progress, seed=seed, pivot_embedding=pivot_emb)
     fit = fitter.run()
     focal_refit = None
-    sequence = _one_camera_sequence(source.kind, len(obs.kept))
-    if focal_refit_rule(cfg.focal_refit, focal_fitted, sequence, pivot_held=pivot or bool(fit.pivot_check.get("held"))):
+    pivot_held = pivot or bool(fit.pivot_check.get("held"))
+    if focal_refit_rule(cfg.focal_refit, focal_fitted, _one_camera_sequence(source.kind, len(obs.kept)), pivot_held):
         fitter, fit, focal_refit = _second_fit(
-            flame, fitter, fit, problem, face_neck, cfg, progress, seed, time.time() - t0,
-            pose_table=landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), face_neck is None))
+            flame, fitter, fit, problem, face_neck, pivot_held, cfg, progress, seed, time.time() - t0,
+            pose_table=landmark_pose_rule(cfg.landmark_pose, source.kind, len(obs.kept), whole_outline=face_neck is None))
     save_embedding(root / "track" / "landmark_embedding.npz", fitter.emb)  # the one the fit ended with
     timings["fit"] = time.time() - t0
     timings.update({f"fit_{k}": v for k, v in fit.timings.items()})
@@ -646,7 +644,7 @@ def _track(source: Any, obs: Any, flame: Any, model: Any, groups: dict[str, np.n
         reprojection_max_px=float(rep_max.max()) if rep_max.size else float("nan"), focal_px=focal,
         focal_source=focal_source, masks=dict(mask_kinds), calibration=calibration, timings=timings, wall_time_s=0.0,
         warnings=warnings, rig_scale=fit.rig_scale, losses=fit.losses,
-        steady_pivot={"mode": cfg.steady_pivot if pivot or pivot_auto else "off", "held": pivot or bool(fit.pivot_check.get("held")),
+        steady_pivot={"mode": cfg.steady_pivot if pivot or pivot_auto else "off", "held": pivot_held,
                       **({"spread": fit.pivot_check["spread"], "scale": cfg.steady_depth_scale} if fit.pivot_check else {})},
         focal_refit=focal_refit,
         cameras=[{"index": c.index, "name": c.name, "crop": [win.x0, win.y0, win.w, win.h], "output_size": [win.out_w, win.out_h],
