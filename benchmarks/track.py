@@ -371,6 +371,10 @@ def render_video(path: Path, seconds: float, fps: float, size: tuple[int, int], 
     return path, {"model": str(model_files["npz"]), "frames": n, "appearance": appearance}
 
 
+TURN_BINS: tuple[tuple[str, float, float], ...] = (("within 15°", 0.0, 15.0), ("15–45°", 15.0, 45.0), ("beyond 45°", 45.0, 91.0))
+"""The video's frames grouped by the truth's head turn (absolute yaw, degrees) for ``errors.by_turn``."""
+
+
 def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], track_preset: str, threads: int,
                sway_mm: float = 0.0, sets: list[str] | None = None, appearance: str = "detailed") -> dict:
     """Render (or reuse) the head-turn video (``appearance`` as :func:`render_video`), track it (``sets``:
@@ -379,7 +383,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
 
     from sage_core.data.capture import read_capture
     from sage_core.flame import FlameModel, load_flame_model
-    from sage_core.track.truth import error_summary, similarity_fit
+    from sage_core.track.truth import error_summary, region_errors, rigid_fit, similarity_fit
 
     sway = f"_sway{sway_mm:g}mm" if sway_mm else ""
     look = "" if appearance == "detailed" else f"_{appearance}"
@@ -414,6 +418,19 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         cam_err.append((e.mean(), e.max()))
     R, tv, s = similarity_fit(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]))
     aligned = [(np.linalg.norm(s * a @ R.T + tv - b, axis=1) * 1000) for a, b in pairs]
+    rigid = []  # each frame's mesh moved alone: the shape and expression error without the frame's pose and depth
+    for a, b in pairs:
+        Rr, tr_ = rigid_fit(a, b)
+        rigid.append(np.linalg.norm(a @ Rr.T + tr_ - b, axis=1) * 1000)
+    camera_v = [np.linalg.norm(a - b, axis=1) * 1000 for a, b in pairs]
+    regions = region_errors(Path(meta["model"]).parent / "FLAME_masks.pkl", camera=np.mean(camera_v, 0),
+                            aligned=np.mean(aligned, 0), rigid=np.mean(rigid, 0))
+    yaw = np.abs(np.rad2deg(truth["rotation"][[frames[int(t)] for t in tr.params.timesteps], 1]))
+    by_turn = {}
+    for name, lo, hi in TURN_BINS:
+        sel = (yaw >= lo) & (yaw < hi)
+        if sel.any():
+            by_turn[name] = {"frames": int(sel.sum()), "aligned_mm": round(float(np.mean([aligned[i].mean() for i in np.flatnonzero(sel)])), 3)}
     report = json.loads((out / "track" / "report.json").read_text())
     focal = report["camera"]["cameras"][0]["focal_input_px"]
     return {
@@ -422,6 +439,8 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
         "steady_pivot": report.get("steady_pivot"),
         "errors": {"camera": error_summary(cam_err), "aligned": {**error_summary([(e.mean(), e.max()) for e in aligned]), "scale": round(s, 4)},
+                   "rigid_per_timestep": error_summary([(e.mean(), e.max()) for e in rigid]),
+                   "regions": regions, "by_turn": by_turn,
                    "focal_rel_error": round(focal / float(truth["K"][0, 0]) - 1, 4)},
         "command": "sage " + " ".join(args), "render_s": meta.get("render_s"),
     }
@@ -445,6 +464,34 @@ def _fmt(e: dict) -> str:
 def _region(e: dict, name: str) -> str:
     r = (e.get("regions") or {}).get(name)
     return f"{r['world_mm']:.2f} / {r['aligned_mm']:.2f}" if r else "—"
+
+
+def _video_label(v: dict) -> str:
+    sway = f", drifting ±{v['sway_mm']:g} mm" if v.get("sway_mm") else ""
+    look = "with hair" if v.get("appearance") == "detailed" else "bare head"
+    return f"{v['seconds']:.0f} s ({v['frames']} frames{sway}, {look})"
+
+
+def _video_shape_table(runs: list[dict]) -> list[str]:
+    """Where a video's error lies (runs that measured it): each frame moved alone, FLAME's regions, the head's turn."""
+    rows = [r for r in runs if "rigid_per_timestep" in r["video"]["errors"]]
+    if not rows:
+        return []
+    lines = ["", "Where the error lies (mm). *Rigid per frame*: each frame's mesh moved alone onto the truth's (the shape "
+                 "and expression error, without the frame's pose and depth); regions: FLAME's face, neck and scalp masks, "
+                 "after the one similarity of the whole video / each frame moved alone; turns: the one similarity's error over "
+                 "the frames whose true head turn (|yaw|) lies in the range.", "",
+             "| video | fit | aligned | rigid per frame | face | neck | scalp | " + " | ".join(f"turned {n}" for n, _, _ in TURN_BINS) + " |",
+             "|---|---|---:|---:|---:|---:|---:|" + "---:|" * len(TURN_BINS)]
+    for r in rows:
+        e = r["video"]["errors"]
+        reg = e.get("regions") or {}
+        cells = [f"{reg[k]['aligned_mm']:.2f} / {reg[k]['rigid_mm']:.2f}" if k in reg else "—" for k in ("face", "neck", "scalp")]
+        turns = [f"{e['by_turn'][n]['aligned_mm']:.2f} ({e['by_turn'][n]['frames']})" if n in e.get("by_turn", {}) else "—"
+                 for n, _, _ in TURN_BINS]
+        lines.append(f"| {_video_label(r['video'])} | {r['label']} | {e['aligned']['mean_mm']:.2f} | "
+                     f"{e['rigid_per_timestep']['mean_mm']:.2f} | " + " | ".join(cells + turns) + " |")
+    return lines
 
 
 def markdown(doc: dict) -> str:
@@ -494,13 +541,12 @@ def markdown(doc: dict) -> str:
         for r in runs:
             v = r["video"]
             e = v["errors"]
-            sway = f", drifting ±{v['sway_mm']:g} mm" if v.get("sway_mm") else ""
-            look = "with hair" if v.get("appearance") == "detailed" else "bare head"
-            lines.append(f"| {v['seconds']:.0f} s ({v['frames']} frames{sway}, {look}) | {r['label']} | {v['timesteps']} | {v['dropped']} | "
+            lines.append(f"| {_video_label(v)} | {r['label']} | {v['timesteps']} | {v['dropped']} | "
                          f"{v['wall_s']:.0f} | "
                          + " | ".join(_sec(v["timings_s"], k) for k in ("faces", "images", "embedding", "fit", "fit_keyframes",
                                                                          "fit_track", "masks"))
                          + f" | {v['reprojection_px']:.2f} | {_fmt(e['camera'])} | {_fmt(e['aligned'])} | {e['focal_rel_error']:+.1%} |")
+        lines += _video_shape_table(runs)
         if notes.get("video"):
             lines += ["", notes["video"]]
     if doc.get("clip_runs"):

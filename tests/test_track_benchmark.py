@@ -267,5 +267,30 @@ def test_the_video_table_says_which_head_each_video_shows():
     md = bench.markdown({"command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"},
                          "threads": 1, "load_after": [0, 0, 0], "cases": [],
                          "video_runs": [run("a", appearance="detailed"), run("b", appearance="smooth"), run("c")]})
-    rows = [line for line in md.splitlines() if line.startswith("| 20 s")]
+    first = md[:md.index("Where the error lies")]
+    rows = [line for line in first.splitlines() if line.startswith("| 20 s")]
     assert [r.split(" | ")[0] for r in rows] == ["| 20 s (600 frames, with hair)"] + ["| 20 s (600 frames, bare head)"] * 2
+
+
+def test_the_video_shape_table_splits_the_error_by_region_and_turn():
+    """Runs that measured it get a row with each frame moved alone, the regions and the turns; older runs
+    (no per-frame measure) are left out of that table."""
+    err = _errors(4.0)
+    err["regions"] = {"face": {"camera_mm": 9.0, "aligned_mm": 3.84, "rigid_mm": 2.41},
+                      "scalp": {"camera_mm": 9.0, "aligned_mm": 5.11, "rigid_mm": 3.0}}
+    err["by_turn"] = {"within 15°": {"frames": 120, "aligned_mm": 4.36}, "beyond 45°": {"frames": 200, "aligned_mm": 4.32}}
+    old = _errors(5.0)
+    del old["rigid_per_timestep"]
+
+    def run(label: str, errors: dict) -> dict:
+        v = {"video": "v.mp4", "seconds": 20, "frames": 600, "sway_mm": 0.0, "timesteps": 600, "dropped": 0, "wall_s": 300.0,
+             "timings_s": {}, "reprojection_px": 1.5, "errors": errors, "appearance": "detailed"}
+        return {"label": label, "run": {}, "video": v}
+
+    md = bench.markdown({"command": "c", "machine": {"cpus": 2, "torch": "t", "load_average": [0, 0, 0], "date_utc": "d"},
+                         "threads": 1, "load_after": [0, 0, 0], "cases": [], "video_runs": [run("new", err), run("old", old)]})
+    second = md[md.index("Where the error lies"):].splitlines()
+    rows = [line for line in second if line.startswith("| 20 s")]
+    assert len(rows) == 1
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    assert cells[1:] == ["new", "4.00", "2.00", "3.84 / 2.41", "—", "5.11 / 3.00", "4.36 (120)", "—", "4.32 (200)"]

@@ -98,7 +98,7 @@ def similarity_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return R, mb - s * R @ ma, s
 
 
-def _rigid(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation and translation (R, t) with R·a + t ≈ b, no scale (least squares over rows of (N, 3) arrays)."""
     ma, mb = a.mean(0), b.mean(0)
     U, _, Vt = np.linalg.svd((b - mb).T @ (a - ma))
@@ -125,17 +125,18 @@ REGIONS: tuple[str, ...] = ("face", "neck", "scalp")
 hair covers (about half of FLAME's vertices, seen only through the hair's outline)."""
 
 
-def _region_errors(masks_file: Path, world: np.ndarray, aligned: np.ndarray) -> dict[str, dict[str, float]] | None:
-    """Mean vertex error (mm) over each of :data:`REGIONS`, world and aligned.
+def region_errors(masks_file: Path, **per_vertex: np.ndarray) -> dict[str, dict[str, float]] | None:
+    """Mean vertex error (mm) over each of :data:`REGIONS`, for each named measure.
 
-    world, aligned: (V,) per-vertex errors averaged over the timesteps. None without a masks file.
+    per_vertex: measure name -> (V,) per-vertex errors in mm averaged over the timesteps (e.g. ``world``,
+    ``aligned``). Returns region -> ``{NAME_mm: mean}``; None without a masks file.
     """
     from ..flame.regions import load_masks
 
     if not masks_file.is_file():
         return None
     masks = load_masks(masks_file)
-    return {k: {"world_mm": round(float(world[masks[k]].mean()), 3), "aligned_mm": round(float(aligned[masks[k]].mean()), 3)}
+    return {k: {f"{name}_mm": round(float(v[masks[k]].mean()), 3) for name, v in per_vertex.items()}
             for k in REGIONS if k in masks and len(masks[k])}
 
 
@@ -192,7 +193,7 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         ea = np.linalg.norm((s * a @ R.T + tvec) - b, axis=1) * 1000
         aligned.append((ea.mean(), ea.max()))
         aligned_v.append(ea)
-        Rr, tr_ = _rigid(a, b)
+        Rr, tr_ = rigid_fit(a, b)
         er = np.linalg.norm(a @ Rr.T + tr_ - b, axis=1) * 1000
         rigid.append((er.mean(), er.max()))
     # camera: focal length of the first camera in input pixels (the report undoes the crop) against the truth's
@@ -208,7 +209,7 @@ def compare_to_truth(tracked: str | Path, truth: str | Path) -> dict[str, Any]:
         "aligned": {**error_summary(aligned), "scale": round(s, 4)},
         "rigid_per_timestep": error_summary(rigid),
         "focal_rel_error": round(focal_rel, 4),
-        "regions": _region_errors(Path(truth) / "model" / "FLAME_masks.pkl", np.mean(world_v, 0), np.mean(aligned_v, 0)),
+        "regions": region_errors(Path(truth) / "model" / "FLAME_masks.pkl", world=np.mean(world_v, 0), aligned=np.mean(aligned_v, 0)),
         "per_timestep": per,
         "truth_tracking_error": json.loads((Path(truth) / "gt" / "info.json").read_text()).get("tracking", {}).get("error"),
     }
