@@ -135,7 +135,7 @@ def avatar_case(work: Path, regime: str, synth_preset: str, track_preset: str, a
     cap = _capture(work, regime, synth_preset)
     inp, cams = _input(work, regime, synth_preset, cap)
     info = json.loads((cap / "gt" / "info.json").read_text())
-    tracked = work / f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}_uncropped{tag}"
+    tracked = _tracked_dir(work, regime, synth_preset, track_preset, known_focal, sets=track_sets, uncropped=True)
     model = str(cap / "model" / "synth_flame.pkl")
     if not (tracked / "transforms.json").is_file():
         args = ["track", str(inp), str(tracked), "--flame-model", model, "--preset", track_preset, "--quiet", "--force",
@@ -199,10 +199,11 @@ def _settings_tag(sets: list[str]) -> str:
 
 
 def _tracked_dir(work: Path, regime: str, synth_preset: str, track_preset: str, known_focal: bool = False,
-                 seed: int | None = None, sets: list[str] | None = None) -> Path:
-    """The folder a case's tracking is written to (one per regime, presets, focal mode, seed and settings)."""
+                 seed: int | None = None, sets: list[str] | None = None, uncropped: bool = False) -> Path:
+    """The folder a tracking is written to (one per regime, presets, focal mode, seed and settings;
+    ``uncropped``: an avatar comparison's, tracked without the crop and the neck line)."""
     return work / (f"tracked_{regime}_{synth_preset}_{track_preset}{'_focal' if known_focal else ''}"
-                   f"{'' if seed is None else f'_seed{seed}'}{_settings_tag(sets or [])}")
+                   f"{'_uncropped' if uncropped else ''}{'' if seed is None else f'_seed{seed}'}{_settings_tag(sets or [])}")
 
 
 def track_case(work: Path, regime: str, synth_preset: str, track_preset: str, threads: int, known_focal: bool = False,

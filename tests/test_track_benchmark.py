@@ -7,6 +7,9 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
@@ -294,3 +297,21 @@ def test_the_video_shape_table_splits_the_error_by_region_and_turn():
     assert len(rows) == 1
     cells = [c.strip() for c in rows[0].strip("|").split("|")]
     assert cells[1:] == ["new", "4.00", "2.00", "3.84 / 2.41", "—", "5.11 / 3.00", "4.36 (120)", "—", "4.32 (200)"]
+
+
+def test_landmark_follow_truth_points_project_and_keep_the_visible_ones():
+    """The benchmark's truth: embedding points on a mesh projected with the camera; points on triangles
+    facing away or outside the image do not count."""
+    import landmark_follow as lf
+
+    # two triangles at z = 0 facing +z (towards a camera at z = 1 looking down -z) and one facing away
+    v = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.5, 0, 0], [0.6, 0, 0], [0.5, 0.1, 0]], float)
+    tri = np.array([[0, 1, 2], [3, 4, 5], [0, 2, 1]])
+    bary = np.full((3, 3), 1 / 3)
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.diag([1.0, -1.0, -1.0])  # OpenCV camera at z = 1 looking down -z
+    w2c[2, 3] = 1.0
+    uv, ok = lf.truth_points(v, tri, bary, K, w2c, (100, 100))
+    assert uv[0] == pytest.approx([50 + 100 * 0.1 / 3, 50 - 100 * 0.1 / 3])
+    assert ok.tolist() == [True, False, False]  # the second lies beyond the image's edge, the third faces away

@@ -63,6 +63,8 @@ def test_bad_photos_are_refused(tmp_path, model):
     canvas = np.ones((96, 96, 3), np.float32)
     canvas[25:70, 24:72] = cv2.resize(face, (48, 45), interpolation=cv2.INTER_AREA)
     _refused(tmp_path, model, write_png(tmp_path / "tiny.png", canvas), 2, "px wide, less than the 40 px needed")
+    # cut below the nose: the face is found, but more than half of its landmarks lie beyond the edge
+    _refused(tmp_path, model, write_png(tmp_path / "cut.png", np.ascontiguousarray(img[:120])), 2, "the face runs out of the 512x120 image")
 
 
 def test_bad_files_and_options_are_refused(tmp_path, model):

@@ -66,9 +66,9 @@ def test_segmentation_of_the_astronaut():
     assert p[20, 480] < 0.3 and p[200, 40] < 0.5  # the wall, the flag
 
 
-def _problem(observer, img) -> FaceProblem:
+def _problem(observer, img, *args) -> FaceProblem:
     with pytest.raises(FaceProblem) as e:
-        observer(img)
+        observer(img, *args)
     return e.value
 
 
@@ -152,3 +152,52 @@ def test_a_video_frame_is_searched_first_where_the_previous_face_was(observer):
     # a box far from the face finds nothing there, and the search still finds the face
     assert observer.detector.in_region(img, np.array([40.0, 40.0, 90.0, 90.0])) == []
     assert abs(observer(img, np.array([40.0, 40.0, 90.0, 90.0])).detection.center - first.detection.center).max() < 6
+
+
+def test_a_video_frame_the_detector_misses_is_followed_from_the_previous_landmarks(observer, monkeypatch):
+    """follow="fallback": a frame whose detection yields no face is looked at on the crop from the
+    previous frame's landmarks; without them (or with follow="off") it is dropped as before. A shifted
+    frame is followed to where the face went."""
+    img = astronaut()
+    first = observer(img)
+    shifted = np.roll(img, (6, -9), axis=(0, 1))
+    monkeypatch.setattr(type(observer.detector), "__call__", lambda self, *a, **k: [])
+    monkeypatch.setattr(type(observer.detector), "search", lambda self, *a, **k: [])
+    followed = observer(shifted, None, first.landmarks, "fallback")
+    assert followed.presence > 0.9
+    assert np.abs(followed.landmarks - (first.landmarks + [-9, 6])).mean() < 2.0
+    assert np.allclose(followed.detection.box, [*followed.landmarks.min(0), *followed.landmarks.max(0)])
+    assert abs(np.degrees(followed.detection.roll)) < 15
+    for previous, follow in ((None, "fallback"), (first.landmarks, "off")):
+        with pytest.raises(FaceProblem) as e:
+            observer(shifted, None, previous, follow)
+        assert e.value.kind == "no-face"
+
+
+def test_follow_first_uses_the_previous_landmarks_before_the_detector(observer, monkeypatch):
+    img = astronaut()
+    first = observer(img)
+    calls = []
+    real = type(observer.detector).__call__
+    monkeypatch.setattr(type(observer.detector), "__call__", lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
+    followed = observer(img, first.detection.box, first.landmarks, "first")
+    assert calls == [] and np.abs(followed.landmarks - first.landmarks).mean() < 2.0
+    # a crop with no face in it (the landmarks moved far off the face) falls back to the detector
+    away = first.landmarks + [-170.0, 300.0]
+    again = observer(img, first.detection.box, away, "first")
+    assert calls and np.abs(again.landmarks - first.landmarks).mean() < 1.0
+
+
+def test_a_face_mostly_beyond_the_images_edge_is_refused_as_cut_off(observer):
+    """The astronaut's photo cut through her face: with 30 % of the landmarks beyond the edge the face is
+    kept; followed into a cut that leaves more than half of them beyond it, it is refused as cut off (a
+    sequence drops that frame) instead of trusting the landmark model's guesses."""
+    img = astronaut()
+    full = observer(img)
+    kept = observer(np.ascontiguousarray(img[:, 210:]))
+    assert 0.2 < float((kept.landmarks[:, 0] < 0).mean()) < 0.5
+    cut = np.ascontiguousarray(img[:, 230:])
+    p = _problem(observer, cut, None, full.landmarks - [230, 0], "fallback")
+    assert p.kind == "cut-off" and "beyond the edge, more than 50%" in p.message and "282x512" in p.message
+    lenient = FaceObserver(find_models(models_or_skip()), max_outside=0.8)
+    assert lenient(cut, None, full.landmarks - [230, 0], "fallback").presence > 0.5

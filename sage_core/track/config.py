@@ -48,6 +48,14 @@ class TrackConfig:
                                       "for faces the whole image misses looks down to this width.", gt=0)
     second_face_ratio: float = _opt(0.5, "Another face at least this fraction of the main face's width makes the image ambiguous.", gt=0, le=1)
     max_roll_deg: float = _opt(45.0, "Refuse faces turned further than this in the image plane (a sideways photo).", gt=0, le=180)
+    max_outside: float = _opt(0.5, "Refuse a face with more than this fraction of its landmarks beyond the image's edge (a "
+                                    "sequence's frame is dropped): where the face leaves the picture the landmark model guesses.",
+                              gt=0, le=1)
+    follow_landmarks: str = _opt("fallback", "Video and folder of frames: look for the face on the crop the previous frame's "
+                                             "landmarks give (as MediaPipe's face mesh follows a face). fallback: only when the "
+                                             "detector's crop yields no usable face (near profile); first: before the detector, "
+                                             "which then runs only when the face is lost; off: every frame from its detection.",
+                                 choices=("off", "fallback", "first"))
     max_dropped: float = _opt(0.5, "Fail when more than this fraction of the frames has no usable face.", ge=0, le=1)
     # -- crop and output -----------------------------------------------------------------------
     crop: bool = _opt(True, "Crop every camera's images to a window around the head (cx, cy follow).")

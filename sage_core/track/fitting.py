@@ -255,6 +255,10 @@ class Fitter:
         self.obs_scale = self._t(np.array([im.face_height for im in lm]))
         self.obs_t = torch.as_tensor([im.timestep for im in lm], dtype=torch.long, device=self.device)
         self.obs_c = torch.as_tensor([im.camera for im in lm], dtype=torch.long, device=self.device)
+        # (N, K) 1 where the landmark lies inside its image: the landmark model's points beyond the image's
+        # edge (a face partly out of the frame) are its guesses and are left out of every landmark term
+        size = self._t(np.array([[c.width, c.height] for c in problem.cameras], dtype=np.float64).reshape(-1, 2))[self.obs_c]
+        self.obs_in = ((self.obs >= 0) & (self.obs <= size[:, None])).all(-1).to(self.dtype)
         self.tri = self.faces[torch.as_tensor(emb.faces, dtype=torch.long, device=self.device)]  # (K, 3)
         self.bary = self._t(emb.bary)
         # the detector's pose bias: (P, Y, K, 2) offsets over a pitch × yaw grid (radians), or None
@@ -419,12 +423,15 @@ class Fitter:
         for n in range(self.obs.shape[0]):
             t, c = int(self.obs_t[n]), int(self.obs_c[n])
             K = K_all[c].double().cpu().numpy()
-            img = self.obs[n].double().cpu().numpy()
-            ok, rvec, tvec = cv2.solvePnP(pts, img, K, None, flags=cv2.SOLVEPNP_EPNP)
+            keep = self.obs_in[n].cpu().numpy() > 0
+            if keep.sum() < 6:
+                continue
+            img = self.obs[n].double().cpu().numpy()[keep]
+            ok, rvec, tvec = cv2.solvePnP(pts[keep], img, K, None, flags=cv2.SOLVEPNP_EPNP)
             if not ok:
                 continue
-            rvec, tvec = cv2.solvePnPRefineLM(pts, img, K, None, rvec, tvec)
-            proj, _ = cv2.projectPoints(pts, rvec, tvec, K, None)
+            rvec, tvec = cv2.solvePnPRefineLM(pts[keep], img, K, None, rvec, tvec)
+            proj, _ = cv2.projectPoints(pts[keep], rvec, tvec, K, None)
             err = float(np.median(np.linalg.norm(proj[:, 0] - img, axis=1))) / float(self.obs_scale[n])
             Rc = cv2.Rodrigues(rvec)[0]
             if np.linalg.det(Rc) < 0 or tvec[2, 0] <= 0:
@@ -473,7 +480,11 @@ class Fitter:
                 continue
             for n in ns:
                 c = int(self.obs_c[n])
-                ok, _, tvec = cv2.solvePnP(pts, self.obs[n].double().cpu().numpy(), K_all[c], None, flags=cv2.SOLVEPNP_EPNP)
+                keep = self.obs_in[n].cpu().numpy() > 0
+                if keep.sum() < 6:
+                    continue
+                ok, _, tvec = cv2.solvePnP(pts[keep], self.obs[n].double().cpu().numpy()[keep], K_all[c], None,
+                                           flags=cv2.SOLVEPNP_EPNP)
                 if not ok or tvec[2, 0] <= 0:
                     continue
                 R, tw = w2c_all[c][:3, :3], w2c_all[c][:3, 3]
@@ -563,7 +574,7 @@ class Fitter:
         uv, _ = project(pts_i, Ki, Wi)
         with torch.no_grad():
             cos = facing(triangle_normals(tri_i), pts_i, centres)
-            w = visibility_weight(cos) * self.view_weight(pts_i, centres)[:, None]
+            w = visibility_weight(cos) * self.view_weight(pts_i, centres)[:, None] * self.obs_in
         err = (uv - self.obs).norm(dim=-1)  # (N, K) px
         r = err / self.obs_scale[:, None]
         loss = (w * charbonnier(r, self.cfg.landmark_scale)).sum() / w.sum().clamp_min(1e-9)
@@ -994,7 +1005,7 @@ class Fitter:
                 pts = self.landmark_points(tri_i, self.pose_offsets(self.obs_t, tri_i, centres))
                 uv, _ = project(pts, K[self.obs_c], w2c[self.obs_c])
                 cos = facing(triangle_normals(tri_i), pts, centres)
-                w = visibility_weight(cos) > 0.5
+                w = (visibility_weight(cos) > 0.5) & (self.obs_in > 0)
                 err = (uv - self.obs).norm(dim=-1)
                 for n, i in enumerate(self.lm_images):
                     e = err[n][w[n]]

@@ -57,12 +57,15 @@ def observe(source: TrackSource, observer: FaceObserver, cfg: TrackConfig, progr
     done = 0
     for vi, view in enumerate(source.views):
         near = None  # the last face box of this view: where to look first when the whole frame shows none
+        previous = None  # the last landmarks of this view (a sequence's frames): the crop the face is followed in
+        follow = cfg.follow_landmarks if source.kind in ("video", "images") else "off"
         for t, img in source.frames(vi):
             sizes[vi] = (img.shape[1], img.shape[0])
             done += 1
             try:
-                faces[(vi, t)] = observer(img, near)
+                faces[(vi, t)] = observer(img, near, previous, follow)
                 near = faces[(vi, t)].detection.box
+                previous = faces[(vi, t)].landmarks
             except FaceProblem as p:
                 if source.kind == "image":
                     raise InputError(source.views[vi].files.get(t, source.path), p.message) from None

@@ -337,7 +337,7 @@ def track_capture(
     if out.resolve() == source.path.resolve() or source.path.resolve() in out.resolve().parents:
         raise ConfigError(f"the output folder {out} lies inside the input {source.path}")
     observer = FaceObserver(models, cfg.min_detection_score, cfg.min_presence, cfg.min_face_px, cfg.second_face_ratio,
-                            cfg.max_roll_deg, cfg.threads)
+                            cfg.max_roll_deg, cfg.threads, cfg.max_outside)
 
     t0 = time.time()
     obs = observe(source, observer, cfg, progress)
