@@ -5,13 +5,6 @@
 
 - ``no-face``: nothing detected, in the whole image nor in the tiled search for faces down to
   ``min_face_px`` wide (also when the landmark model finds no face in the detected box);
-
-A video frame may also be given the landmarks of the frame before it (``previous``): the landmark
-model then looks at the crop those landmarks give, as MediaPipe's face mesh follows a face through a
-video. With ``follow="fallback"`` that happens only when the detector's crop yields no usable face
-(near profile the detector's box is loose and the landmark model's presence falls, where the crop
-from the previous frame's landmarks still fits the face); with ``follow="first"`` the followed crop is
-tried before the detector, which then runs only when the face is lost.
 - ``rotated``: no upright face, but one appears when the image is turned by 90°, 180° or 270°; or
   the face's eye line is tilted beyond ``max_roll_deg``; or an unsure upright face (an upside-down
   face can pass for one) is found much more surely in a turned view;
@@ -19,6 +12,13 @@ tried before the detector, which then runs only when the face is lost.
 - ``tiny-face``: the face is narrower than ``min_face_px``;
 - ``cut-off``: more than ``max_outside`` of the face's landmarks lie beyond the image's edge (the
   face leaves the picture, and the landmark model guesses where the rest of it is).
+
+A video frame may also be given the landmarks of the frame before it (``previous``): the landmark
+model then looks at the crop those landmarks give, as MediaPipe's face mesh follows a face through a
+video. With ``follow="fallback"`` that happens only when the detector's crop yields no usable face
+(near profile the detector's box is loose and the landmark model's presence falls, where the crop
+from the previous frame's landmarks still fits the face); with ``follow="first"`` the followed crop is
+tried before the detector, which then runs only when the face is lost.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ TURNED_MARGIN = 0.2
 
 
 FOLLOW_MODES = ("off", "fallback", "first")
+"""How a sequence's frame may use the previous frame's landmarks (module docstring)."""
 
 # face-mesh points standing in for the detector's keypoints when a face is followed from landmarks
 _EYE_R, _EYE_L, _NOSE_TIP, _MOUTH, _EAR_R, _EAR_L = (33, 133), (263, 362), (1,), (13, 14), (234,), (454,)
@@ -163,6 +164,8 @@ class FaceObserver:
         """image: (H, W, 3) float RGB in [0, 1]; near: (4,) x0, y0, x1, y1 where a neighbouring frame's
         face was (or None); previous: (468, 2) that frame's landmarks (or None); follow: "off",
         "fallback" or "first" (module docstring). Raises FaceProblem."""
+        if follow not in FOLLOW_MODES:
+            raise ValueError(f"follow must be one of {FOLLOW_MODES}, not {follow!r}")
         H, W = image.shape[:2]
         if follow == "first":
             found = self._followed(image, previous)
