@@ -529,7 +529,8 @@ def test_problem_subset_and_keyframe_smoothing_gaps(head):
 
 
 @pytest.mark.parametrize("flags", [{"keyframes": -1}, {"track_chunk": 0}, {"track_steps": -5}, {"track_outline_period": 0},
-                                   {"outline_period": 0}, {"keyframes": 2.5}, {"silhouette_two_sided": "hair"}])
+                                   {"outline_period": 0}, {"keyframes": 2.5}, {"silhouette_two_sided": "hair"},
+                                   {"follow_landmarks": "always"}, {"max_outside": 0}, {"max_outside": 1.5}])
 def test_sequence_options_are_validated(flags):
     from sage_core.errors import ConfigError
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -278,3 +279,58 @@ def test_split_rule_and_written_capture_reads_back(tmp_path):
     assert cap.canonical is not None and np.allclose(cap.canonical.jaw_pose, [[0.3, 0, 0]])
     doc = json.loads((tmp_path / "transforms_train.json").read_text())
     assert doc["frames"][0]["timestep_id"] == "f0" and doc["frames"][0]["fg_mask_path"].startswith("fg_masks/")
+
+
+class _Source:
+    """A stand-in for TrackSource: ``kind`` and frames of one view."""
+
+    def __init__(self, kind: str, n: int, views: int = 1) -> None:
+        from sage_core.track.inputs import SourceView
+
+        self.kind, self.path = kind, Path("input")
+        self.views = [SourceView(f"v{i}", i, 8, 8, files={f"t{k}": Path(f"t{k}.png") for k in range(n)}) for i in range(views)]
+        self.timesteps = [f"t{k}" for k in range(n)]
+
+    def frames(self, view: int):
+        for t in self.timesteps:
+            yield t, np.zeros((8, 8, 3), np.float32)
+
+
+class _Observer:
+    """Records what each call was given; frame t1 is cut off by the image's edge."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, bool, str]] = []
+
+    def __call__(self, img, near, previous, follow):
+        from sage_core.track.detector import Detection
+        from sage_core.track.faces import FaceObservation, FaceProblem
+
+        t = f"t{len(self.calls) % 3}"
+        self.calls.append((t, previous is not None, follow))
+        if t == "t1":
+            raise FaceProblem("cut-off", "the face runs out of the 8x8 image")
+        lm = np.full((468, 2), 4.0)
+        return FaceObservation(lm, 0.9, Detection(0.9, np.array([2.0, 2, 6, 6]), np.zeros((6, 2))))
+
+
+def test_a_sequences_frames_are_followed_and_cut_off_frames_dropped():
+    """A video or folder of frames hands each frame the last kept landmarks and the follow mode; a
+    frame cut off by the edge is dropped with its kind; a rig is never followed; one photo cut off is
+    an input error naming it."""
+    from sage_core.track.observe import observe
+
+    cfg = resolve_track_config("tiny", None, {})
+    for kind in ("video", "images"):
+        obs = _Observer()
+        res = observe(_Source(kind, 3), obs, cfg)
+        assert obs.calls == [("t0", False, "fallback"), ("t1", True, "fallback"), ("t2", True, "fallback")]
+        assert res.kept == ["t0", "t2"] and [(d.timestep_id, d.kind) for d in res.dropped] == [("t1", "cut-off")]
+    obs = _Observer()
+    observe(_Source("video", 3), obs, resolve_track_config("tiny", None, {"follow_landmarks": "first"}))
+    assert {c[2] for c in obs.calls} == {"first"}
+    obs = _Observer()
+    observe(_Source("multiview", 3, views=2), obs, cfg)
+    assert {c[2] for c in obs.calls} == {"off"}
+    with pytest.raises(InputError, match="runs out of"):
+        observe(_Source("image", 2), _Observer(), cfg)
