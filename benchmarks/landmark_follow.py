@@ -28,26 +28,24 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's sage_core, whatever is installed
 
+from sage_core.data.cameras import Camera  # noqa: E402
+
 MODES = {"detected": "off", "followed": "first"}
 TURNS = (("within 15°", 0.0, 15.0), ("15–45°", 15.0, 45.0), ("beyond 45°", 45.0, 91.0))
 
 
-def truth_points(vertices: np.ndarray, tri: np.ndarray, bary: np.ndarray, K: np.ndarray, w2c: np.ndarray,
-                 size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def truth_points(vertices: np.ndarray, tri: np.ndarray, bary: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """Projected embedding points of one frame's true mesh and which of them count.
 
     vertices: (V, 3) world; tri: (L, 3) vertex ids of each landmark's triangle; bary: (L, 3).
     Returns (L, 2) pixel positions and (L,) bool: the triangle faces the camera and the point lies
-    inside the (W, H) image.
+    inside the image.
     """
     p = (vertices[tri] * bary[..., None]).sum(1)
-    c = p @ w2c[:3, :3].T + w2c[:3, 3]
-    uv = c[:, :2] / c[:, 2:3] * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    uv, _ = camera.project(p)
     t = vertices[tri]
     n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    centre = -w2c[:3, :3].T @ w2c[:3, 3]
-    W, H = size
-    ok = (((centre - p) * n).sum(1) > 0) & (uv >= 0).all(1) & (uv[:, 0] <= W) & (uv[:, 1] <= H)
+    ok = (((camera.center - p) * n).sum(1) > 0) & (uv >= 0).all(1) & (uv[:, 0] <= camera.width) & (uv[:, 1] <= camera.height)
     return uv, ok
 
 
@@ -71,8 +69,8 @@ def measure(video: Path, embedding: Path, threads: int = 1) -> dict:
     n_frames = 0
     for i, (_, img) in enumerate(read_source(video).frames(0)):
         n_frames += 1
-        uv, ok = truth_points(truth["vertices"][i].astype(np.float64), tri, bary, truth["K"], truth["w2c"],
-                              (img.shape[1], img.shape[0]))
+        camera = Camera(truth["K"].astype(np.float64), truth["w2c"].astype(np.float64), img.shape[1], img.shape[0])
+        uv, ok = truth_points(truth["vertices"][i].astype(np.float64), tri, bary, camera)
         for m, follow in MODES.items():
             near, prev = state[m]
             try:

@@ -384,6 +384,7 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
 
     from sage_core.data.capture import read_capture
     from sage_core.flame import FlameModel, load_flame_model
+    from sage_core.data.synthetic.model_files import MASKS_NAME
     from sage_core.track.truth import error_summary, region_errors, rigid_fit, similarity_fit
 
     sway = f"_sway{sway_mm:g}mm" if sway_mm else ""
@@ -409,22 +410,22 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         v = fm(**tr.params.to_torch(dtype=torch.float64)).vertices.numpy()
     frames = {f["timestep_index"]: int(f["timestep_id"].split("_")[1]) for f in json.loads((out / "transforms.json").read_text())["frames"]}
     w2c = truth["w2c"]
-    pairs, cam_err = [], []
+    pairs = []  # (tracked, true) vertices (V, 3) of every frame in the video camera's frame
     for row, t in enumerate(tr.params.timesteps):
         f = next(fr for fr in tr.frames if fr.timestep == int(t))
         a = v[row] @ f.camera.w2c[:3, :3].T + f.camera.w2c[:3, 3]
         b = truth["vertices"][frames[int(t)]].astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
         pairs.append((a, b))
-        e = np.linalg.norm(a - b, axis=1) * 1000
-        cam_err.append((e.mean(), e.max()))
     R, tv, s = similarity_fit(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]))
-    aligned = [(np.linalg.norm(s * a @ R.T + tv - b, axis=1) * 1000) for a, b in pairs]
-    rigid = []  # each frame's mesh moved alone: the shape and expression error without the frame's pose and depth
+    # per frame (V,) vertex errors in mm: in the camera's frame, after the one similarity, and with each
+    # frame's mesh moved alone (the shape and expression error without the frame's pose and depth)
+    camera = [np.linalg.norm(a - b, axis=1) * 1000 for a, b in pairs]
+    aligned = [np.linalg.norm(s * a @ R.T + tv - b, axis=1) * 1000 for a, b in pairs]
+    rigid = []
     for a, b in pairs:
         Rr, tr_ = rigid_fit(a, b)
         rigid.append(np.linalg.norm(a @ Rr.T + tr_ - b, axis=1) * 1000)
-    camera_v = [np.linalg.norm(a - b, axis=1) * 1000 for a, b in pairs]
-    regions = region_errors(Path(meta["model"]).parent / "FLAME_masks.pkl", camera=np.mean(camera_v, 0),
+    regions = region_errors(Path(meta["model"]).parent / MASKS_NAME, camera=np.mean(camera, 0),
                             aligned=np.mean(aligned, 0), rigid=np.mean(rigid, 0))
     yaw = np.abs(np.rad2deg(truth["rotation"][[frames[int(t)] for t in tr.params.timesteps], 1]))
     by_turn = {}
@@ -439,7 +440,8 @@ def video_case(work: Path, seconds: float, fps: float, size: tuple[int, int], tr
         "timesteps": report["timesteps"], "dropped": len(report["dropped"]), "wall_s": round(wall, 1),
         "timings_s": report["timings_s"], "reprojection_px": report["reprojection_px"]["mean"],
         "steady_pivot": report.get("steady_pivot"),
-        "errors": {"camera": error_summary(cam_err), "aligned": {**error_summary([(e.mean(), e.max()) for e in aligned]), "scale": round(s, 4)},
+        "errors": {"camera": error_summary([(e.mean(), e.max()) for e in camera]),
+                   "aligned": {**error_summary([(e.mean(), e.max()) for e in aligned]), "scale": round(s, 4)},
                    "rigid_per_timestep": error_summary([(e.mean(), e.max()) for e in rigid]),
                    "regions": regions, "by_turn": by_turn,
                    "focal_rel_error": round(focal / float(truth["K"][0, 0]) - 1, 4)},

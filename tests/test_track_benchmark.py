@@ -308,10 +308,12 @@ def test_landmark_follow_truth_points_project_and_keep_the_visible_ones():
     v = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.5, 0, 0], [0.6, 0, 0], [0.5, 0.1, 0]], float)
     tri = np.array([[0, 1, 2], [3, 4, 5], [0, 2, 1]])
     bary = np.full((3, 3), 1 / 3)
+    from sage_core.data.cameras import Camera
+
     K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
     w2c = np.eye(4)
     w2c[:3, :3] = np.diag([1.0, -1.0, -1.0])  # OpenCV camera at z = 1 looking down -z
     w2c[2, 3] = 1.0
-    uv, ok = lf.truth_points(v, tri, bary, K, w2c, (100, 100))
+    uv, ok = lf.truth_points(v, tri, bary, Camera(K, w2c, 100, 100))
     assert uv[0] == pytest.approx([50 + 100 * 0.1 / 3, 50 - 100 * 0.1 / 3])
     assert ok.tolist() == [True, False, False]  # the second lies beyond the image's edge, the third faces away

@@ -17,6 +17,8 @@ REGIME_ALIASES: dict[str, str] = {"mv": "mv", "multiview": "mv", "monocular": "s
 """Other spellings ``--regime`` takes: ``mv`` (or ``multiview``) is mv-sf for one timestep of a rig and
 mv-mf for several; ``monocular`` and ``oneshot`` are the ``sage synth`` names."""
 TRACK_PRESETS: tuple[str, ...] = ("tiny", "default")
+FOLLOW_MODES: tuple[str, ...] = ("off", "fallback", "first")
+"""``follow_landmarks``: how a sequence's frame may use the previous frame's landmarks (:mod:`.faces`)."""
 
 
 def _opt(default: Any, help: str, **meta: Any) -> Any:
@@ -55,7 +57,7 @@ class TrackConfig:
                                              "landmarks give (as MediaPipe's face mesh follows a face). fallback: only when the "
                                              "detector's crop yields no usable face (near profile); first: before the detector, "
                                              "which then runs only when the face is lost; off: every frame from its detection.",
-                                 choices=("off", "fallback", "first"))
+                                 choices=FOLLOW_MODES)
     max_dropped: float = _opt(0.5, "Fail when more than this fraction of the frames has no usable face.", ge=0, le=1)
     # -- crop and output -----------------------------------------------------------------------
     crop: bool = _opt(True, "Crop every camera's images to a window around the head (cx, cy follow).")

@@ -105,19 +105,19 @@ class FaceMesh:
         presence = float(1.0 / (1.0 + np.exp(-np.clip(logit, -60.0, 60.0))))
         return FaceLandmarks(np.concatenate([xy, z], 1), presence, roi)
 
-    def follow(self, image: np.ndarray, points: np.ndarray, passes: int = 2) -> FaceLandmarks:
-        """Landmarks from a neighbouring video frame's (468, 2+) points, without a detection: ``passes``
-        passes, each on the crop from the previous pass's points (the first from ``points``), as
-        MediaPipe's face mesh follows a face from frame to frame."""
-        lm = self.run(image, roi_from_landmarks(points))
+    def _passes(self, image: np.ndarray, roi: Roi, passes: int) -> FaceLandmarks:
+        """One pass on ``roi``, then ``passes − 1`` refinement passes on crops from the previous landmarks."""
+        lm = self.run(image, roi)
         for _ in range(max(0, passes - 1)):
             lm = self.run(image, roi_from_landmarks(lm.points))
         return lm
 
+    def follow(self, image: np.ndarray, points: np.ndarray, passes: int = 2) -> FaceLandmarks:
+        """Landmarks from a neighbouring video frame's (468, 2+) points, without a detection (the first
+        pass on the crop those points give), as MediaPipe's face mesh follows a face from frame to frame."""
+        return self._passes(image, roi_from_landmarks(points), passes)
+
     def __call__(self, image: np.ndarray, det: Detection, passes: int = 2) -> FaceLandmarks:
         """Landmarks from a detection: one pass on the detection's crop, then ``passes − 1``
         refinement passes on crops from the previous landmarks."""
-        lm = self.run(image, roi_from_detection(det))
-        for _ in range(max(0, passes - 1)):
-            lm = self.run(image, roi_from_landmarks(lm.points))
-        return lm
+        return self._passes(image, roi_from_detection(det), passes)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .config import FOLLOW_MODES
 from .detector import Detection, FaceDetector
 from .face_mesh import FaceLandmarks, FaceMesh
 from .weights import ModelPaths
@@ -37,9 +38,6 @@ UNSURE_SCORE = 0.75
 TURNED_MARGIN = 0.2
 """... and the image is refused as turned when a turned view scores higher by this much."""
 
-
-FOLLOW_MODES = ("off", "fallback", "first")
-"""How a sequence's frame may use the previous frame's landmarks (module docstring)."""
 
 # face-mesh points standing in for the detector's keypoints when a face is followed from landmarks
 _EYE_R, _EYE_L, _NOSE_TIP, _MOUTH, _EAR_R, _EAR_L = (33, 133), (263, 362), (1,), (13, 14), (234,), (454,)
@@ -130,16 +128,10 @@ class FaceObserver:
                 return deg
         return None
 
-    def detect(self, image: np.ndarray, near: np.ndarray | None = None) -> list[Detection]:
-        """Faces in ``image`` (H, W, 3), best first: the whole image first; when it shows none, the
-        region around ``near`` (4,) (a neighbouring video frame's face box), then the tiled search
-        for faces down to ``min_face_px`` wide (:meth:`FaceDetector.search`)."""
-        dets = self._detect_near(image, near)
-        if not dets:
-            dets = self.detector.search(image, self.min_face_px)
-        return dets
-
     def _detect_near(self, image: np.ndarray, near: np.ndarray | None) -> list[Detection]:
+        """Faces in ``image`` (H, W, 3), best first: the whole image; when it shows none, the region
+        around ``near`` (4,) (a neighbouring video frame's face box). The caller runs the tiled search
+        (:meth:`FaceDetector.search`) when both find none."""
         dets = self.detector(image)
         if not dets and near is not None:
             dets = self.detector.in_region(image, near)
